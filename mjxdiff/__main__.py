@@ -1,0 +1,5 @@
+import sys
+
+from mjxdiff.cli import main
+
+sys.exit(main())

@@ -1,0 +1,161 @@
+"""``python -m mjxdiff``: sweep scenarios, list them.
+
+Exit codes: 0 every scenario consistent (unsupported ones are reported, not
+failing), 1 at least one divergence (fail, or a non-finite rollout), 2 bad
+usage or input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from typing import Sequence
+
+__all__ = ["main"]
+
+_DESCRIPTION = """\
+mjxdiff: does MuJoCo MJX behave like MuJoCo C? It rolls out batches of
+randomized variants of each scenario in both engines (MJX: jit+vmap+scan on
+the CPU; C: mujoco.batch on all cores), compares qpos, qvel, act, sensors and
+contact counts step by step, and prints one verdict per scenario."""
+
+_SWEEP_EPILOG = """\
+examples:
+  python -m mjxdiff sweep                       # every bundled scenario
+  python -m mjxdiff sweep pendulum ant --quick  # two scenarios, small smoke run
+  python -m mjxdiff sweep my_robot.xml          # your own MJCF, default randomization
+  python -m mjxdiff sweep --out results --format json
+
+statuses: PASS within tolerance; FAIL a field left its tolerance (the line names
+field, object, step and time); UNSUP MJX refused the model (feature named);
+ERROR bad input, or a non-finite state (engine, member and step named).
+exit codes: 0 consistent, 1 divergence found, 2 bad usage or input."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error and exit code 2, no usage dump."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def _fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
+    if not 0 <= value <= 1:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="mjxdiff", description=_DESCRIPTION,
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    sw = sub.add_parser("sweep", help="compare MJX with MuJoCo C on scenarios",
+                        description=_DESCRIPTION, epilog=_SWEEP_EPILOG,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    sw.add_argument("scenarios", nargs="*", metavar="SCENARIO",
+                    help="bundled scenario name, path to a scenario .toml, or path to any MJCF .xml "
+                         "(default: every bundled scenario; see 'mjxdiff list')")
+    sw.add_argument("--seed", type=int, default=0, help="master seed of all randomization (default 0)")
+    sw.add_argument("--batch", type=_positive, help="batch members per scenario (default: the scenario's)")
+    sw.add_argument("--steps", type=_positive, help="steps per rollout (default: the scenario's)")
+    sw.add_argument("--precision", choices=("float64", "float32"), default="float64",
+                    help="MJX precision; float64 (default) keeps rounding far below algorithmic "
+                         "differences, float32 uses looser tolerance floors")
+    sw.add_argument("--threshold", type=_fraction, default=0.95,
+                    help="least fraction of batch members within tolerance for a scenario to pass (default 0.95)")
+    sw.add_argument("--out", metavar="DIR", help="write DIR/report.json (versions, config, per-scenario metrics)")
+    sw.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
+    sw.add_argument("--quick", action="store_true", help="smoke run: batch <= 4, steps <= 50")
+    sw.add_argument("--cache-dir", metavar="DIR",
+                    help="JAX persistent compilation cache (default $MJXDIFF_CACHE or ~/.cache/mjxdiff/jax; "
+                         "'' disables)")
+    sw.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                    help="progress lines on stderr (default: when stderr is a terminal)")
+    sub.add_parser("list", help="list bundled scenarios and what each exercises",
+                   description="List bundled scenarios with their model, size and what they exercise.")
+    return parser
+
+
+def _cmd_list() -> int:
+    from mjxdiff.scenario import ScenarioError, bundled_scenarios
+
+    try:
+        scenarios = bundled_scenarios()
+    except ScenarioError as e:
+        print(f"mjxdiff: error: {e}", file=sys.stderr)
+        return 2
+    for s in scenarios:
+        print(f"{s.name:<28} batch {s.batch:>3} x {s.steps:>4} steps  {s.description}")
+        if s.exercises:
+            print(f"{'':<28} exercises: {', '.join(s.exercises)}")
+    return 0
+
+
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from mjxdiff import engines, report
+    from mjxdiff.scenario import ScenarioError, bundled_scenarios, load_scenario
+    from mjxdiff.sweep import SweepConfig, exit_code, sweep
+    from mjxdiff.verdict import ScenarioResult
+
+    engines.configure_jax(args.precision, args.cache_dir)
+    config = SweepConfig(seed=args.seed, batch=args.batch, steps=args.steps, precision=args.precision,
+                         quick=args.quick, threshold=args.threshold)
+    scenarios, bad = [], []
+    try:
+        refs = args.scenarios or [s.name for s in bundled_scenarios()]
+    except ScenarioError as e:
+        print(f"mjxdiff: error: {e}", file=sys.stderr)
+        return 2
+    for ref in refs:
+        try:
+            scenarios.append(load_scenario(ref))
+        except ScenarioError as e:
+            bad.append(ScenarioResult(name=str(ref), status="error", error_kind="input", message=str(e)))
+    for r in bad:
+        print(f"mjxdiff: error: {r.message}", file=sys.stderr)
+
+    def show(r: ScenarioResult) -> None:
+        if args.format == "text":
+            print(report.format_line(r), flush=True)
+
+    t0 = time.perf_counter()
+    results = bad + sweep(scenarios, config, progress=args.progress, on_result=show)
+    seconds = time.perf_counter() - t0
+    doc = report.to_json(results, dict(vars(args), threshold=args.threshold, seconds=seconds,
+                                       mjx_compiles=engines.compile_count()))
+    if args.out:
+        path = report.write_report(args.out, doc)
+        print(f"report written to {path}", file=sys.stderr)
+    if args.format == "json":
+        print(json.dumps(doc, indent=2))
+    else:
+        print(report.format_text(results, args.threshold, seconds).splitlines()[-1])
+    return exit_code(results)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.command == "list":
+        return _cmd_list()
+    return _cmd_sweep(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

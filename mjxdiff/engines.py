@@ -1,0 +1,258 @@
+"""The two engines behind one interface: MuJoCo C and MJX, batched.
+
+Both take the same :class:`~mjxdiff.inputs.BatchedInputs` and return a
+:class:`Trajectory` with the same fields and shapes. Recording follows
+``mj_step``: after step k, ``qpos``/``qvel``/``act``/``time`` are the new
+state, while ``sensordata`` and ``ncon`` were computed from the state before
+the step (both engines evaluate them in the forward pass that precedes
+integration).
+
+* :class:`CEngine` steps every member on all cores with :class:`mujoco.batch.Batch`.
+* :class:`MJXEngine` runs ``jit(vmap(scan(mjx.step)))``. Each member's model is
+  ``mjx.put_model`` of its own C model; model leaves that differ between
+  members are batched inputs (``vmap`` axis 0), the rest are shared. One
+  compiled function therefore serves every randomized variant of a model
+  structure: it is cached by JAX on (structure, which leaves vary, B, T).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import io
+import os
+from pathlib import Path
+from typing import Protocol
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import warp" to stdout
+    from mujoco import mjx
+from mujoco.batch import Batch, SimulationError
+
+from mjxdiff.inputs import BatchedInputs
+
+__all__ = [
+    "CEngine",
+    "Engine",
+    "MJXEngine",
+    "Trajectory",
+    "UnsupportedError",
+    "configure_jax",
+    "put_models",
+]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Trajectory:
+    """A batch of rollouts, every field shaped ``(B, T, ...)``.
+
+    Attributes:
+      qpos: (B, T, nq) positions after each step.
+      qvel: (B, T, nv) velocities after each step.
+      act: (B, T, na) actuator activations after each step.
+      sensordata: (B, T, nsensordata) sensors, evaluated before each step.
+      time: (B, T) simulated time after each step, s.
+      ncon: (B, T) number of active contacts, evaluated before each step.
+      diverged_at: (B,) first step at which the engine produced a non-finite
+        state or stopped on a MuJoCo instability warning; -1 if never.
+    """
+
+    qpos: jax.Array
+    qvel: jax.Array
+    act: jax.Array
+    sensordata: jax.Array
+    time: jax.Array
+    ncon: jax.Array
+    diverged_at: jax.Array
+
+    def to_numpy(self) -> "Trajectory":
+        return jax.tree.map(np.asarray, self)
+
+
+class UnsupportedError(Exception):
+    """MJX refused the model (``NotImplementedError`` in ``put_model``); ``feature`` names what."""
+
+    def __init__(self, feature: str):
+        super().__init__(feature)
+        self.feature = feature
+
+
+class Engine(Protocol):
+    """What the comparison needs from a simulator: batched inputs in, a trajectory out."""
+
+    name: str
+
+    def rollout(self, inputs: BatchedInputs) -> Trajectory: ...
+
+
+def configure_jax(precision: str = "float64", cache_dir: str | os.PathLike | None = None) -> None:
+    """Sets JAX's precision and persistent compilation cache for this process.
+
+    Args:
+      precision: ``float64`` (``jax_enable_x64``, the default: algorithmic
+        differences are not drowned by rounding) or ``float32``.
+      cache_dir: persistent compilation cache directory; ``None`` uses
+        ``$MJXDIFF_CACHE`` or ``~/.cache/mjxdiff/jax``; ``""`` disables it.
+    """
+    if precision not in ("float32", "float64"):
+        raise ValueError(f"precision must be float32 or float64, got {precision!r}")
+    jax.config.update("jax_enable_x64", precision == "float64")
+    if cache_dir is None:
+        cache_dir = os.environ.get("MJXDIFF_CACHE", Path.home() / ".cache" / "mjxdiff" / "jax")
+    if cache_dir:
+        jax.config.update("jax_compilation_cache_dir", str(cache_dir))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def _first_true(mask: np.ndarray) -> np.ndarray:
+    """(B,) index of the first True along axis 1 of a (B, T) mask, -1 if none."""
+    return np.where(mask.any(axis=1), mask.argmax(axis=1), -1)
+
+
+def _record_buffer(m: mujoco.MjModel, d: mujoco.MjData, item, batch: int, steps: int) -> np.ndarray:
+    """A zeroed (B, T, ...) array of the shape and dtype ``Batch.rollout`` records ``item`` in."""
+    if not isinstance(item, str):  # an mjtState spec
+        return np.zeros((batch, steps, mujoco.mj_stateSize(m, int(item))))
+    value = getattr(d, item)
+    template = value if isinstance(value, np.ndarray) else np.zeros((), np.int32)  # int scalars: int32
+    return np.zeros((batch, steps, *template.shape), template.dtype)
+
+
+class CEngine:
+    """MuJoCo C: :class:`mujoco.batch.Batch` over all cores, one model per member."""
+
+    name = "c"
+
+    def __init__(self, nthread: int = 0):
+        self.nthread = nthread
+
+    def rollout(self, inputs: BatchedInputs) -> Trajectory:
+        m = inputs.models[0]
+        b = Batch(m, inputs.batch, nthread=self.nthread)
+        b.set_models(list(inputs.models))
+        b.qpos[:] = inputs.qpos
+        b.qvel[:] = inputs.qvel
+        if m.na:
+            b.act[:] = inputs.act
+        time_spec = mujoco.mjtState.mjSTATE_TIME
+        record = ("qpos", "qvel", "act", "sensordata", "ncon", time_spec)
+        # preallocated, so that records survive a SimulationError in some members
+        d = mujoco.MjData(m)
+        out = {item: _record_buffer(m, d, item, inputs.batch, inputs.steps) for item in record}
+        raised = np.zeros(inputs.batch, bool)
+        try:
+            b.rollout(inputs.steps, control=inputs.ctrl, record=record, out=out)
+        except SimulationError as e:
+            raised[np.asarray(e.ids)] = True
+        time = out[time_spec][..., 0]
+        # A member whose warning counters rise stops, and its records then repeat.
+        warned = (b.warning[:, :, 1].sum(axis=1) > 0) | raised
+        prev = np.concatenate([np.zeros((inputs.batch, 1)), time[:, :-1]], axis=1)
+        stalled = _first_true(time <= prev)
+        nonfinite = _first_true(~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1))
+        diverged = np.where(warned, np.maximum(stalled, 0), nonfinite)
+        return Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"],
+                          sensordata=out["sensordata"], time=time,
+                          ncon=out["ncon"].astype(np.int64), diverged_at=diverged)
+
+
+def put_models(models: tuple[mujoco.MjModel, ...]) -> tuple[mjx.Model, tuple[bool, ...]]:
+    """``mjx.put_model`` of every member, with varying leaves stacked.
+
+    Returns:
+      (mx, varying): an ``mjx.Model`` whose leaves are either shared (as in
+      member 0) or stacked along a new leading batch axis, and a per-leaf
+      tuple saying which were stacked.
+
+    Raises:
+      UnsupportedError: MJX does not implement a feature the model uses.
+      ValueError: members differ in a field MJX treats as static structure.
+    """
+    try:
+        mxs = [mjx.put_model(models[0])]
+    except NotImplementedError as e:
+        raise UnsupportedError(" ".join(str(e).split()) or type(e).__name__) from None
+    cache = {id(models[0]): mxs[0]}
+    for mi in models[1:]:
+        if id(mi) not in cache:
+            cache[id(mi)] = mjx.put_model(mi)
+        mxs.append(cache[id(mi)])
+    leaves0, treedef = jax.tree.flatten(mxs[0])
+    columns = [leaves0]
+    for mxi in mxs[1:]:
+        leaves, td = jax.tree.flatten(mxi)
+        if td != treedef:
+            raise ValueError("batch members differ in a field MJX treats as static; "
+                             "randomize only numeric parameters (masses, friction, damping, gains, gravity, timestep)")
+        columns.append(leaves)
+    varying = tuple(any(not np.array_equal(col[k], leaves0[k]) for col in columns[1:])
+                    for k in range(len(leaves0)))
+    stacked = [jnp.stack([col[k] for col in columns]) if v else leaves0[k]
+               for k, v in enumerate(varying)]
+    return jax.tree.unflatten(treedef, stacked), varying
+
+
+_COMPILES = {"count": 0}
+
+
+def compile_count() -> int:
+    """How many times the MJX rollout has been traced (compiled) in this process."""
+    return _COMPILES["count"]
+
+
+def _contact_count(dx: mjx.Data) -> jax.Array:
+    impl = dx._impl
+    c = impl.contact
+    if c.dist.shape[0] == 0:
+        return jnp.zeros((), jnp.int32)
+    return jnp.sum(c.dist < c.includemargin)
+
+
+@functools.partial(jax.jit, static_argnames=("varying",))
+def _rollout(mx, dx0, qpos, qvel, act, ctrl, varying):
+    _COMPILES["count"] += 1  # runs only while tracing
+    axes = jax.tree.unflatten(jax.tree.structure(mx), [0 if v else None for v in varying])
+
+    def member(mx, qpos, qvel, act, ctrl):
+        def step(dx, u):
+            dx = mjx.step(mx, dx.replace(ctrl=u))
+            rec = dict(qpos=dx.qpos, qvel=dx.qvel, act=dx.act, sensordata=dx.sensordata,
+                       time=dx.time, ncon=_contact_count(dx))
+            return dx, rec
+
+        _, rec = jax.lax.scan(step, dx0.replace(qpos=qpos, qvel=qvel, act=act), ctrl)
+        return rec
+
+    return jax.vmap(member, in_axes=(axes, 0, 0, 0, 0))(mx, qpos, qvel, act, ctrl)
+
+
+def _canonical_ints(dx: mjx.Data) -> mjx.Data:
+    # make_data gives some int32 leaves that mjx.step returns as int64 under x64;
+    # scan needs the carry's dtypes fixed.
+    int_t = jnp.asarray(0).dtype
+    return jax.tree.map(lambda x: x.astype(int_t) if jnp.issubdtype(x.dtype, jnp.integer) else x, dx)
+
+
+class MJXEngine:
+    """MJX: ``jit(vmap(scan(mjx.step)))`` with per-member model parameters batched."""
+
+    name = "mjx"
+
+    def rollout(self, inputs: BatchedInputs) -> Trajectory:
+        mx, varying = put_models(inputs.models)
+        dx0 = _canonical_ints(mjx.make_data(inputs.models[0]))
+        ft = dx0.qpos.dtype
+        rec = _rollout(mx, dx0, jnp.asarray(inputs.qpos, ft), jnp.asarray(inputs.qvel, ft),
+                       jnp.asarray(inputs.act, ft), jnp.asarray(inputs.ctrl, ft), varying)
+        rec = jax.tree.map(np.asarray, jax.block_until_ready(rec))
+        nonfinite = ~np.isfinite(rec["qpos"]).all(-1) | ~np.isfinite(rec["qvel"]).all(-1)
+        return Trajectory(qpos=rec["qpos"], qvel=rec["qvel"], act=rec["act"],
+                          sensordata=rec["sensordata"], time=rec["time"],
+                          ncon=rec["ncon"].astype(np.int64), diverged_at=_first_true(nonfinite))

@@ -1,0 +1,198 @@
+"""Scenario -> batched inputs: initial states, controls and per-member models.
+
+Everything random is drawn here, from one :class:`numpy.random.Generator`
+seeded by ``(seed, crc32(scenario name))``, so the same seed gives bit-identical
+inputs and scenarios do not share streams. Both engines receive exactly these
+numbers.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import zlib
+
+import mujoco
+import numpy as np
+
+from mjxdiff.scenario import Randomization, Scenario
+
+__all__ = ["BatchedInputs", "make_inputs", "make_controls"]
+
+_CONTROL_KNOT_SECONDS = 0.1  # smooth/step controls change about every 0.1 s of simulated time
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchedInputs:
+    """What both engines are given, for B batch members and T steps.
+
+    Attributes:
+      qpos: (B, nq) initial joint positions.
+      qvel: (B, nv) initial joint velocities.
+      act: (B, na) initial actuator activations.
+      ctrl: (B, T, nu) controls applied before each step.
+      models: B compiled C models, each with its own scaled parameters and
+        ``mj_setConst`` re-run so derived constants follow.
+      factors: parameter name -> (B, ...) multiplicative factors drawn, for
+        the report.
+      seed: the seed everything was drawn from.
+    """
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+    act: np.ndarray
+    ctrl: np.ndarray
+    models: tuple[mujoco.MjModel, ...]
+    factors: dict[str, np.ndarray]
+    seed: int
+
+    @property
+    def batch(self) -> int:
+        return self.qpos.shape[0]
+
+    @property
+    def steps(self) -> int:
+        return self.ctrl.shape[1]
+
+
+def _rng(seed: int, name: str) -> np.random.Generator:
+    return np.random.default_rng([seed, zlib.crc32(name.encode())])
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
+    w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
+    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+                     w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+                     w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=-1)
+
+
+def _axis_angle_quat(rotvec: np.ndarray) -> np.ndarray:
+    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
+    axis = np.divide(rotvec, angle, out=np.zeros_like(rotvec), where=angle > 0)
+    return np.concatenate([np.cos(angle / 2), axis * np.sin(angle / 2)], axis=-1)
+
+
+def _initial_qpos(m: mujoco.MjModel, base: np.ndarray, noise: float, batch: int,
+                  rng: np.random.Generator) -> np.ndarray:
+    """(B, nq) ``base`` plus noise: Gaussian on scalars, random small rotations on quaternions."""
+    qpos = np.tile(base, (batch, 1))
+    for j in range(m.njnt):
+        adr, jtype = m.jnt_qposadr[j], m.jnt_type[j]
+        if jtype == mujoco.mjtJoint.mjJNT_FREE:
+            qpos[:, adr:adr + 3] += rng.normal(0, noise, (batch, 3))
+            adr += 3
+        if jtype in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL):
+            q = _quat_mul(qpos[:, adr:adr + 4], _axis_angle_quat(rng.normal(0, noise, (batch, 3))))
+            qpos[:, adr:adr + 4] = q / np.linalg.norm(q, axis=-1, keepdims=True)
+        else:
+            qpos[:, adr] += rng.normal(0, noise, batch)
+            if m.jnt_limited[j]:
+                lo, hi = m.jnt_range[j]
+                # stay strictly inside the limits: a start on the limit is a grazing contact
+                margin = 1e-3 * (hi - lo)
+                qpos[:, adr] = np.clip(qpos[:, adr], lo + margin, hi - margin)
+    return qpos
+
+
+def make_controls(m: mujoco.MjModel, randomize: Randomization, batch: int, steps: int,
+                  timestep: float, rng: np.random.Generator) -> np.ndarray:
+    """(B, T, nu) controls of the scenario's family, clipped to ``ctrlrange``.
+
+    With c the range centre and a = ``control_scale`` * half-width:
+    ``zero``: 0; ``sinusoid``: c + a sin(2 pi f t + phi), f ~ U[0.5, 2] Hz;
+    ``step``: c + a * (a new U[-1, 1] level every ~0.1 s);
+    ``smooth``: the same knots, linearly interpolated.
+    """
+    nu = m.nu
+    lo = np.where(m.actuator_ctrllimited, m.actuator_ctrlrange[:, 0], -1.0)
+    hi = np.where(m.actuator_ctrllimited, m.actuator_ctrlrange[:, 1], 1.0)
+    centre, amp = (hi + lo) / 2, randomize.control_scale * (hi - lo) / 2
+    t = np.arange(steps) * timestep
+    family = randomize.control
+    if family == "zero" or nu == 0:
+        ctrl = np.zeros((batch, steps, nu))
+    elif family == "sinusoid":
+        freq = rng.uniform(0.5, 2.0, (batch, 1, nu))
+        phase = rng.uniform(0, 2 * np.pi, (batch, 1, nu))
+        ctrl = centre + amp * np.sin(2 * np.pi * freq * t[None, :, None] + phase)
+    else:
+        knot_every = max(1, int(round(_CONTROL_KNOT_SECONDS / timestep)))
+        nknot = steps // knot_every + 2
+        knots = rng.uniform(-1, 1, (batch, nknot, nu))
+        if family == "step":
+            level = knots[:, np.arange(steps) // knot_every]
+        else:
+            s = np.arange(steps) / knot_every
+            i, w = np.floor(s).astype(int), (s - np.floor(s))[None, :, None]
+            level = knots[:, i] * (1 - w) + knots[:, i + 1] * w
+        ctrl = centre + amp * level
+    return np.clip(ctrl, lo, hi)
+
+
+def _scaled_model(m: mujoco.MjModel, factors: dict[str, np.ndarray], i: int) -> mujoco.MjModel:
+    """A copy of ``m`` with member ``i``'s factors applied and constants recomputed."""
+    mi = copy.copy(m)
+    f = {k: v[i] for k, v in factors.items()}
+    if "body_mass" in f:
+        mi.body_mass[:] = m.body_mass * f["body_mass"]
+        mi.body_inertia[:] = m.body_inertia * f["body_mass"][:, None]  # same density scaling
+    if "geom_friction" in f:
+        mi.geom_friction[:] = m.geom_friction * f["geom_friction"][:, None]
+    if "dof_damping" in f:
+        mi.dof_damping[:] = m.dof_damping * f["dof_damping"]
+    if "actuator_gain" in f:
+        # gain and the affine bias terms together, so a position servo stays a servo
+        mi.actuator_gainprm[:, 0] = m.actuator_gainprm[:, 0] * f["actuator_gain"]
+        mi.actuator_biasprm[:, 1:3] = m.actuator_biasprm[:, 1:3] * f["actuator_gain"][:, None]
+    if "gravity" in f:
+        mi.opt.gravity[:] = m.opt.gravity * f["gravity"]
+    if "timestep" in f:
+        mi.opt.timestep = m.opt.timestep * f["timestep"]
+    # C reads derived constants (subtree masses, invweights) that MJX's
+    # put_model copies; recompute them so both engines see one consistent model.
+    mujoco.mj_setConst(mi, mujoco.MjData(mi))
+    return mi
+
+
+_FACTOR_SHAPE = {
+    "body_mass": lambda m: (m.nbody,),
+    "geom_friction": lambda m: (m.ngeom,),
+    "dof_damping": lambda m: (m.nv,),
+    "actuator_gain": lambda m: (m.nu,),
+    "gravity": lambda m: (),
+    "timestep": lambda m: (),
+}
+
+
+def make_inputs(scenario: Scenario, m: mujoco.MjModel, seed: int,
+                batch: int | None = None, steps: int | None = None) -> BatchedInputs:
+    """Draws the scenario's batch: same ``seed`` and arguments, bit-identical result.
+
+    Args:
+      scenario: the scenario (randomization, keyframe, defaults for batch/steps).
+      m: its compiled C model.
+      seed: master seed.
+      batch: overrides ``scenario.batch``.
+      steps: overrides ``scenario.steps``.
+    """
+    batch = batch or scenario.batch
+    steps = steps or scenario.steps
+    rz = scenario.randomize
+    rng = _rng(seed, scenario.name)
+    d = mujoco.MjData(m)
+    if scenario.keyframe is not None:
+        mujoco.mj_resetDataKeyframe(m, d, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, scenario.keyframe))
+    qpos = _initial_qpos(m, d.qpos.copy(), rz.qpos_noise, batch, rng)
+    qvel = np.tile(d.qvel, (batch, 1)) + rng.normal(0, rz.qvel_noise, (batch, m.nv))
+    act = np.tile(d.act, (batch, 1))
+    factors = {}
+    for name in sorted(rz.scale):
+        lo, hi = rz.scale[name]
+        if lo == hi == 1.0:
+            continue
+        factors[name] = rng.uniform(lo, hi, (batch, *_FACTOR_SHAPE[name](m)))
+    ctrl = make_controls(m, rz, batch, steps, m.opt.timestep, rng)
+    models = tuple(_scaled_model(m, factors, i) for i in range(batch)) if factors else (m,) * batch
+    return BatchedInputs(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl, models=models, factors=factors, seed=seed)

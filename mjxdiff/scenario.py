@@ -1,0 +1,305 @@
+"""Scenario files: what to simulate, how to randomize it, how strictly to judge it.
+
+A scenario is a TOML file (read with :mod:`tomllib`) naming an MJCF model plus
+batch size, horizon, randomization and tolerances; see ``scenarios/*.toml``
+and the README for the schema. Any MJCF file can also stand in for a scenario:
+it is then swept with the default randomization and tolerances.
+
+This module only parses and validates. Turning a scenario into numbers is
+:mod:`mjxdiff.inputs`; loading its model is :func:`load_model`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import tomllib
+from pathlib import Path
+from typing import Any, Mapping
+
+import mujoco
+
+__all__ = [
+    "BUNDLED_DIR",
+    "CONTROL_FAMILIES",
+    "SCALED_PARAMETERS",
+    "Randomization",
+    "Scenario",
+    "ScenarioError",
+    "Tolerances",
+    "bundled_scenarios",
+    "load_model",
+    "load_scenario",
+]
+
+BUNDLED_DIR = Path(os.environ.get("MJXDIFF_SCENARIOS", Path(__file__).resolve().parent.parent / "scenarios"))
+CONTROL_FAMILIES = ("zero", "smooth", "sinusoid", "step")
+#: Model parameters a scenario may scale per batch member, by a factor drawn
+#: uniformly from ``[lo, hi]``: one factor per element (body, geom, dof,
+#: actuator) or, for ``gravity`` and ``timestep``, one per member.
+SCALED_PARAMETERS = ("body_mass", "geom_friction", "dof_damping", "actuator_gain", "gravity", "timestep")
+
+# Where `brax:` and `mjx:` model references resolve: models shipped in wheels.
+_WHEEL_MODEL_DIRS = {
+    "brax": ("brax", "envs/assets"),
+    "mjx": ("mujoco.mjx", "test_data"),
+}
+
+
+class ScenarioError(ValueError):
+    """A scenario or model cannot be used; the message says what to fix, in one line."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Tolerances:
+    """Largest acceptable MJX-vs-C errors, per metric, at any step.
+
+    Attributes:
+      qpos: joint position error, m for translations and rad for rotations
+        (quaternions compared by geodesic angle).
+      qvel: joint velocity error, m/s or rad/s.
+      act: actuator activation error, in the actuator's own units.
+      sensordata: absolute sensor error, in each sensor's units.
+      contact_mismatch: largest fraction of steps whose contact count differs
+        (MJX drops exactly-touching contacts that C keeps, so 0 is too strict).
+      rangefinder_mismatch: largest fraction of (step, ray) pairs where one
+        engine hits and the other does not.
+    """
+
+    qpos: float = 1e-6
+    qvel: float = 1e-5
+    act: float = 1e-6
+    sensordata: float = 1e-4
+    contact_mismatch: float = 0.05
+    rangefinder_mismatch: float = 0.02
+
+    # float32 rounding (eps ~1.2e-7) accumulates over hundreds of steps; these
+    # floors were measured on the bundled calm scenarios (see README).
+    _FLOAT32_FLOOR = {"qpos": 1e-3, "qvel": 1e-2, "act": 1e-3, "sensordata": 5e-2}
+
+    def for_precision(self, precision: str) -> "Tolerances":
+        """Tolerances for ``precision``: float64 as given, float32 raised to its floor."""
+        if precision == "float64":
+            return self
+        return dataclasses.replace(
+            self, **{k: max(getattr(self, k), v) for k, v in self._FLOAT32_FLOOR.items()}
+        )
+
+    def as_dict(self) -> dict[str, float]:
+        return dataclasses.asdict(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class Randomization:
+    """How batch members differ from one another.
+
+    Attributes:
+      qpos_noise: std of Gaussian noise added to hinge/slide/free-translation
+        ``qpos`` (rad or m); quaternions are rotated by a random axis-angle of
+        this std (rad).
+      qvel_noise: std of Gaussian noise on ``qvel`` (m/s or rad/s).
+      control: control family, one of :data:`CONTROL_FAMILIES`.
+      control_scale: amplitude as a fraction of each actuator's ctrlrange
+        half-width (unlimited actuators use [-1, 1]).
+      scale: parameter name -> (lo, hi) multiplicative range, see
+        :data:`SCALED_PARAMETERS`.
+    """
+
+    qpos_noise: float = 0.05
+    qvel_noise: float = 0.05
+    control: str = "smooth"
+    control_scale: float = 1.0
+    scale: Mapping[str, tuple[float, float]] = dataclasses.field(
+        default_factory=lambda: {
+            "body_mass": (0.9, 1.1),
+            "geom_friction": (0.9, 1.1),
+            "dof_damping": (0.9, 1.1),
+            "actuator_gain": (0.9, 1.1),
+            "gravity": (0.98, 1.02),
+            "timestep": (1.0, 1.0),
+        }
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    """One bundled or user scenario: a model, a batch and how to judge it."""
+
+    name: str
+    model: str
+    source: Path | None = None
+    description: str = ""
+    exercises: tuple[str, ...] = ()
+    batch: int = 8
+    steps: int = 200
+    keyframe: str | None = None
+    notes: str = ""
+    randomize: Randomization = dataclasses.field(default_factory=Randomization)
+    tolerance: Tolerances = dataclasses.field(default_factory=Tolerances)
+
+    @property
+    def model_path(self) -> Path:
+        """The MJCF file this scenario simulates."""
+        return _resolve_model(self.model, self.source)
+
+
+def _resolve_model(ref: str, source: Path | None) -> Path:
+    prefix, sep, rest = ref.partition(":")
+    if sep and prefix in _WHEEL_MODEL_DIRS:
+        module, sub = _WHEEL_MODEL_DIRS[prefix]
+        import importlib.util
+
+        spec = importlib.util.find_spec(module)
+        if spec is None or not spec.submodule_search_locations:
+            raise ScenarioError(f"model {ref!r}: package {module!r} is not installed")
+        return Path(list(spec.submodule_search_locations)[0]) / sub / rest
+    path = Path(ref)
+    if not path.is_absolute() and source is not None:
+        path = source.parent / path
+    return path
+
+
+def _expect(cond: bool, where: str, msg: str) -> None:
+    if not cond:
+        raise ScenarioError(f"{where}: {msg}")
+
+
+def _positive_int(table: Mapping[str, Any], key: str, default: int, where: str) -> int:
+    value = table.get(key, default)
+    _expect(isinstance(value, int) and not isinstance(value, bool) and value > 0,
+            where, f"'{key}' must be a positive integer, got {value!r}")
+    return value
+
+
+def _nonneg_float(table: Mapping[str, Any], key: str, default: float, where: str) -> float:
+    value = table.get(key, default)
+    _expect(isinstance(value, (int, float)) and not isinstance(value, bool)
+            and math.isfinite(value) and value >= 0,
+            where, f"'{key}' must be a non-negative number, got {value!r}")
+    return float(value)
+
+
+def _check_keys(table: Mapping[str, Any], allowed: set[str], where: str) -> None:
+    unknown = sorted(set(table) - allowed)
+    _expect(not unknown, where, f"unknown key(s) {unknown}; allowed: {sorted(allowed)}")
+
+
+def _parse_randomization(table: Mapping[str, Any], where: str) -> Randomization:
+    where = f"{where} [randomize]"
+    _check_keys(table, {"qpos_noise", "qvel_noise", "control", "control_scale", "scale"}, where)
+    default = Randomization()
+    control = table.get("control", default.control)
+    _expect(control in CONTROL_FAMILIES, where,
+            f"'control' must be one of {list(CONTROL_FAMILIES)}, got {control!r}")
+    scale = dict(default.scale)
+    raw_scale = table.get("scale", {})
+    _expect(isinstance(raw_scale, dict), where, "'scale' must be a table")
+    _check_keys(raw_scale, set(SCALED_PARAMETERS), f"{where}.scale")
+    for key, rng in raw_scale.items():
+        ok = (isinstance(rng, list) and len(rng) == 2
+              and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in rng)
+              and 0 < rng[0] <= rng[1] and math.isfinite(rng[1]))
+        _expect(ok, f"{where}.scale", f"'{key}' must be [lo, hi] with 0 < lo <= hi, got {rng!r}")
+        scale[key] = (float(rng[0]), float(rng[1]))
+    return Randomization(
+        qpos_noise=_nonneg_float(table, "qpos_noise", default.qpos_noise, where),
+        qvel_noise=_nonneg_float(table, "qvel_noise", default.qvel_noise, where),
+        control=control,
+        control_scale=_nonneg_float(table, "control_scale", default.control_scale, where),
+        scale=scale,
+    )
+
+
+def _parse_tolerances(table: Mapping[str, Any], where: str) -> Tolerances:
+    where = f"{where} [tolerance]"
+    fields = {f.name for f in dataclasses.fields(Tolerances)}
+    _check_keys(table, fields, where)
+    default = Tolerances()
+    return Tolerances(**{k: _nonneg_float(table, k, getattr(default, k), where) for k in fields})
+
+
+_TOP_KEYS = {"name", "description", "model", "exercises", "batch", "steps", "keyframe",
+             "notes", "randomize", "tolerance"}
+
+
+def scenario_from_dict(data: Mapping[str, Any], source: Path | None, default_name: str) -> Scenario:
+    """Validates a parsed scenario table; raises :class:`ScenarioError` naming the bad key."""
+    where = str(source) if source else default_name
+    _check_keys(data, _TOP_KEYS, where)
+    _expect(isinstance(data.get("model"), str) and data["model"], where, "'model' (path to an MJCF file) is required")
+    exercises = data.get("exercises", [])
+    _expect(isinstance(exercises, list) and all(isinstance(e, str) for e in exercises),
+            where, "'exercises' must be a list of strings")
+    keyframe = data.get("keyframe")
+    _expect(keyframe is None or isinstance(keyframe, str), where, "'keyframe' must be a keyframe name")
+    randomize = data.get("randomize", {})
+    tolerance = data.get("tolerance", {})
+    _expect(isinstance(randomize, dict), where, "[randomize] must be a table")
+    _expect(isinstance(tolerance, dict), where, "[tolerance] must be a table")
+    return Scenario(
+        name=str(data.get("name", default_name)),
+        model=data["model"],
+        source=source,
+        description=str(data.get("description", "")),
+        exercises=tuple(exercises),
+        batch=_positive_int(data, "batch", Scenario.batch, where),
+        steps=_positive_int(data, "steps", Scenario.steps, where),
+        keyframe=keyframe,
+        notes=str(data.get("notes", "")),
+        randomize=_parse_randomization(randomize, where),
+        tolerance=_parse_tolerances(tolerance, where),
+    )
+
+
+def _from_toml(path: Path) -> Scenario:
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise ScenarioError(f"{path}: invalid TOML: {e}") from None
+    return scenario_from_dict(data, path, path.stem)
+
+
+def bundled_scenarios() -> list[Scenario]:
+    """Every scenario in :data:`BUNDLED_DIR`, sorted by name."""
+    return sorted((_from_toml(p) for p in BUNDLED_DIR.glob("*.toml")), key=lambda s: s.name)
+
+
+def load_scenario(ref: str | os.PathLike) -> Scenario:
+    """A scenario from a bundled name, a scenario ``.toml`` path or an MJCF ``.xml`` path.
+
+    Raises:
+      ScenarioError: unknown name, missing file or invalid scenario values.
+    """
+    path = Path(ref)
+    if path.suffix == ".toml":
+        _expect(path.is_file(), str(path), "scenario file not found")
+        return _from_toml(path)
+    if path.suffix in (".xml", ".mjcf"):
+        _expect(path.is_file(), str(path), "MJCF file not found")
+        return Scenario(name=path.stem, model=str(path.resolve()), description=f"user model {path.name}")
+    bundled = BUNDLED_DIR / f"{ref}.toml"
+    if bundled.is_file():
+        return _from_toml(bundled)
+    names = sorted(p.stem for p in BUNDLED_DIR.glob("*.toml"))
+    import difflib
+
+    close = difflib.get_close_matches(str(ref), names, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    raise ScenarioError(f"unknown scenario {str(ref)!r}{hint}; run 'python -m mjxdiff list' to see them, "
+                        "or pass a path to a .toml scenario or .xml model")
+
+
+def load_model(scenario: Scenario) -> mujoco.MjModel:
+    """Compiles the scenario's MJCF with MuJoCo C; one-line :class:`ScenarioError` on failure."""
+    path = scenario.model_path
+    _expect(path.is_file(), scenario.name, f"model file not found: {path}")
+    try:
+        m = mujoco.MjModel.from_xml_path(str(path))
+    except ValueError as e:
+        first = " ".join(str(e).split())
+        raise ScenarioError(f"{scenario.name}: MuJoCo cannot compile {path.name}: {first}") from None
+    if scenario.keyframe is not None and mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, scenario.keyframe) < 0:
+        raise ScenarioError(f"{scenario.name}: keyframe {scenario.keyframe!r} not in {path.name}")
+    return m
