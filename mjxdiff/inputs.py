@@ -79,11 +79,11 @@ def _initial_qpos(m: mujoco.MjModel, base: np.ndarray, noise: float, batch: int,
     """(B, nq) ``base`` plus noise: Gaussian on scalars, random small rotations on quaternions."""
     qpos = np.tile(base, (batch, 1))
     for j in range(m.njnt):
-        adr, jtype = m.jnt_qposadr[j], m.jnt_type[j]
-        if jtype == mujoco.mjtJoint.mjJNT_FREE:
+        adr, jtype = int(m.jnt_qposadr[j]), int(m.jnt_type[j])
+        if jtype == int(mujoco.mjtJoint.mjJNT_FREE):
             qpos[:, adr:adr + 3] += rng.normal(0, noise, (batch, 3))
             adr += 3
-        if jtype in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL):
+        if jtype in (int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)):
             q = _quat_mul(qpos[:, adr:adr + 4], _axis_angle_quat(rng.normal(0, noise, (batch, 3))))
             qpos[:, adr:adr + 4] = q / np.linalg.norm(q, axis=-1, keepdims=True)
         else:

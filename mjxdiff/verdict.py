@@ -178,7 +178,7 @@ def _track(m: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
         adr = m.jnt_qposadr[free[0]]
         return qpos[..., adr:adr + 3]
     scalar = [m.jnt_qposadr[j] for j in range(m.njnt)
-              if m.jnt_type[j] in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)]
+              if int(m.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))]
     return qpos[..., scalar]
 
 

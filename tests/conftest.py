@@ -1,0 +1,28 @@
+"""Shared test settings: float64 JAX, a persistent compile cache, Hypothesis profiles."""
+
+import os
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, settings
+
+from mjxdiff.engines import configure_jax
+
+ROOT = Path(__file__).resolve().parent.parent
+
+# JIT compiles take seconds: no deadlines. `ci` is derandomized for reproducible CI runs.
+settings.register_profile("dev", deadline=None, max_examples=20,
+                          suppress_health_check=[HealthCheck.too_slow])
+settings.register_profile("ci", deadline=None, max_examples=10, derandomize=True,
+                          suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "dev"))
+
+# One cache for the whole session (and for later sessions): unmodified MJX
+# compiles are shared; monkeypatched MJX traces to other HLO and never hits it.
+os.environ.setdefault("MJXDIFF_CACHE", str(ROOT / ".jax_cache"))
+configure_jax("float64")
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    return ROOT

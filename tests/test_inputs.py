@@ -1,0 +1,68 @@
+"""Randomized inputs: reproducible bit for bit, inside the model's ranges."""
+
+import mujoco
+import numpy as np
+import pytest
+
+from mjxdiff.inputs import make_controls, make_inputs
+from mjxdiff.scenario import Randomization, Scenario
+
+XML = """
+<mujoco>
+  <worldbody>
+    <body name="a"><joint name="h" type="hinge" range="-0.5 0.5" limited="true"/><geom size=".1" mass="1"/>
+      <body name="b" pos="0 0 -.3"><joint type="ball"/><geom size=".1"/></body></body>
+    <body name="f" pos="1 0 1"><freejoint/><geom type="box" size=".1 .1 .1"/></body>
+  </worldbody>
+  <actuator><motor joint="h" ctrlrange="-2 3" ctrllimited="true"/><motor joint="h"/></actuator>
+</mujoco>"""
+
+
+@pytest.fixture(scope="module")
+def model():
+    return mujoco.MjModel.from_xml_string(XML)
+
+
+def _scenario(**randomize):
+    return Scenario(name="t", model="unused.xml", batch=6, steps=50, randomize=Randomization(**randomize))
+
+
+def test_same_seed_bit_identical(model):
+    a, b = make_inputs(_scenario(), model, seed=7), make_inputs(_scenario(), model, seed=7)
+    for field in ("qpos", "qvel", "act", "ctrl"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    assert a.factors.keys() == b.factors.keys()
+    for k in a.factors:
+        np.testing.assert_array_equal(a.factors[k], b.factors[k])
+    np.testing.assert_array_equal(a.models[3].body_mass, b.models[3].body_mass)
+    c = make_inputs(_scenario(), model, seed=8)
+    assert not np.array_equal(a.qpos, c.qpos)
+
+
+def test_quaternions_normalised_and_limits_respected(model):
+    inp = make_inputs(_scenario(qpos_noise=2.0), model, seed=0)
+    np.testing.assert_allclose(np.linalg.norm(inp.qpos[:, 1:5], axis=1), 1, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(inp.qpos[:, 8:12], axis=1), 1, atol=1e-12)
+    assert np.all(np.abs(inp.qpos[:, 0]) < 0.5)
+
+
+@pytest.mark.parametrize("family", ["zero", "smooth", "sinusoid", "step"])
+def test_controls_clipped_to_ctrlrange(model, family):
+    ctrl = make_controls(model, Randomization(control=family, control_scale=3.0), 4, 200, 0.002,
+                         np.random.default_rng(0))
+    assert ctrl.shape == (4, 200, 2)
+    assert ctrl[..., 0].min() >= -2 and ctrl[..., 0].max() <= 3
+    assert ctrl[..., 1].min() >= -1 and ctrl[..., 1].max() <= 1  # unlimited: [-1, 1] scaled
+    if family == "zero":
+        assert not ctrl.any()
+    else:
+        assert ctrl.std() > 0.1
+
+
+def test_scaled_parameters_recompute_constants(model):
+    inp = make_inputs(_scenario(), model, seed=1)
+    m1 = inp.models[1]
+    np.testing.assert_allclose(m1.body_mass, model.body_mass * inp.factors["body_mass"][1])
+    # mj_setConst ran: the subtree mass follows the new masses
+    assert m1.body_subtreemass[0] == pytest.approx(m1.body_mass.sum())
+    np.testing.assert_allclose(m1.opt.gravity, model.opt.gravity * inp.factors["gravity"][1])
