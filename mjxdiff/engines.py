@@ -207,6 +207,11 @@ def compile_count() -> int:
     return _COMPILES["count"]
 
 
+def clear_compiled() -> None:
+    """Forgets compiled MJX rollouts, so the next rollout re-traces MJX's (possibly patched) Python code."""
+    _rollout.clear_cache()
+
+
 def _contact_count(dx: mjx.Data) -> jax.Array:
     impl = dx._impl
     c = impl.contact

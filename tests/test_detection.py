@@ -1,0 +1,108 @@
+"""The tester catches bugs: subtly wrong MJX internals make the sweep fail,
+naming the field, the object and the step; unmodified MJX passes the same
+scenarios. Each bug is a monkeypatch of one function inside mujoco.mjx._src."""
+
+import re
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from mujoco.mjx._src import collision_driver as mjx_collision
+from mujoco.mjx._src import forward as mjx_forward
+from mujoco.mjx._src import math as mjx_math
+from mujoco.mjx._src import passive as mjx_passive
+from mujoco.mjx._src import sensor as mjx_sensor
+
+from mjxdiff import engines
+from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.sweep import SweepConfig, run_scenario
+
+CONFIG = SweepConfig(seed=0, batch=4)
+
+
+def extra_damping(monkeypatch):
+    """0.1% more joint damping force than the model says."""
+    orig = mjx_passive._spring_damper
+    monkeypatch.setattr(mjx_passive, "_spring_damper", lambda m, d: orig(m, d) - 1e-3 * m.dof_damping * d.qvel)
+
+
+def jointvel_sensor_gain(monkeypatch):
+    """jointvel sensors read 0.1% high."""
+    orig = mjx_sensor.sensor_vel
+
+    def buggy(m, d):
+        d = orig(m, d)
+        idx = np.concatenate([np.arange(m.sensor_adr[s], m.sensor_adr[s] + m.sensor_dim[s])
+                              for s in np.flatnonzero(m.sensor_type == mujoco.mjtSensor.mjSENS_JOINTVEL)])
+        return d.replace(sensordata=d.sensordata.at[idx].multiply(1 + 1e-3))
+
+    monkeypatch.setattr(mjx_sensor, "sensor_vel", buggy)
+
+
+def actuator_gain(monkeypatch):
+    """Actuator gain (gainprm[0]) 0.1% too high."""
+    orig = mjx_forward.fwd_actuation
+    monkeypatch.setattr(mjx_forward, "fwd_actuation",
+                        lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm.at[:, 0].multiply(1 + 1e-3)), d))
+
+
+def contact_friction(monkeypatch):
+    """Contacts get 1% less friction than the geoms combine to."""
+    orig = mjx_collision.collision
+
+    def buggy(m, d):
+        d = orig(m, d)
+        c = d._impl.contact
+        return d.replace(_impl=d._impl.replace(contact=c.replace(friction=c.friction * 0.99)))
+
+    monkeypatch.setattr(mjx_collision, "collision", buggy)
+
+
+def quaternion_update(monkeypatch):
+    """Quaternion integration rotates 0.01% too far."""
+    orig = mjx_math.quat_integrate
+    monkeypatch.setattr(mjx_math, "quat_integrate", lambda q, v, dt: orig(q, v, dt * (1 + 1e-4)))
+
+
+# bug -> (scenario that should catch it, fields allowed to be named first, object pattern)
+BUGS = {
+    extra_damping: ("pendulum", {"qpos", "qvel"}, r"joint 'hinge'"),
+    jointvel_sensor_gain: ("pendulum", {"sensordata"}, r"sensor '.*' \(jointvel\)"),
+    actuator_gain: ("pendulum", {"qpos", "qvel"}, r"joint 'hinge'"),
+    contact_friction: ("slope_slide", {"qpos", "qvel"}, r"joint '.*'"),
+    quaternion_update: ("ball_joint", {"qpos", "sensordata"}, r"(joint|sensor) '.*'"),
+}
+
+
+@pytest.fixture
+def fresh_mjx():
+    """Compiled rollouts are cached per model structure; re-trace around a patch."""
+    engines.clear_compiled()
+    yield
+    engines.clear_compiled()
+
+
+@pytest.mark.parametrize("bug", list(BUGS), ids=lambda b: b.__name__)
+def test_injected_bug_is_caught(bug, fresh_mjx, monkeypatch):
+    scenario_name, fields, obj = BUGS[bug]
+    bug(monkeypatch)
+    result = run_scenario(load_scenario(scenario_name), CONFIG)
+    assert result.status == "fail", f"{bug.__name__} not caught by {scenario_name}: {result.message}"
+    first = result.first_divergence
+    assert first["field"] in fields, result.message
+    assert re.fullmatch(obj, first["object"]), result.message
+    assert 0 <= first["step"] < result.info["steps"]
+    # t is the simulated time after that step: (step + 1) * the member's (randomized) timestep
+    scenario = load_scenario(scenario_name)
+    dt = load_model(scenario).opt.timestep
+    lo, hi = scenario.randomize.scale["timestep"]
+    assert lo * dt * (first["step"] + 1) * (1 - 1e-9) <= first["time"] <= hi * dt * (first["step"] + 1) * (1 + 1e-9)
+    assert first["error"] > first["tolerance"]
+
+
+@pytest.mark.parametrize("scenario_name", sorted({s for s, _, _ in BUGS.values()}))
+def test_unmodified_mjx_passes(scenario_name):
+    result = run_scenario(load_scenario(scenario_name), CONFIG)
+    assert result.status == "pass", result.message
+    assert all(f.ok for f in result.fields)
