@@ -1,0 +1,110 @@
+"""The command line: exit codes, one-line errors, reports, reproducibility."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from mjxdiff.cli import main
+
+SMALL = ["--batch", "2", "--steps", "60"]
+
+UNSTABLE_XML = """<mujoco><option timestep="0.01"/>
+  <worldbody><body><joint name="spring" type="hinge" stiffness="1e14"/><geom size=".1"/></body></worldbody>
+</mujoco>"""
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, "-m", "mjxdiff", *args], capture_output=True, text=True, timeout=600)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["sweep", "--bogus"], "unrecognized arguments: --bogus"),
+    (["sweep", "--batch", "0"], "expected a positive integer"),
+    (["sweep", "--precision", "float16"], "invalid choice"),
+    (["frobnicate"], "invalid choice"),
+    ([], "required"),
+])
+def test_bad_flags_exit_2_with_one_line(args, message):
+    proc = _run(*args)
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and message in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_help_teaches_statuses_and_exit_codes():
+    proc = _run("sweep", "--help")
+    assert proc.returncode == 0
+    for word in ("--seed", "--precision", "--out", "exit codes", "UNSUP", "examples"):
+        assert word in proc.stdout
+
+
+def test_list_names_every_bundled_scenario(capsys):
+    from mjxdiff.scenario import bundled_scenarios
+
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    for s in bundled_scenarios():
+        assert s.name in out
+
+
+def test_bad_inputs_are_reported_and_the_rest_still_runs(tmp_path, capsys):
+    broken = tmp_path / "broken.xml"
+    broken.write_text("<mujoco><worldbody><geom type='sphere'</worldbody></mujoco>")
+    code = main(["sweep", "pendulm", str(broken), "pendulum", *SMALL, "--out", str(tmp_path / "o")])
+    captured = capsys.readouterr()
+    assert code == 2
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    status = {s["name"]: s for s in report["scenarios"]}
+    assert status["pendulm"]["status"] == "error" and "did you mean 'pendulum'" in status["pendulm"]["message"]
+    assert status["broken"]["status"] == "error" and "cannot compile" in status["broken"]["message"]
+    assert status["pendulum"]["status"] == "pass"
+    assert "PASS   pendulum" in captured.out
+
+
+def test_unsupported_feature_is_named_and_not_a_failure(capsys):
+    code = main(["sweep", "energy_flag_unsupported", *SMALL])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "UNSUP" in out and "energy" in out.lower()
+
+
+def test_nan_scenario_reported_rest_continue(tmp_path, capsys):
+    xml = tmp_path / "unstable.xml"
+    xml.write_text(UNSTABLE_XML)
+    code = main(["sweep", str(xml), "pendulum", *SMALL, "--format", "json"])
+    report = json.loads(capsys.readouterr().out)
+    unstable, pendulum = report["scenarios"]
+    assert code == 1
+    assert unstable["status"] == "error" and unstable["error_kind"] == "nan"
+    assert {d["engine"] for d in unstable["diverged_members"]} == {"c", "mjx"}
+    assert "step" in unstable["message"] and "member" in unstable["message"]
+    assert pendulum["status"] == "pass"
+
+
+def test_report_schema_and_same_seed_same_report(tmp_path, capsys):
+    args = ["sweep", "pendulum", "cartpole", *SMALL, "--seed", "3"]
+    assert main([*args, "--out", str(tmp_path / "a")]) == 0
+    assert main([*args, "--out", str(tmp_path / "b")]) == 0
+    a = json.loads((tmp_path / "a" / "report.json").read_text())
+    b = json.loads((tmp_path / "b" / "report.json").read_text())
+    assert a["schema_version"] == 1
+    assert {"jax", "mujoco", "mujoco-mjx", "mjxdiff"} <= a["versions"].keys()
+    assert a["config"]["seed"] == 3 and a["config"]["batch"] == 2
+    for sa, sb in zip(a["scenarios"], b["scenarios"]):
+        sa["info"].pop("seconds"), sb["info"].pop("seconds")
+        sa["info"].pop("mjx_compiles"), sb["info"].pop("mjx_compiles")
+        assert sa == sb
+    fields = a["scenarios"][0]["fields"]
+    assert {"qpos", "qvel", "sensordata", "contacts"} <= fields.keys()
+    assert {"max_error", "tolerance", "first_step"} <= fields["qpos"].keys()
+
+
+def test_float32_precision_passes_with_its_tolerances():
+    proc = _run("sweep", "pendulum", *SMALL, "--precision", "float32", "--format", "json")
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    report = json.loads(proc.stdout)
+    (pendulum,) = report["scenarios"]
+    assert pendulum["status"] == "pass"
+    assert pendulum["tolerances"]["qpos"] >= 1e-3
