@@ -1,0 +1,73 @@
+"""Rollout throughput of each engine, compile time and peak memory.
+
+Run: ``python -m pytest benchmarks --benchmark-only`` (compare runs with
+``--benchmark-autosave`` then ``--benchmark-compare``). Every result carries the
+versions, batch size and horizon in ``extra_info``; ``steps_per_s`` counts
+member-steps (batch x horizon) per second of wall time.
+"""
+
+import resource
+import time
+
+import pytest
+
+from mjxdiff import engines
+from mjxdiff.engines import CEngine, MJXEngine
+from mjxdiff.inputs import make_inputs
+from mjxdiff.report import versions
+from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.sweep import SweepConfig, run_scenario
+
+# small, medium and large model structures
+SCENARIOS = ["pendulum", "cartpole", "ant"]
+BATCH, STEPS = 32, 200
+
+
+def _peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _inputs(name):
+    scenario = load_scenario(name)
+    m = load_model(scenario)
+    return make_inputs(scenario, m, seed=0, batch=BATCH, steps=STEPS)
+
+
+def _extra(benchmark, **info):
+    benchmark.extra_info.update(versions())
+    benchmark.extra_info.update(batch=BATCH, steps=STEPS, **info)
+
+
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_c_rollout(benchmark, name):
+    inputs = _inputs(name)
+    engine = CEngine()
+    benchmark.pedantic(engine.rollout, args=(inputs,), rounds=5, iterations=1, warmup_rounds=1)
+    _extra(benchmark, engine="c", steps_per_s=BATCH * STEPS / benchmark.stats.stats.mean,
+           peak_rss_mib=_peak_rss_mib())
+
+
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_mjx_rollout(benchmark, name):
+    inputs = _inputs(name)
+    engine = MJXEngine()
+    engines.clear_compiled()
+    t0 = time.perf_counter()
+    engine.rollout(inputs)  # compile (or load from the persistent cache) + one run
+    first = time.perf_counter() - t0
+    benchmark.pedantic(engine.rollout, args=(inputs,), rounds=3, iterations=1)
+    run = benchmark.stats.stats.mean
+    _extra(benchmark, engine="mjx", steps_per_s=BATCH * STEPS / run, compile_s=first - run,
+           peak_rss_mib=_peak_rss_mib())
+
+
+def test_sweep_end_to_end(benchmark):
+    """Verified scenario-steps per second for a whole sweep of the three scenarios."""
+    config = SweepConfig(batch=BATCH, steps=STEPS)
+    scenarios = [load_scenario(n) for n in SCENARIOS]
+    for s in scenarios:  # warm the compile cache
+        run_scenario(s, config)
+    results = benchmark.pedantic(lambda: [run_scenario(s, config) for s in scenarios], rounds=2, iterations=1)
+    assert all(r.status == "pass" for r in results), [r.message for r in results]
+    _extra(benchmark, scenarios=SCENARIOS,
+           steps_per_s=len(SCENARIOS) * BATCH * STEPS / benchmark.stats.stats.mean)
