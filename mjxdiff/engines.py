@@ -18,6 +18,7 @@ integration).
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import functools
 import io
@@ -59,6 +60,8 @@ class Trajectory:
       sensordata: (B, T, nsensordata) sensors, evaluated before each step.
       time: (B, T) simulated time after each step, s.
       ncon: (B, T) number of active contacts, evaluated before each step.
+      energy: (B, T, 2) potential and kinetic energy (J) before each step, as
+        MuJoCo's ``d.energy``; (B, T, 0) unless the inputs ask for energy.
       diverged_at: (B,) first step at which the engine produced a non-finite
         state or stopped on a MuJoCo instability warning; -1 if never.
     """
@@ -69,6 +72,7 @@ class Trajectory:
     sensordata: jax.Array
     time: jax.Array
     ncon: jax.Array
+    energy: jax.Array
     diverged_at: jax.Array
 
     def to_numpy(self) -> "Trajectory":
@@ -125,6 +129,12 @@ def _record_buffer(m: mujoco.MjModel, d: mujoco.MjData, item, batch: int, steps:
     return np.zeros((batch, steps, *template.shape), template.dtype)
 
 
+def _with_energy(m: mujoco.MjModel) -> mujoco.MjModel:
+    m = copy.copy(m)
+    m.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_ENERGY
+    return m
+
+
 class CEngine:
     """MuJoCo C: :class:`mujoco.batch.Batch` over all cores, one model per member."""
 
@@ -134,15 +144,18 @@ class CEngine:
         self.nthread = nthread
 
     def rollout(self, inputs: BatchedInputs) -> Trajectory:
-        m = inputs.models[0]
+        models = inputs.models
+        if inputs.energy:  # C computes d.energy itself; MJX refuses the flag, so only C's copies get it
+            models = tuple(_with_energy(mi) for mi in models)
+        m = models[0]
         b = Batch(m, inputs.batch, nthread=self.nthread)
-        b.set_models(list(inputs.models))
+        b.set_models(list(models))
         b.qpos[:] = inputs.qpos
         b.qvel[:] = inputs.qvel
         if m.na:
             b.act[:] = inputs.act
         time_spec = mujoco.mjtState.mjSTATE_TIME
-        record = ("qpos", "qvel", "act", "sensordata", "ncon", time_spec)
+        record = ("qpos", "qvel", "act", "sensordata", "ncon", time_spec) + (("energy",) if inputs.energy else ())
         # preallocated, so that records survive a SimulationError in some members
         d = mujoco.MjData(m)
         out = {item: _record_buffer(m, d, item, inputs.batch, inputs.steps) for item in record}
@@ -159,8 +172,9 @@ class CEngine:
         nonfinite = _first_true(~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1))
         diverged = np.where(warned, np.maximum(stalled, 0), nonfinite)
         return Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"],
-                          sensordata=out["sensordata"], time=time,
-                          ncon=out["ncon"].astype(np.int64), diverged_at=diverged)
+                          sensordata=out["sensordata"], time=time, ncon=out["ncon"].astype(np.int64),
+                          energy=out.get("energy", np.zeros((inputs.batch, inputs.steps, 0))),
+                          diverged_at=diverged)
 
 
 def put_models(models: tuple[mujoco.MjModel, ...]) -> tuple[mjx.Model, tuple[bool, ...]]:
@@ -220,16 +234,59 @@ def _contact_count(dx: mjx.Data) -> jax.Array:
     return jnp.sum(c.dist < c.includemargin)
 
 
-@functools.partial(jax.jit, static_argnames=("varying",))
-def _rollout(mx, dx0, qpos, qvel, act, ctrl, varying):
+def energy(mx: mjx.Model, dx: mjx.Data, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
+    """(2,) potential and kinetic energy, J, as C's ``mj_energyPos``/``mj_energyVel``.
+
+    ``dx`` holds kinematics (``xipos``, ``qM``) of the state (``qpos``, ``qvel``):
+
+      potential = -sum_b mass_b (gravity . xipos_b) + sum_j k_j |q_j - q_spring_j|^2 / 2
+                  + sum_t k_t dist(len_t, [lower_t, upper_t])^2 / 2
+      kinetic   = qvel^T M qvel / 2
+
+    Quaternion springs use the rotation vector ``quat_sub(q, q_spring)``.
+    """
+    from mujoco.mjx._src import math as mjx_math
+    from mujoco.mjx._src import support
+
+    pot = jnp.zeros((), qpos.dtype)
+    disabled = int(mx.opt.disableflags)
+    if not disabled & int(mujoco.mjtDisableBit.mjDSBL_GRAVITY):
+        pot -= jnp.sum(mx.body_mass * (dx.xipos @ mx.opt.gravity))
+    if not disabled & int(mujoco.mjtDisableBit.mjDSBL_SPRING):
+        free, ball = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)
+        for j, jtype in enumerate(int(t) for t in mx.jnt_type):
+            k, adr = mx.jnt_stiffness[j], int(mx.jnt_qposadr[j])
+            if jtype == free:
+                dif = qpos[adr:adr + 3] - mx.qpos_spring[adr:adr + 3]
+                pot += 0.5 * k * dif @ dif
+                adr += 3
+            if jtype in (free, ball):
+                dif = mjx_math.quat_sub(mjx_math.normalize(qpos[adr:adr + 4]), mx.qpos_spring[adr:adr + 4])
+                pot += 0.5 * k * dif @ dif
+            else:
+                pot += 0.5 * k * (qpos[adr] - mx.qpos_spring[adr]) ** 2
+        if mx.ntendon:
+            lower, upper = mx.tendon_lengthspring.T
+            length = dx.ten_length
+            stretch = jnp.where(length < lower, lower - length, jnp.where(length > upper, length - upper, 0.0))
+            pot += 0.5 * jnp.sum(mx.tendon_stiffness * stretch ** 2)
+    kin = 0.5 * qvel @ support.mul_m(mx, dx, qvel)
+    return jnp.stack([pot, kin])
+
+
+@functools.partial(jax.jit, static_argnames=("varying", "with_energy"))
+def _rollout(mx, dx0, qpos, qvel, act, ctrl, varying, with_energy=False):
     _COMPILES["count"] += 1  # runs only while tracing
     axes = jax.tree.unflatten(jax.tree.structure(mx), [0 if v else None for v in varying])
 
     def member(mx, qpos, qvel, act, ctrl):
         def step(dx, u):
+            qpos_before, qvel_before = dx.qpos, dx.qvel
             dx = mjx.step(mx, dx.replace(ctrl=u))
             rec = dict(qpos=dx.qpos, qvel=dx.qvel, act=dx.act, sensordata=dx.sensordata,
                        time=dx.time, ncon=_contact_count(dx))
+            if with_energy:  # dx's kinematics are those of the state before the step
+                rec["energy"] = energy(mx, dx, qpos_before, qvel_before)
             return dx, rec
 
         _, rec = jax.lax.scan(step, dx0.replace(qpos=qpos, qvel=qvel, act=act), ctrl)
@@ -255,9 +312,10 @@ class MJXEngine:
         dx0 = _canonical_ints(mjx.make_data(inputs.models[0]))
         ft = dx0.qpos.dtype
         rec = _rollout(mx, dx0, jnp.asarray(inputs.qpos, ft), jnp.asarray(inputs.qvel, ft),
-                       jnp.asarray(inputs.act, ft), jnp.asarray(inputs.ctrl, ft), varying)
+                       jnp.asarray(inputs.act, ft), jnp.asarray(inputs.ctrl, ft), varying, inputs.energy)
         rec = jax.tree.map(np.asarray, jax.block_until_ready(rec))
         nonfinite = ~np.isfinite(rec["qpos"]).all(-1) | ~np.isfinite(rec["qvel"]).all(-1)
         return Trajectory(qpos=rec["qpos"], qvel=rec["qvel"], act=rec["act"],
-                          sensordata=rec["sensordata"], time=rec["time"],
-                          ncon=rec["ncon"].astype(np.int64), diverged_at=_first_true(nonfinite))
+                          sensordata=rec["sensordata"], time=rec["time"], ncon=rec["ncon"].astype(np.int64),
+                          energy=rec.get("energy", np.zeros((inputs.batch, inputs.steps, 0))),
+                          diverged_at=_first_true(nonfinite))

@@ -36,6 +36,7 @@ class BatchedInputs:
       factors: parameter name -> (B, ...) multiplicative factors drawn, for
         the report.
       seed: the seed everything was drawn from.
+      energy: whether both engines record potential and kinetic energy.
     """
 
     qpos: np.ndarray
@@ -45,6 +46,7 @@ class BatchedInputs:
     models: tuple[mujoco.MjModel, ...]
     factors: dict[str, np.ndarray]
     seed: int
+    energy: bool = False
 
     @property
     def batch(self) -> int:
@@ -195,4 +197,5 @@ def make_inputs(scenario: Scenario, m: mujoco.MjModel, seed: int,
         factors[name] = rng.uniform(lo, hi, (batch, *_FACTOR_SHAPE[name](m)))
     ctrl = make_controls(m, rz, batch, steps, m.opt.timestep, rng)
     models = tuple(_scaled_model(m, factors, i) for i in range(batch)) if factors else (m,) * batch
-    return BatchedInputs(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl, models=models, factors=factors, seed=seed)
+    return BatchedInputs(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl, models=models, factors=factors, seed=seed,
+                        energy=scenario.energy)

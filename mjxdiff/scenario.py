@@ -135,6 +135,7 @@ class Scenario:
     steps: int = 200
     keyframe: str | None = None
     notes: str = ""
+    energy: bool = False
     randomize: Randomization = dataclasses.field(default_factory=Randomization)
     tolerance: Tolerances = dataclasses.field(default_factory=Tolerances)
 
@@ -220,7 +221,7 @@ def _parse_tolerances(table: Mapping[str, Any], where: str) -> Tolerances:
 
 
 _TOP_KEYS = {"name", "description", "model", "exercises", "batch", "steps", "keyframe",
-             "notes", "randomize", "tolerance"}
+             "notes", "energy", "randomize", "tolerance"}
 
 
 def scenario_from_dict(data: Mapping[str, Any], source: Path | None, default_name: str) -> Scenario:
@@ -233,6 +234,8 @@ def scenario_from_dict(data: Mapping[str, Any], source: Path | None, default_nam
             where, "'exercises' must be a list of strings")
     keyframe = data.get("keyframe")
     _expect(keyframe is None or isinstance(keyframe, str), where, "'keyframe' must be a keyframe name")
+    energy = data.get("energy", False)
+    _expect(isinstance(energy, bool), where, "'energy' must be true or false")
     randomize = data.get("randomize", {})
     tolerance = data.get("tolerance", {})
     _expect(isinstance(randomize, dict), where, "[randomize] must be a table")
@@ -247,6 +250,7 @@ def scenario_from_dict(data: Mapping[str, Any], source: Path | None, default_nam
         steps=_positive_int(data, "steps", Scenario.steps, where),
         keyframe=keyframe,
         notes=str(data.get("notes", "")),
+        energy=energy,
         randomize=_parse_randomization(randomize, where),
         tolerance=_parse_tolerances(tolerance, where),
     )

@@ -184,7 +184,12 @@ def _track(m: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
 
 def behaviour(m: mujoco.MjModel, traj_c: Trajectory, traj_mjx: Trajectory, dt: float,
               healthy: np.ndarray) -> dict[str, Any]:
-    """Batch-mean behaviour statistics of both engines and their relative difference."""
+    """Batch-mean behaviour statistics of both engines and their relative difference.
+
+    Speeds (m/s or rad/s), distance and displacement of :func:`_track`; path
+    efficiency = displacement / distance; with energy recorded, the relative
+    energy drift (E_end - E_0) / |E_0|.
+    """
     if not healthy.any() or _track(m, traj_c.qpos[:1]).shape[-1] == 0:
         return {}
     stats = jax.vmap(metrics.behaviour_stats, in_axes=(0, None))
@@ -192,6 +197,8 @@ def behaviour(m: mujoco.MjModel, traj_c: Trajectory, traj_mjx: Trajectory, dt: f
     for engine, traj in (("c", traj_c), ("mjx", traj_mjx)):
         s = stats(jnp.asarray(_track(m, traj.qpos[healthy])), dt)
         out[engine] = {k: float(np.mean(v)) for k, v in s._asdict().items()}
+        if traj.energy.shape[-1]:
+            out[engine]["energy_drift"] = float(np.mean(jax.vmap(metrics.energy_drift)(jnp.asarray(traj.energy[healthy]))))
     out["relative_difference"] = {
         k: abs(out["mjx"][k] - out["c"][k]) / max(abs(out["c"][k]), 1e-12) for k in out["c"]}
     return out
