@@ -80,6 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "differences, float32 uses looser tolerance floors")
     sw.add_argument("--threshold", type=_fraction, default=0.95,
                     help="least fraction of batch members within tolerance for a scenario to pass (default 0.95)")
+    sw.add_argument("--envelope", action=argparse.BooleanOptionalAction, default=True,
+                    help="judge errors against the chaos envelope measured from C's own divergence under "
+                         "rounding-level perturbations (default); --no-envelope uses fixed tolerances only")
     sw.add_argument("--out", metavar="DIR", help="write DIR/report.json (versions, config, per-scenario metrics)")
     sw.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     sw.add_argument("--quick", action="store_true", help="smoke run: batch <= 4, steps <= 50")
@@ -116,7 +119,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
 
     engines.configure_jax(args.precision, args.cache_dir)
     config = SweepConfig(seed=args.seed, batch=args.batch, steps=args.steps, precision=args.precision,
-                         quick=args.quick, threshold=args.threshold)
+                         quick=args.quick, threshold=args.threshold, envelope=args.envelope)
     scenarios, bad = [], []
     try:
         refs = args.scenarios or [s.name for s in bundled_scenarios()]

@@ -16,7 +16,8 @@ from mjxdiff import engines
 from mjxdiff.engines import CEngine, MJXEngine, UnsupportedError
 from mjxdiff.inputs import make_inputs
 from mjxdiff.scenario import Scenario, ScenarioError, load_model
-from mjxdiff.verdict import ScenarioResult, judge
+from mjxdiff.noise import noise_floor
+from mjxdiff.verdict import ScenarioResult, judge, rangefinder_mask
 
 __all__ = ["SweepConfig", "run_scenario", "sweep"]
 
@@ -32,6 +33,8 @@ class SweepConfig:
       precision: ``float64`` or ``float32`` (MJX side; C is always float64).
       quick: a smoke run: batch <= 4 and steps <= 50.
       threshold: least fraction of batch members within tolerance for a scenario to pass.
+      envelope: judge against the chaos envelope from C's self-divergence
+        (:mod:`mjxdiff.noise`); False holds errors to the fixed tolerances only.
     """
 
     seed: int = 0
@@ -40,6 +43,7 @@ class SweepConfig:
     precision: str = "float64"
     quick: bool = False
     threshold: float = 0.95
+    envelope: bool = True
 
     def sizes(self, scenario: Scenario) -> tuple[int, int]:
         batch = self.batch or scenario.batch
@@ -85,9 +89,13 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
         return ScenarioResult(status="error", error_kind="engine", message=f"MJX failed: {_one_line(e)}",
                               info=info, **base)
     t3 = time.perf_counter()
-    result = judge(scenario.name, m, traj_c, traj_mjx, tol, config.threshold)
+    floor = None
+    if config.envelope:
+        floor = noise_floor(m, inputs, traj_c, config.precision, rangefinder_mask(m), c_engine)
     t4 = time.perf_counter()
-    info.update(seconds=dict(inputs=t1 - t0, c=t2 - t1, mjx=t3 - t2, metrics=t4 - t3),
+    result = judge(scenario.name, m, traj_c, traj_mjx, tol, config.threshold, floor)
+    t5 = time.perf_counter()
+    info.update(seconds=dict(inputs=t1 - t0, c=t2 - t1, mjx=t3 - t2, noise_floor=t4 - t3, metrics=t5 - t4),
                 mjx_compiles=engines.compile_count() - compiles,
                 nq=m.nq, nv=m.nv, nu=m.nu, nsensordata=m.nsensordata)
     return dataclasses.replace(result, info=info)

@@ -27,6 +27,7 @@ import numpy as np
 
 from mjxdiff import metrics
 from mjxdiff.engines import Trajectory
+from mjxdiff.noise import NoiseFloor
 from mjxdiff.scenario import Tolerances
 
 __all__ = ["FieldResult", "ScenarioResult", "judge", "error_series", "STATUSES"]
@@ -42,11 +43,14 @@ class FieldResult:
       field: ``qpos``, ``qvel``, ``act``, ``sensordata``, ``contacts`` or ``rangefinder``.
       max_error: worst error over members, steps and components (the field's
         units; fractions for ``contacts``/``rangefinder``).
-      tolerance: the bound it is judged against.
-      first_step: first step (0-based) where any member exceeds the tolerance; -1 if none.
+      tolerance: the fixed floor of the bound it is judged against.
+      first_step: first step (0-based) where any member exceeds its bound; -1 if none.
       member: batch member of the worst error (or of ``first_step`` when exceeded).
       object: the MuJoCo object of that component, e.g. ``joint 'hip_2'``.
       growth_rate: exponential growth rate of the batch-max error, 1/s.
+      envelope: batch-max chaos envelope at the last step (0 without a noise
+        floor); the bound at (member, step) is max(tolerance, envelope there).
+      ratio: worst error / bound over members and steps (> 1 means out).
     """
 
     field: str
@@ -56,6 +60,8 @@ class FieldResult:
     member: int
     object: str
     growth_rate: float
+    envelope: float = 0.0
+    ratio: float = 0.0
 
     @property
     def ok(self) -> bool:
@@ -78,6 +84,7 @@ class ScenarioResult:
     info: dict[str, Any] = dataclasses.field(default_factory=dict)
     pass_rate: float | None = None
     threshold: float | None = None
+    noise_rate: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def field(self, name: str) -> FieldResult:
         return next(f for f in self.fields if f.field == name)
@@ -140,34 +147,39 @@ def error_series(a: Trajectory, b: Trajectory, layout: metrics.QposLayout, rf_ma
     return out
 
 
-def _field_result(field: str, err: np.ndarray, tol: float, healthy: np.ndarray,
+def _field_result(field: str, err: np.ndarray, bound: np.ndarray, tol: float, healthy: np.ndarray,
                   objects: list[str], dt: float) -> FieldResult:
-    """Reduces a (B, T, n) error array over healthy members."""
+    """Reduces a (B, T, n) error array over healthy members against a (B, T) bound."""
     if err.shape[-1] == 0 or not healthy.any():
         return FieldResult(field, 0.0, tol, -1, -1, "", 0.0)
     e = np.where(healthy[:, None, None], err, 0.0)
     per_step = e.max(axis=2)  # (B, T)
-    exceeded = per_step > tol
+    ratio = per_step / bound
+    exceeded = ~(ratio <= 1.0)  # NaN exceeds
     if exceeded.any():
         step = int(exceeded.any(axis=0).argmax())
         member = int(exceeded[:, step].argmax())
     else:
-        step, member = -1, int(per_step.max(axis=1).argmax())
-    at = step if step >= 0 else int(per_step[member].argmax())
+        step, member = -1, int(ratio.max(axis=1).argmax())
+    at = step if step >= 0 else int(ratio[member].argmax())
     comp = int(e[member, at].argmax())
     growth = metrics.error_growth(jnp.asarray(per_step.max(axis=0)), dt)
+    envelope = float(np.where(healthy, bound[:, -1], 0).max()) if np.any(bound > tol) else 0.0
     return FieldResult(field, float(e.max()), tol, step, member, objects[comp] if objects else "",
-                       float(growth.rate))
+                       float(growth.rate), envelope, float(np.nanmax(ratio)))
 
 
-def _fraction_result(field: str, mismatched: np.ndarray, tol: float, healthy: np.ndarray) -> FieldResult:
-    """A mismatch-fraction metric: (B, T) booleans -> fraction per member vs tolerance."""
+def _fraction_result(field: str, mismatched: np.ndarray, allowed: np.ndarray, tol: float,
+                     healthy: np.ndarray) -> FieldResult:
+    """A mismatch-fraction metric: (B, T) booleans -> fraction per member vs (B,) allowed fractions."""
     if not healthy.any():
         return FieldResult(field, 0.0, tol, -1, -1, "", 0.0)
     frac = np.where(healthy, mismatched.mean(axis=1), 0.0)
-    member = int(frac.argmax())
-    step = int(mismatched[member].argmax()) if frac[member] > tol else -1
-    return FieldResult(field, float(frac[member]), tol, step, member, "", 0.0)
+    ratio = frac / allowed
+    member = int(ratio.argmax())
+    step = int(mismatched[member].argmax()) if ratio[member] > 1 else -1
+    return FieldResult(field, float(frac[member]), tol, step, member, "", 0.0,
+                       float(allowed.max()) if np.any(allowed > tol) else 0.0, float(ratio.max()))
 
 
 def _track(m: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
@@ -204,25 +216,44 @@ def behaviour(m: mujoco.MjModel, traj_c: Trajectory, traj_mjx: Trajectory, dt: f
     return out
 
 
-def _member_fails(series: dict[str, np.ndarray], tol: Tolerances, nrays: int) -> np.ndarray:
-    """(B,) True for members where some field exceeds its tolerance."""
+def _bounds(series: dict[str, np.ndarray], tol: Tolerances, noise: NoiseFloor | None) -> dict[str, np.ndarray]:
+    """Per field, the bound each member's error is held to: (B, T) for series, (B,) for fractions.
+
+    Without a noise floor the bound is the fixed tolerance; with one it is
+    max(tolerance, envelope) per member and step, and a contact-count mismatch
+    may reach twice what C's own perturbed rerun shows.
+    """
+    B, T = series["ncon"].shape
+    out = {}
+    for key in ("qpos", "qvel", "act", "sensordata"):
+        fixed = np.full((B, T), getattr(tol, key))
+        out[key] = fixed if noise is None else np.maximum(fixed, noise.envelope(key))
+    frac = np.full(B, tol.contact_mismatch)
+    out["contacts"] = frac if noise is None else np.maximum(frac, np.minimum(1.0, 2 * noise.contact_fraction))
+    out["rangefinder"] = np.full(B, tol.rangefinder_mismatch)
+    return out
+
+
+def _member_fails(series: dict[str, np.ndarray], bounds: dict[str, np.ndarray], nrays: int) -> np.ndarray:
+    """(B,) True for members where some field exceeds its bound."""
     bad = np.zeros(series["qpos"].shape[0], bool)
-    for key, bound in (("qpos", tol.qpos), ("qvel", tol.qvel), ("act", tol.act), ("sensordata", tol.sensordata)):
+    for key in ("qpos", "qvel", "act", "sensordata"):
         if series[key].shape[-1]:
-            bad |= ~(series[key] <= bound).all(axis=(1, 2))  # NaN counts as exceeding
-    bad |= (series["ncon"] > 0).mean(axis=1) > tol.contact_mismatch
+            bad |= ~(series[key].max(axis=2) <= bounds[key]).all(axis=1)  # NaN counts as exceeding
+    bad |= (series["ncon"] > 0).mean(axis=1) > bounds["contacts"]
     if nrays:
-        bad |= (series["rangefinder"] / nrays).mean(axis=1) > tol.rangefinder_mismatch
+        bad |= (series["rangefinder"] / nrays).mean(axis=1) > bounds["rangefinder"]
     return bad
 
 
 def judge(name: str, m: mujoco.MjModel, traj_c: Trajectory, traj_mjx: Trajectory,
-          tol: Tolerances, threshold: float = 0.95) -> ScenarioResult:
+          tol: Tolerances, threshold: float = 0.95, noise: NoiseFloor | None = None) -> ScenarioResult:
     """Compares MJX against C (the reference) and decides the scenario's status.
 
-    A member passes when every field stays within tolerance at every step; the
-    scenario passes when the fraction of healthy members that pass is at least
-    ``threshold`` (the pass-rate criterion of cross-platform validation).
+    A member passes when every field stays within its bound at every step: the
+    fixed tolerance, or with a ``noise`` floor, max(tolerance, chaos envelope).
+    The scenario passes when the fraction of healthy members that pass is at
+    least ``threshold`` (the pass-rate criterion of cross-platform validation).
     """
     layout = metrics.qpos_layout(m)
     dt = float(m.opt.timestep)
@@ -234,17 +265,15 @@ def judge(name: str, m: mujoco.MjModel, traj_c: Trajectory, traj_mjx: Trajectory
     healthy = (traj_c.diverged_at < 0) & (traj_mjx.diverged_at < 0)
     series = jax.tree.map(np.asarray, error_series(traj_mjx, traj_c, layout, jnp.asarray(rangefinder_mask(m))))
     objects = component_objects(m, layout)
-    fields = [
-        _field_result("qpos", series["qpos"], tol.qpos, healthy, objects["qpos"], dt),
-        _field_result("qvel", series["qvel"], tol.qvel, healthy, objects["qvel"], dt),
-        _field_result("act", series["act"], tol.act, healthy, objects["act"], dt),
-        _field_result("sensordata", series["sensordata"], tol.sensordata, healthy, objects["sensordata"], dt),
-        _fraction_result("contacts", series["ncon"] > 0, tol.contact_mismatch, healthy),
-    ]
+    bounds = _bounds(series, tol, noise)
+    fields = [_field_result(key, series[key], bounds[key], getattr(tol, key), healthy, objects[key], dt)
+              for key in ("qpos", "qvel", "act", "sensordata")]
+    fields.append(_fraction_result("contacts", series["ncon"] > 0, bounds["contacts"], tol.contact_mismatch, healthy))
     rf = rangefinder_mask(m)
     if rf.any():
-        fields.append(_fraction_result("rangefinder", series["rangefinder"] / rf.sum(), tol.rangefinder_mismatch, healthy))
-    member_fails = _member_fails(series, tol, int(rangefinder_mask(m).sum())) & healthy
+        fields.append(_fraction_result("rangefinder", series["rangefinder"] / rf.sum(), bounds["rangefinder"],
+                                       tol.rangefinder_mismatch, healthy))
+    member_fails = _member_fails(series, bounds, int(rf.sum())) & healthy
     pass_rate = 1.0 - member_fails.sum() / max(int(healthy.sum()), 1)
     failed = [f for f in fields if not f.ok] if pass_rate < threshold else []
     first = None
@@ -261,17 +290,20 @@ def judge(name: str, m: mujoco.MjModel, traj_c: Trajectory, traj_mjx: Trajectory
                    f"first: {d0['engine']} member {d0['member']} at step {d0['step']} (t={d0['time']:g} s)")
     elif failed:
         status, kind = "fail", ""
-        message = (f"{first['field']} of {first['object'] or 'member ' + str(first['member'])} exceeds "
-                   f"{first['tolerance']:.1e} at step {first['step']} (t={first['time']:.4g} s), "
-                   f"member {first['member']}; worst {first['error']:.3g}")
+        where = "leaves the envelope" if noise is not None else f"exceeds {first['tolerance']:.1e}"
+        message = (f"{first['field']} of {first['object'] or 'member ' + str(first['member'])} {where} "
+                   f"at step {first['step']} (t={first['time']:.4g} s), member {first['member']}; "
+                   f"worst {first['error']:.3g}")
     else:
-        worst = max((f for f in fields if f.field in ("qpos", "qvel")), key=lambda f: f.max_error / f.tolerance)
+        worst = max((f for f in fields if f.field in ("qpos", "qvel")), key=lambda f: f.ratio)
         status, kind = "pass", ""
-        message = f"worst {worst.field} {worst.max_error:.2g} (tol {worst.tolerance:.0e})"
+        message = f"worst {worst.field} {worst.max_error:.2g} (tol {worst.tolerance:.0e}"
+        message += f", envelope {worst.envelope:.1e})" if worst.envelope else ")"
         if member_fails.any():
             message += f"; {int(member_fails.sum())}/{int(healthy.sum())} members out of tolerance, pass rate {pass_rate:.0%}"
     return ScenarioResult(
         name=name, status=status, message=message, error_kind=kind, fields=tuple(fields),
         first_divergence=first, diverged_members=tuple(diverged),
         behaviour=behaviour(m, traj_c, traj_mjx, dt, healthy), tolerances=tol.as_dict(),
-        pass_rate=float(pass_rate), threshold=threshold)
+        pass_rate=float(pass_rate), threshold=threshold,
+        noise_rate=dict(noise.rate) if noise is not None else {})
