@@ -83,6 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--envelope", action=argparse.BooleanOptionalAction, default=True,
                     help="judge errors against the chaos envelope measured from C's own divergence under "
                          "rounding-level perturbations (default); --no-envelope uses fixed tolerances only")
+    sw.add_argument("--diagnose", choices=("none", "basic", "full"), default="full",
+                    help="for failing scenarios: basic = re-synchronised one-step error and the first "
+                         "pipeline stage that differs; full (default) = also the likely cause, from reruns "
+                         "with a converged solver, no contacts, a smaller timestep, another integrator")
     sw.add_argument("--out", metavar="DIR", help="write DIR/report.json (versions, config, per-scenario metrics)")
     sw.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     sw.add_argument("--quick", action="store_true", help="smoke run: batch <= 4, steps <= 50")
@@ -119,7 +123,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
 
     engines.configure_jax(args.precision, args.cache_dir)
     config = SweepConfig(seed=args.seed, batch=args.batch, steps=args.steps, precision=args.precision,
-                         quick=args.quick, threshold=args.threshold, envelope=args.envelope)
+                         quick=args.quick, threshold=args.threshold, envelope=args.envelope,
+                         diagnose=args.diagnose)
     scenarios, bad = [], []
     try:
         refs = args.scenarios or [s.name for s in bundled_scenarios()]

@@ -224,6 +224,8 @@ def compile_count() -> int:
 def clear_compiled() -> None:
     """Forgets compiled MJX rollouts, so the next rollout re-traces MJX's (possibly patched) Python code."""
     _rollout.clear_cache()
+    _resync_rollout.clear_cache()
+    forward.clear_cache()
 
 
 def _contact_count(dx: mjx.Data) -> jax.Array:
@@ -274,25 +276,48 @@ def energy(mx: mjx.Model, dx: mjx.Data, qpos: jax.Array, qvel: jax.Array) -> jax
     return jnp.stack([pot, kin])
 
 
+def _member_rollout(mx, dx0, qpos, qvel, act, time, ctrl, with_energy):
+    """One member: scan ``mjx.step`` over ``ctrl`` (T, nu) from the given state."""
+    def step(dx, u):
+        qpos_before, qvel_before = dx.qpos, dx.qvel
+        dx = mjx.step(mx, dx.replace(ctrl=u))
+        rec = dict(qpos=dx.qpos, qvel=dx.qvel, act=dx.act, sensordata=dx.sensordata,
+                   time=dx.time, ncon=_contact_count(dx))
+        if with_energy:  # dx's kinematics are those of the state before the step
+            rec["energy"] = energy(mx, dx, qpos_before, qvel_before)
+        return dx, rec
+
+    _, rec = jax.lax.scan(step, dx0.replace(qpos=qpos, qvel=qvel, act=act, time=time), ctrl)
+    return rec
+
+
+#: ``mjx.forward``, compiled: every stage of one state, for the drill-down.
+forward = jax.jit(mjx.forward)
+
+
+def _model_axes(mx, varying):
+    return jax.tree.unflatten(jax.tree.structure(mx), [0 if v else None for v in varying])
+
+
 @functools.partial(jax.jit, static_argnames=("varying", "with_energy"))
 def _rollout(mx, dx0, qpos, qvel, act, ctrl, varying, with_energy=False):
+    """(B, T, ...) records of B members from their initial states."""
     _COMPILES["count"] += 1  # runs only while tracing
-    axes = jax.tree.unflatten(jax.tree.structure(mx), [0 if v else None for v in varying])
+    member = functools.partial(_member_rollout, dx0=dx0, time=dx0.time, with_energy=with_energy)
+    return jax.vmap(lambda mx, q, v, a, u: member(mx, qpos=q, qvel=v, act=a, ctrl=u),
+                    in_axes=(_model_axes(mx, varying), 0, 0, 0, 0))(mx, qpos, qvel, act, ctrl)
 
-    def member(mx, qpos, qvel, act, ctrl):
-        def step(dx, u):
-            qpos_before, qvel_before = dx.qpos, dx.qvel
-            dx = mjx.step(mx, dx.replace(ctrl=u))
-            rec = dict(qpos=dx.qpos, qvel=dx.qvel, act=dx.act, sensordata=dx.sensordata,
-                       time=dx.time, ncon=_contact_count(dx))
-            if with_energy:  # dx's kinematics are those of the state before the step
-                rec["energy"] = energy(mx, dx, qpos_before, qvel_before)
-            return dx, rec
 
-        _, rec = jax.lax.scan(step, dx0.replace(qpos=qpos, qvel=qvel, act=act), ctrl)
-        return rec
+@functools.partial(jax.jit, static_argnames=("varying",))
+def _resync_rollout(mx, dx0, qpos, qvel, act, time, ctrl, varying):
+    """(B, S, k, ...) records of B members restarted from S given states, k steps each."""
+    _COMPILES["count"] += 1
 
-    return jax.vmap(member, in_axes=(axes, 0, 0, 0, 0))(mx, qpos, qvel, act, ctrl)
+    def member(mx, q, v, a, t, u):
+        restart = lambda q, v, a, t, u: _member_rollout(mx, dx0, q, v, a, t, u, False)
+        return jax.vmap(restart)(q, v, a, t, u)
+
+    return jax.vmap(member, in_axes=(_model_axes(mx, varying), 0, 0, 0, 0, 0))(mx, qpos, qvel, act, time, ctrl)
 
 
 def _canonical_ints(dx: mjx.Data) -> mjx.Data:
@@ -313,9 +338,40 @@ class MJXEngine:
         ft = dx0.qpos.dtype
         rec = _rollout(mx, dx0, jnp.asarray(inputs.qpos, ft), jnp.asarray(inputs.qvel, ft),
                        jnp.asarray(inputs.act, ft), jnp.asarray(inputs.ctrl, ft), varying, inputs.energy)
-        rec = jax.tree.map(np.asarray, jax.block_until_ready(rec))
-        nonfinite = ~np.isfinite(rec["qpos"]).all(-1) | ~np.isfinite(rec["qvel"]).all(-1)
-        return Trajectory(qpos=rec["qpos"], qvel=rec["qvel"], act=rec["act"],
-                          sensordata=rec["sensordata"], time=rec["time"], ncon=rec["ncon"].astype(np.int64),
-                          energy=rec.get("energy", np.zeros((inputs.batch, inputs.steps, 0))),
-                          diverged_at=_first_true(nonfinite))
+        return _trajectory(jax.tree.map(np.asarray, jax.block_until_ready(rec)), inputs)
+
+    def resync(self, inputs: BatchedInputs, reference: Trajectory, every: int = 1) -> Trajectory:
+        """MJX re-synchronised to ``reference`` (C) every ``every`` steps.
+
+        Record t is MJX's state after step t when restarted from the reference
+        state after step ``every * floor(t / every) - 1`` (the initial state for
+        the first block). Compared with the reference it gives the local error:
+        at ``every=1`` the one-step error, which chaos cannot amplify.
+        """
+        B, T, k = inputs.batch, inputs.steps, every
+        S = -(-T // k)
+        starts = np.arange(S) * k
+
+        def state(field, initial):
+            full = np.concatenate([initial[:, None], np.asarray(getattr(reference, field))], axis=1)
+            return full[:, starts]
+        mx, varying = put_models(inputs.models)
+        dx0 = _canonical_ints(mjx.make_data(inputs.models[0]))
+        ft = dx0.qpos.dtype
+        ctrl = np.zeros((B, S * k, inputs.ctrl.shape[2]))
+        ctrl[:, :T] = inputs.ctrl
+        rec = _resync_rollout(mx, dx0, jnp.asarray(state("qpos", inputs.qpos), ft),
+                              jnp.asarray(state("qvel", inputs.qvel), ft), jnp.asarray(state("act", inputs.act), ft),
+                              jnp.asarray(state("time", np.zeros(B)), ft),
+                              jnp.asarray(ctrl.reshape(B, S, k, -1), ft), varying)
+        rec = {key: np.asarray(v).reshape(B, S * k, *v.shape[3:])[:, :T] for key, v in rec.items()}
+        return _trajectory(rec, inputs)
+
+
+def _trajectory(rec: dict[str, np.ndarray], inputs: BatchedInputs) -> Trajectory:
+    """A Trajectory from MJX records, with non-finite states located."""
+    nonfinite = ~np.isfinite(rec["qpos"]).all(-1) | ~np.isfinite(rec["qvel"]).all(-1)
+    return Trajectory(qpos=rec["qpos"], qvel=rec["qvel"], act=rec["act"],
+                      sensordata=rec["sensordata"], time=rec["time"], ncon=rec["ncon"].astype(np.int64),
+                      energy=rec.get("energy", np.zeros((inputs.batch, inputs.steps, 0))),
+                      diverged_at=_first_true(nonfinite))

@@ -7,15 +7,18 @@ status, and the sweep goes on.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import sys
 import time
 from typing import Callable, Iterable, Sequence
 
-from mjxdiff import engines
-from mjxdiff.engines import CEngine, MJXEngine, UnsupportedError
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import Scenario, ScenarioError, load_model
+import jax
+
+from mjxdiff import diagnose, engines
+from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
+from mjxdiff.inputs import BatchedInputs, make_inputs
+from mjxdiff.scenario import Scenario, ScenarioError, Tolerances, load_model
 from mjxdiff.noise import noise_floor
 from mjxdiff.verdict import ScenarioResult, judge, rangefinder_mask
 
@@ -35,6 +38,9 @@ class SweepConfig:
       threshold: least fraction of batch members within tolerance for a scenario to pass.
       envelope: judge against the chaos envelope from C's self-divergence
         (:mod:`mjxdiff.noise`); False holds errors to the fixed tolerances only.
+      diagnose: for failing scenarios, ``none``; ``basic``: local
+        (re-synchronised) error and the stage drill-down; ``full``: also the
+        cause attribution by ablations (each ablation recompiles).
     """
 
     seed: int = 0
@@ -44,6 +50,7 @@ class SweepConfig:
     quick: bool = False
     threshold: float = 0.95
     envelope: bool = True
+    diagnose: str = "full"
 
     def sizes(self, scenario: Scenario) -> tuple[int, int]:
         batch = self.batch or scenario.batch
@@ -89,16 +96,63 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
         return ScenarioResult(status="error", error_kind="engine", message=f"MJX failed: {_one_line(e)}",
                               info=info, **base)
     t3 = time.perf_counter()
-    floor = None
-    if config.envelope:
-        floor = noise_floor(m, inputs, traj_c, config.precision, rangefinder_mask(m), c_engine)
+    result = _judge(scenario.name, m, inputs, traj_c, traj_mjx, tol, config, c_engine)
     t4 = time.perf_counter()
-    result = judge(scenario.name, m, traj_c, traj_mjx, tol, config.threshold, floor)
+    if result.status == "fail" and config.diagnose != "none":
+        result = _diagnose(result, m, inputs, traj_c, tol, config, mjx_engine, c_engine)
     t5 = time.perf_counter()
-    info.update(seconds=dict(inputs=t1 - t0, c=t2 - t1, mjx=t3 - t2, noise_floor=t4 - t3, metrics=t5 - t4),
+    info.update(seconds=dict(inputs=t1 - t0, c=t2 - t1, mjx=t3 - t2, verdict=t4 - t3, diagnosis=t5 - t4),
                 mjx_compiles=engines.compile_count() - compiles,
                 nq=m.nq, nv=m.nv, nu=m.nu, nsensordata=m.nsensordata)
     return dataclasses.replace(result, info=info)
+
+
+def _judge(name: str, m, inputs: BatchedInputs, traj_c: Trajectory, traj_mjx: Trajectory, tol: Tolerances,
+           config: SweepConfig, c_engine: CEngine | None) -> ScenarioResult:
+    """The verdict, against the chaos envelope when the config asks for it."""
+    floor = None
+    if config.envelope:
+        floor = noise_floor(m, inputs, traj_c, config.precision, rangefinder_mask(m), c_engine)
+    return judge(name, m, traj_c, traj_mjx, tol, config.threshold, floor)
+
+
+def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances,
+              config: SweepConfig, mjx_engine: MJXEngine | None, c_engine: CEngine | None) -> ScenarioResult:
+    """Adds local error, the stage drill-down and (``full``) the likely cause to a failing verdict."""
+    first = result.first_divergence
+    member, step = first["member"], first["step"]
+    drill = diagnose.drill_down(inputs.models[member], *diagnose.state_before(inputs, traj_c, member, step),
+                                precision=config.precision, member=member, step=step)
+    local = diagnose.local_error(inputs, traj_c, m, rangefinder_mask(m), 1, mjx_engine)
+    diagnosis = dict(drill_down=dataclasses.asdict(drill), local_error=local)
+    message = result.message
+    if drill.first_field:
+        message += f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
+    else:
+        message += "; every stage agrees at that state (an accumulation of small differences)"
+    if config.diagnose == "full":
+        def passes(ablated: BatchedInputs, precision: str) -> bool:
+            with _precision(precision):
+                c = (c_engine or CEngine()).rollout(ablated)
+                x = (mjx_engine or MJXEngine()).rollout(ablated)
+                return _judge(result.name, ablated.models[0], ablated, c, x, tol, config, c_engine).status == "pass"
+
+        cause = diagnose.attribute_cause(passes, inputs, config.precision)
+        diagnosis["cause"] = cause
+        message += f"; likely cause: {cause['cause']}"
+        if cause["ablation"]:
+            message += f" (passes with {cause['ablation']})"
+    return dataclasses.replace(result, message=message, diagnosis=diagnosis)
+
+
+@contextlib.contextmanager
+def _precision(precision: str):
+    before = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", precision == "float64")
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_x64", before)
 
 
 class _Progress:

@@ -85,6 +85,7 @@ class ScenarioResult:
     pass_rate: float | None = None
     threshold: float | None = None
     noise_rate: dict[str, float] = dataclasses.field(default_factory=dict)
+    diagnosis: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def field(self, name: str) -> FieldResult:
         return next(f for f in self.fields if f.field == name)

@@ -1,0 +1,264 @@
+"""Why a scenario diverges: local error, pipeline drill-down, cause attribution.
+
+* :func:`local_error` re-synchronises MJX to the C state every k steps, so chaos
+  cannot amplify the error: a real bug shows as a one-step error far above
+  rounding; chaos does not.
+* :func:`drill_down` evaluates ``mj_forward`` and ``mjx.forward`` from the same
+  C state at the first divergent step and names the earliest pipeline stage
+  (kinematics, inertia, tendons, collision, passive, bias, actuation, smooth
+  acceleration, constraint, acceleration, sensors) whose quantities disagree.
+* :func:`attribute_cause` re-runs the scenario under ablations (float64, a
+  converged solver, contacts disabled, a smaller timestep, another integrator)
+  and reports the first that makes it pass.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from mjxdiff import metrics
+from mjxdiff import engines
+from mjxdiff.engines import MJXEngine, Trajectory, mjx
+from mjxdiff.inputs import BatchedInputs
+
+__all__ = ["STAGES", "StageDiff", "DrillDown", "drill_down", "local_error", "attribute_cause", "ABLATIONS"]
+
+#: Pipeline stages in the order ``mj_forward`` computes them, with their fields.
+STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("kinematics", ("xpos", "xquat")),
+    ("inertia", ("qM",)),
+    ("tendons", ("ten_length",)),
+    ("collision", ("contact",)),
+    ("passive", ("qfrc_passive",)),
+    ("bias", ("qfrc_bias",)),
+    ("actuation", ("actuator_force", "qfrc_actuator")),
+    ("smooth acceleration", ("qacc_smooth",)),
+    ("constraint", ("qfrc_constraint",)),
+    ("acceleration", ("qacc",)),
+    ("sensors", ("sensordata",)),
+)
+
+#: Relative disagreement (|mjx - c| / (1 + max|c|)) above which a stage differs.
+STAGE_RTOL = {"float64": 1e-9, "float32": 1e-4}
+
+
+@dataclasses.dataclass(frozen=True)
+class StageDiff:
+    """One field of one stage: worst scaled error and the object it belongs to."""
+
+    stage: str
+    field: str
+    error: float
+    object: str
+    differs: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class DrillDown:
+    """Stage-by-stage comparison from one C state.
+
+    Attributes:
+      member, step: where the state was taken (the state before ``step``).
+      first_stage / first_field / object: the earliest stage that differs,
+        or ``None`` when every stage agrees at that state.
+      fields: every compared field, in pipeline order.
+    """
+
+    member: int
+    step: int
+    first_stage: str | None
+    first_field: str | None
+    object: str
+    fields: tuple[StageDiff, ...]
+
+
+def _name(m: mujoco.MjModel, obj: mujoco.mjtObj, i: int) -> str:
+    return mujoco.mj_id2name(m, obj, int(i)) or f"#{int(i)}"
+
+
+def _object(m: mujoco.MjModel, field: str, index: int) -> str:
+    """The MuJoCo object behind a flat index into ``field``."""
+    if field in ("xpos", "xquat"):
+        return f"body '{_name(m, mujoco.mjtObj.mjOBJ_BODY, index)}'"
+    if field in ("qM", "qfrc_passive", "qfrc_bias", "qfrc_actuator", "qacc_smooth", "qfrc_constraint", "qacc"):
+        dof = index % m.nv if field == "qM" else index
+        return f"joint '{_name(m, mujoco.mjtObj.mjOBJ_JOINT, m.dof_jntid[dof])}'"
+    if field == "ten_length":
+        return f"tendon '{_name(m, mujoco.mjtObj.mjOBJ_TENDON, index)}'"
+    if field == "actuator_force":
+        return f"actuator '{_name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, index)}'"
+    if field == "sensordata":
+        s = int(np.searchsorted(m.sensor_adr, index, side="right") - 1)
+        return f"sensor '{_name(m, mujoco.mjtObj.mjOBJ_SENSOR, s)}'"
+    return ""
+
+
+def _contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> dict[tuple[int, int], list[float]]:
+    out: dict[tuple[int, int], list[float]] = {}
+    for c in d.contact[:d.ncon]:
+        out.setdefault(tuple(sorted((int(c.geom1), int(c.geom2)))), []).append(float(c.dist))
+    return out
+
+
+def _contacts_mjx(dx: Any) -> dict[tuple[int, int], list[float]]:
+    c = dx._impl.contact
+    dist, margin, geom = map(np.asarray, (c.dist, c.includemargin, c.geom))
+    out: dict[tuple[int, int], list[float]] = {}
+    for i in np.flatnonzero(dist < margin):
+        out.setdefault(tuple(sorted(int(g) for g in geom[i])), []).append(float(dist[i]))
+    return out
+
+
+def _contact_diff(m: mujoco.MjModel, cc: dict, cx: dict) -> tuple[float, str]:
+    """Worst contact disagreement: inf for a geom pair whose contact count differs, else |dist| error."""
+    worst, obj = 0.0, ""
+    for pair in sorted(set(cc) | set(cx)):
+        a, b = sorted(cc.get(pair, [])), sorted(cx.get(pair, []))
+        err = np.inf if len(a) != len(b) else float(np.max(np.abs(np.subtract(a, b)), initial=0.0))
+        if err > worst:
+            names = " / ".join(_name(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in pair)
+            worst, obj = err, f"geoms {names} (C {len(a)}, MJX {len(b)} contacts)"
+    return worst, obj
+
+
+def drill_down(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, ctrl: np.ndarray,
+               time: float, precision: str = "float64", member: int = 0, step: int = 0) -> DrillDown:
+    """Compares every stage of ``mj_forward`` and ``mjx.forward`` from one state.
+
+    Args:
+      m: the member's C model.
+      qpos, qvel, act, ctrl, time: the state and controls before the step.
+      precision: sets the relative threshold, :data:`STAGE_RTOL`.
+    """
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:], d.ctrl[:], d.time = qpos, qvel, ctrl, time
+    if m.na:
+        d.act[:] = act
+    mx = mjx.put_model(m)
+    dx = engines.forward(mx, mjx.put_data(m, d))
+    mujoco.mj_forward(m, d)
+    c_qm = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, c_qm)
+    values_c = {f: np.asarray(getattr(d, f)).ravel() for _, fs in STAGES for f in fs if f not in ("qM", "contact")}
+    values_c["qM"] = c_qm.ravel()
+    values_x = {f: np.asarray(getattr(dx, f)).ravel() for f in values_c if f != "qM"}
+    values_x["qM"] = np.asarray(mjx.full_m(mx, dx)).ravel()
+    rtol = STAGE_RTOL[precision]
+    diffs = []
+    for stage, fields in STAGES:
+        for f in fields:
+            if f == "contact":
+                err, obj = _contact_diff(m, _contacts_c(m, d), _contacts_mjx(dx))
+                diffs.append(StageDiff(stage, f, err, obj, err > 1e3 * rtol))
+                continue
+            c, x = values_c[f], values_x[f]
+            if c.size == 0:
+                continue
+            scaled = np.abs(x - c) / (1 + np.max(np.abs(c)))
+            i = int(np.nanargmax(np.where(np.isnan(scaled), np.inf, scaled)))
+            err = float(scaled[i])
+            diffs.append(StageDiff(stage, f, err, _object(m, f, i), not err <= rtol))
+    first = next((s for s in diffs if s.differs), None)
+    return DrillDown(member=member, step=step, first_stage=first and first.stage, first_field=first and first.field,
+                     object=first.object if first else "", fields=tuple(diffs))
+
+
+def state_before(inputs: BatchedInputs, traj_c: Trajectory, member: int, step: int):
+    """(qpos, qvel, act, ctrl, time) of C's state before ``step`` of ``member``."""
+    if step == 0:
+        return inputs.qpos[member], inputs.qvel[member], inputs.act[member], inputs.ctrl[member, 0], 0.0
+    k = step - 1
+    return (traj_c.qpos[member, k], traj_c.qvel[member, k], traj_c.act[member, k], inputs.ctrl[member, step],
+            float(traj_c.time[member, k]))
+
+
+def local_error(inputs: BatchedInputs, traj_c: Trajectory, m: mujoco.MjModel, rf_mask: np.ndarray,
+                every: int = 1, engine: MJXEngine | None = None) -> dict[str, float]:
+    """Worst re-synchronised error per field: MJX restarted from C every ``every`` steps.
+
+    Returns:
+      field -> max over members, steps and components (same units as the
+      free-running errors: m | rad, m/s | rad/s, relative sensor error).
+    """
+    from mjxdiff.verdict import error_series
+
+    resynced = (engine or MJXEngine()).resync(inputs, traj_c, every)
+    series = error_series(resynced, traj_c, metrics.qpos_layout(m), jnp.asarray(rf_mask))
+    return {f: float(np.max(np.asarray(series[f]), initial=0.0)) for f in ("qpos", "qvel", "act", "sensordata")}
+
+
+# ----------------------------------------------------------------------------
+# cause attribution
+
+
+def _converged_solver(m: mujoco.MjModel) -> None:
+    m.opt.iterations, m.opt.ls_iterations, m.opt.tolerance = 200, 100, 1e-14
+
+
+def _no_contacts(m: mujoco.MjModel) -> None:
+    m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+
+
+def _quarter_timestep(m: mujoco.MjModel) -> None:
+    m.opt.timestep /= 4
+
+
+def _other_integrator(m: mujoco.MjModel) -> None:
+    euler = int(mujoco.mjtIntegrator.mjINT_EULER)
+    m.opt.integrator = int(mujoco.mjtIntegrator.mjINT_RK4) if m.opt.integrator == euler else euler
+
+
+#: (cause class, ablation label, model edit) in the order they are tried.
+ABLATIONS: tuple[tuple[str, str, Callable[[mujoco.MjModel], None]], ...] = (
+    ("solver convergence", "converged solver (200 iterations, tolerance 1e-14)", _converged_solver),
+    ("contact generation", "contacts disabled", _no_contacts),
+    ("integration", "timestep / 4", _quarter_timestep),
+    ("integration", "other integrator (Euler <-> RK4)", _other_integrator),
+)
+
+
+def ablate(inputs: BatchedInputs, edit: Callable[[mujoco.MjModel], None]) -> BatchedInputs:
+    """``inputs`` with ``edit`` applied to a copy of every member's model."""
+    cache: dict[int, mujoco.MjModel] = {}
+    models = []
+    for mi in inputs.models:
+        if id(mi) not in cache:
+            cache[id(mi)] = copy.copy(mi)
+            edit(cache[id(mi)])
+        models.append(cache[id(mi)])
+    return dataclasses.replace(inputs, models=tuple(models))
+
+
+def attribute_cause(passes: Callable[[BatchedInputs, str], bool], inputs: BatchedInputs,
+                    precision: str) -> dict[str, Any]:
+    """Tries ablations in order; the first under which the scenario passes names the cause.
+
+    Args:
+      passes: reruns the scenario on the given inputs at the given precision
+        and says whether it passes.
+      inputs: the failing scenario's inputs.
+      precision: the precision it failed at.
+
+    Returns:
+      ``{"cause": class, "ablation": label, "tried": [(label, passed), ...]}``;
+      the cause is ``genuine model/engine discrepancy`` when no ablation passes.
+    """
+    tried = []
+    if precision == "float32":
+        ok = passes(inputs, "float64")
+        tried.append(("float64", ok))
+        if ok:
+            return dict(cause="precision", ablation="float64", tried=tried)
+    for cause, label, edit in ABLATIONS:
+        ok = passes(ablate(inputs, edit), precision)
+        tried.append((label, ok))
+        if ok:
+            return dict(cause=cause, ablation=label, tried=tried)
+    return dict(cause="genuine model/engine discrepancy", ablation=None, tried=tried)
