@@ -11,6 +11,7 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 from typing import Sequence
 
 __all__ = ["main"]
@@ -95,6 +96,13 @@ def build_parser() -> argparse.ArgumentParser:
                          "'' disables)")
     sw.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                     help="progress lines on stderr (default: when stderr is a terminal)")
+    rp = sub.add_parser("replay", help="re-run a saved reproducer of a failing scenario member",
+                        description="Re-run a reproducer file (written under DIR/reproducers/ by "
+                                    "'sweep --out DIR' for each failing scenario) and print its diagnosis. "
+                                    "Exit 1 if it still diverges, 0 if it now passes, 2 if the file is bad.")
+    rp.add_argument("file", metavar="FILE", help="reproducer .json")
+    rp.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
+    rp.add_argument("--cache-dir", metavar="DIR", help="JAX persistent compilation cache (see sweep --help)")
     sub.add_parser("list", help="list bundled scenarios and what each exercises",
                    description="List bundled scenarios with their model, size and what they exercise.")
     return parser
@@ -122,7 +130,9 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     from mjxdiff.verdict import ScenarioResult
 
     engines.configure_jax(args.precision, args.cache_dir)
+    reproducers = str(Path(args.out) / "reproducers") if args.out else None
     config = SweepConfig(seed=args.seed, batch=args.batch, steps=args.steps, precision=args.precision,
+                         reproducers=reproducers,
                          quick=args.quick, threshold=args.threshold, envelope=args.envelope,
                          diagnose=args.diagnose)
     scenarios, bad = [], []
@@ -158,10 +168,43 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     return exit_code(results)
 
 
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from mjxdiff import engines, report, reproducer
+    from mjxdiff.scenario import ScenarioError
+    from mjxdiff.sweep import SweepConfig, exit_code, run_inputs
+
+    try:
+        rep = reproducer.load(args.file)
+    except (ScenarioError, KeyError, ValueError) as e:
+        message = str(e) if isinstance(e, ScenarioError) else f"{args.file}: not a reproducer ({e!r} missing or bad)"
+        print(f"mjxdiff: error: {message}", file=sys.stderr)
+        return 2
+    saved = {k: v for k, v in rep.config.items() if k in SweepConfig.__dataclass_fields__}
+    config = SweepConfig(**{**saved, "reproducers": None})
+    engines.configure_jax(config.precision, args.cache_dir)
+    result = run_inputs(rep.scenario, rep.model, rep.inputs, rep.tolerances, config)
+    doc = report.result_dict(result)
+    then = rep.verdict.get("first_divergence") or {}
+    now = doc.get("first_divergence") or {}
+    same = (doc["status"] == rep.verdict["status"]
+            and all(then.get(k) == now.get(k) for k in ("field", "step", "object")))
+    if args.format == "json":
+        print(json.dumps(dict(reproduced=same, saved=rep.verdict, replayed=doc), indent=2))
+    else:
+        print(f"replaying {rep.scenario} member {rep.member} (seed {rep.inputs.seed}, {config.precision}, "
+              f"saved with mujoco {rep.versions.get('mujoco')}, mjx {rep.versions.get('mujoco-mjx')})")
+        print(report.format_line(result))
+        print("reproduced: same status, field, object and step as saved" if same else
+              f"NOT reproduced: saved {rep.verdict['status']} {then}, now {doc['status']} {now}")
+    return exit_code([result])
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "list":
         return _cmd_list()
+    if args.command == "replay":
+        return _cmd_replay(args)
     return _cmd_sweep(args)
 
 

@@ -32,7 +32,7 @@ __all__ = ["STAGES", "StageDiff", "DrillDown", "drill_down", "local_error", "att
 
 #: Pipeline stages in the order ``mj_forward`` computes them, with their fields.
 STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("kinematics", ("xpos", "xquat")),
+    ("kinematics", ("xpos", "xquat", "xipos")),
     ("inertia", ("qM",)),
     ("tendons", ("ten_length",)),
     ("collision", ("contact",)),
@@ -85,7 +85,7 @@ def _name(m: mujoco.MjModel, obj: mujoco.mjtObj, i: int) -> str:
 
 def _object(m: mujoco.MjModel, field: str, index: int) -> str:
     """The MuJoCo object behind a flat index into ``field``."""
-    if field in ("xpos", "xquat"):
+    if field in ("xpos", "xquat", "xipos"):
         return f"body '{_name(m, mujoco.mjtObj.mjOBJ_BODY, index)}'"
     if field in ("qM", "qfrc_passive", "qfrc_bias", "qfrc_actuator", "qacc_smooth", "qfrc_constraint", "qacc"):
         dof = index % m.nv if field == "qM" else index
@@ -100,24 +100,31 @@ def _object(m: mujoco.MjModel, field: str, index: int) -> str:
     return ""
 
 
-def _contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> dict[tuple[int, int], list[float]]:
-    out: dict[tuple[int, int], list[float]] = {}
+Contacts = dict[tuple[int, int], list[tuple[float, ...]]]
+
+
+def _contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> Contacts:
+    """Active contacts by geom pair: (dist, friction[0], friction[1]) each."""
+    out: Contacts = {}
     for c in d.contact[:d.ncon]:
-        out.setdefault(tuple(sorted((int(c.geom1), int(c.geom2)))), []).append(float(c.dist))
+        key = tuple(sorted((int(c.geom1), int(c.geom2))))
+        out.setdefault(key, []).append((float(c.dist), float(c.friction[0]), float(c.friction[1])))
     return out
 
 
-def _contacts_mjx(dx: Any) -> dict[tuple[int, int], list[float]]:
+def _contacts_mjx(dx: Any) -> Contacts:
     c = dx._impl.contact
-    dist, margin, geom = map(np.asarray, (c.dist, c.includemargin, c.geom))
-    out: dict[tuple[int, int], list[float]] = {}
+    dist, margin, geom, friction = map(np.asarray, (c.dist, c.includemargin, c.geom, c.friction))
+    out: Contacts = {}
     for i in np.flatnonzero(dist < margin):
-        out.setdefault(tuple(sorted(int(g) for g in geom[i])), []).append(float(dist[i]))
+        key = tuple(sorted(int(g) for g in geom[i]))
+        out.setdefault(key, []).append((float(dist[i]), float(friction[i, 0]), float(friction[i, 1])))
     return out
 
 
-def _contact_diff(m: mujoco.MjModel, cc: dict, cx: dict) -> tuple[float, str]:
-    """Worst contact disagreement: inf for a geom pair whose contact count differs, else |dist| error."""
+def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float, str]:
+    """Worst contact disagreement: inf for a geom pair whose contact count differs,
+    else the largest |dist| or |friction| difference (contacts matched in sorted order)."""
     worst, obj = 0.0, ""
     for pair in sorted(set(cc) | set(cx)):
         a, b = sorted(cc.get(pair, [])), sorted(cx.get(pair, []))

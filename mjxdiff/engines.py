@@ -314,8 +314,10 @@ def _resync_rollout(mx, dx0, qpos, qvel, act, time, ctrl, varying):
     _COMPILES["count"] += 1
 
     def member(mx, q, v, a, t, u):
-        restart = lambda q, v, a, t, u: _member_rollout(mx, dx0, q, v, a, t, u, False)
-        return jax.vmap(restart)(q, v, a, t, u)
+        # restarts one after another (scan), members side by side (vmap): the shape of
+        # _rollout, rather than a (B x S)-wide nested vmap, which hung XLA CPU here
+        restart = lambda _, start: (None, _member_rollout(mx, dx0, *start, False))
+        return jax.lax.scan(restart, None, (q, v, a, t, u))[1]
 
     return jax.vmap(member, in_axes=(_model_axes(mx, varying), 0, 0, 0, 0, 0))(mx, qpos, qvel, act, time, ctrl)
 

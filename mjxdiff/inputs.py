@@ -37,6 +37,10 @@ class BatchedInputs:
         the report.
       seed: the seed everything was drawn from.
       energy: whether both engines record potential and kinetic energy.
+      member_ids: (B,) identity of each member within its scenario's batch
+        (default 0..B-1); per-member draws made later (the noise floor's
+        perturbations) are seeded by it, so a member replayed alone gets the
+        same ones.
     """
 
     qpos: np.ndarray
@@ -47,6 +51,11 @@ class BatchedInputs:
     factors: dict[str, np.ndarray]
     seed: int
     energy: bool = False
+    member_ids: np.ndarray | None = None
+
+    @property
+    def ids(self) -> np.ndarray:
+        return np.arange(self.batch) if self.member_ids is None else np.asarray(self.member_ids)
 
     @property
     def batch(self) -> int:

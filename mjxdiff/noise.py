@@ -60,16 +60,19 @@ class NoiseFloor:
         return self.margin * np.maximum.accumulate(self.self_divergence[field], axis=1)
 
 
-def perturb(inputs: BatchedInputs, precision: str, seed: int = 1) -> BatchedInputs:
+def perturb(inputs: BatchedInputs, precision: str) -> BatchedInputs:
     """``inputs`` with ``qpos``/``qvel`` moved by ``ULPS`` units of roundoff, random sign.
 
-    delta = ULPS * eps * max(|x|, 1) for each component.
+    delta = ULPS * eps * max(|x|, 1) for each component; the signs of member
+    i are drawn from a generator seeded by (seed, member id), so a member
+    replayed alone is perturbed the same way.
     """
-    rng = np.random.default_rng(seed)
     eps = ULPS * EPS[precision]
+    rngs = [np.random.default_rng([inputs.seed, int(i)]) for i in inputs.ids]
 
     def move(x: np.ndarray) -> np.ndarray:
-        return x + rng.choice([-1.0, 1.0], x.shape) * eps * np.maximum(np.abs(x), 1.0)
+        signs = np.stack([rng.choice([-1.0, 1.0], x.shape[1:]) for rng in rngs])
+        return x + signs * eps * np.maximum(np.abs(x), 1.0)
 
     return dataclasses.replace(inputs, qpos=move(inputs.qpos), qvel=move(inputs.qvel))
 

@@ -58,9 +58,10 @@ def _clean(x: Any) -> Any:
 
 
 def result_dict(r: ScenarioResult) -> dict[str, Any]:
+    """One verdict as a JSON-ready dict, fields keyed by name."""
     d = dataclasses.asdict(r)
     d["fields"] = {f.pop("field"): f for f in d["fields"]}
-    return d
+    return _clean(d)
 
 
 def to_json(results: Sequence[ScenarioResult], config: dict[str, Any]) -> dict[str, Any]:

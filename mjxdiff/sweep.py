@@ -11,11 +11,12 @@ import contextlib
 import dataclasses
 import sys
 import time
+from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
 import jax
 
-from mjxdiff import diagnose, engines
+from mjxdiff import diagnose, engines, report, reproducer
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
 from mjxdiff.inputs import BatchedInputs, make_inputs
 from mjxdiff.scenario import Scenario, ScenarioError, Tolerances, load_model
@@ -41,6 +42,7 @@ class SweepConfig:
       diagnose: for failing scenarios, ``none``; ``basic``: local
         (re-synchronised) error and the stage drill-down; ``full``: also the
         cause attribution by ablations (each ablation recompiles).
+      reproducers: directory to save failing members in, or None.
     """
 
     seed: int = 0
@@ -51,6 +53,10 @@ class SweepConfig:
     threshold: float = 0.95
     envelope: bool = True
     diagnose: str = "full"
+    reproducers: str | None = None
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
 
     def sizes(self, scenario: Scenario) -> tuple[int, int]:
         batch = self.batch or scenario.batch
@@ -66,44 +72,62 @@ def _one_line(e: BaseException) -> str:
 
 def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
                  mjx_engine: MJXEngine | None = None, c_engine: CEngine | None = None) -> ScenarioResult:
-    """Sweeps one scenario and returns its verdict; never raises for bad input."""
+    """Sweeps one scenario and returns its verdict; never raises for bad input.
+
+    With ``config.reproducers`` set, the first divergent member of a failing
+    scenario is saved there as ``<name>-member<i>.json`` (see :mod:`mjxdiff.reproducer`).
+    """
     batch, steps = config.sizes(scenario)
     tol = scenario.tolerance.for_precision(config.precision)
     info = dict(batch=batch, steps=steps, model=str(scenario.model), exercises=list(scenario.exercises),
                 notes=scenario.notes)
-    base = dict(name=scenario.name, tolerances=tol.as_dict())
     t0 = time.perf_counter()
     try:
         m = load_model(scenario)
         inputs = make_inputs(scenario, m, config.seed, batch, steps)
     except ScenarioError as e:
-        return ScenarioResult(status="error", error_kind="input", message=str(e), info=info, **base)
-    info["factors"] = sorted(inputs.factors)
+        return ScenarioResult(name=scenario.name, status="error", error_kind="input", message=str(e), info=info,
+                              tolerances=tol.as_dict())
+    info.update(factors=sorted(inputs.factors), seconds=dict(inputs=time.perf_counter() - t0))
+    result = run_inputs(scenario.name, m, inputs, tol, config, mjx_engine, c_engine, info)
+    if result.status == "fail" and config.reproducers is not None:
+        member = result.first_divergence["member"]
+        path = reproducer.save(
+            Path(config.reproducers) / f"{scenario.name}-member{member}.json", scenario.name, member, inputs,
+            scenario.model_path.read_text(), tol, config.as_dict(), report.result_dict(result), report.versions())
+        result = dataclasses.replace(result, info={**result.info, "reproducer": str(path)})
+    return result
+
+
+def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig = SweepConfig(),
+               mjx_engine: MJXEngine | None = None, c_engine: CEngine | None = None,
+               info: dict | None = None) -> ScenarioResult:
+    """Both engines on given inputs, then the verdict (and diagnosis of a failure)."""
+    info = dict(info or {}, batch=inputs.batch, steps=inputs.steps)
+    seconds = info.setdefault("seconds", {})
+    base = dict(name=name, tolerances=tol.as_dict(), info=info)
     t1 = time.perf_counter()
     try:
         traj_c = (c_engine or CEngine()).rollout(inputs)
     except Exception as e:  # noqa: BLE001 - reported as this scenario's error, the sweep goes on
-        return ScenarioResult(status="error", error_kind="engine", message=f"MuJoCo C failed: {_one_line(e)}",
-                              info=info, **base)
+        return ScenarioResult(status="error", error_kind="engine", message=f"MuJoCo C failed: {_one_line(e)}", **base)
     t2 = time.perf_counter()
     compiles = engines.compile_count()
     try:
         traj_mjx = (mjx_engine or MJXEngine()).rollout(inputs)
     except UnsupportedError as e:
-        return ScenarioResult(status="unsupported", message=f"MJX does not support: {e.feature}",
-                              info=info, **base)
+        return ScenarioResult(status="unsupported", message=f"MJX does not support: {e.feature}", **base)
     except Exception as e:  # noqa: BLE001
-        return ScenarioResult(status="error", error_kind="engine", message=f"MJX failed: {_one_line(e)}",
-                              info=info, **base)
+        return ScenarioResult(status="error", error_kind="engine", message=f"MJX failed: {_one_line(e)}", **base)
     t3 = time.perf_counter()
-    result = _judge(scenario.name, m, inputs, traj_c, traj_mjx, tol, config, c_engine)
+    result = _judge(name, m, inputs, traj_c, traj_mjx, tol, config, c_engine)
     t4 = time.perf_counter()
     if result.status == "fail" and config.diagnose != "none":
         result = _diagnose(result, m, inputs, traj_c, tol, config, mjx_engine, c_engine)
     t5 = time.perf_counter()
-    info.update(seconds=dict(inputs=t1 - t0, c=t2 - t1, mjx=t3 - t2, verdict=t4 - t3, diagnosis=t5 - t4),
-                mjx_compiles=engines.compile_count() - compiles,
-                nq=m.nq, nv=m.nv, nu=m.nu, nsensordata=m.nsensordata)
+    seconds.update(c=t2 - t1, mjx=t3 - t2, verdict=t4 - t3, diagnosis=t5 - t4)
+    info.update(mjx_compiles=engines.compile_count() - compiles, nq=m.nq, nv=m.nv, nu=m.nu,
+                nsensordata=m.nsensordata)
     return dataclasses.replace(result, info=info)
 
 
@@ -128,6 +152,11 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, traj_c: Trajecto
     message = result.message
     if drill.first_field:
         message += f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
+    elif max(local[f] / max(getattr(tol, f), 1e-300) for f in local) > 1e-3:
+        # mj_forward agrees from the same state, yet one step does not: the update after it
+        drill = dataclasses.replace(drill, first_stage="integration", first_field="qpos/qvel update")
+        diagnosis["drill_down"] = dataclasses.asdict(drill)
+        message += "; every forward stage agrees, the one-step error does not: integration"
     else:
         message += "; every stage agrees at that state (an accumulation of small differences)"
     if config.diagnose == "full":

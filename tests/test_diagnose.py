@@ -1,0 +1,181 @@
+"""Diagnosis names the stage: five more injected bugs, each in another stage of
+the pipeline, are caught (chaotic scenarios included) and the drill-down names
+the right stage and field; local error and envelope behave as documented;
+replay reproduces a saved failure."""
+
+import json
+
+import numpy as np
+import pytest
+from mujoco.mjx._src import collision_driver as mjx_collision
+from mujoco.mjx._src import constraint as mjx_constraint
+from mujoco.mjx._src import smooth as mjx_smooth
+
+from mjxdiff import engines
+from mjxdiff.cli import main
+from mjxdiff.scenario import load_scenario
+from mjxdiff.sweep import SweepConfig, run_scenario
+from tests import test_detection as core
+
+BASIC = SweepConfig(seed=0, batch=4, diagnose="basic")
+
+
+def kinematics_offset(monkeypatch):
+    """Body centres of mass 1e-6 m too high after forward kinematics."""
+    orig = mjx_smooth.kinematics
+
+    def buggy(m, d):
+        d = orig(m, d)
+        return d.replace(xipos=d.xipos.at[1:, 2].add(1e-6))
+
+    monkeypatch.setattr(mjx_smooth, "kinematics", buggy)
+
+
+def inertia_scale(monkeypatch):
+    """Joint-space inertia 0.01% too large."""
+    orig = mjx_smooth.crb
+
+    def buggy(m, d):
+        d = orig(m, d)
+        return d.replace(_impl=d._impl.replace(M=d._impl.M * (1 + 1e-4)))
+
+    monkeypatch.setattr(mjx_smooth, "crb", buggy)
+
+
+def bias_force(monkeypatch):
+    """Coriolis/centrifugal/gravity force 1 ppm too large."""
+    orig = mjx_smooth.rne
+    monkeypatch.setattr(mjx_smooth, "rne", lambda m, d, *a, **k: (lambda d: d.replace(
+        qfrc_bias=d.qfrc_bias * (1 + 1e-6)))(orig(m, d, *a, **k)))
+
+
+def constraint_reference(monkeypatch):
+    """Constraint reference acceleration (solref spring) 1% too stiff."""
+    orig = mjx_constraint.make_constraint
+
+    def buggy(m, d):
+        d = orig(m, d)
+        return d.replace(_impl=d._impl.replace(efc_aref=d._impl.efc_aref * 1.01))
+
+    monkeypatch.setattr(mjx_constraint, "make_constraint", buggy)
+
+
+def contact_distance(monkeypatch):
+    """Contacts report 1e-5 m less penetration than there is."""
+    orig = mjx_collision.collision
+
+    def buggy(m, d):
+        d = orig(m, d)
+        c = d._impl.contact
+        return d.replace(_impl=d._impl.replace(contact=c.replace(dist=c.dist + 1e-5)))
+
+    monkeypatch.setattr(mjx_collision, "collision", buggy)
+
+
+# bug -> (scenario, stage the drill-down must name, field it must name)
+STAGE_BUGS = {
+    kinematics_offset: ("cartpole", "kinematics", "xipos"),
+    inertia_scale: ("pendulum", "inertia", "qM"),
+    bias_force: ("double_pendulum", "bias", "qfrc_bias"),  # chaotic, at its full horizon
+    constraint_reference: ("cartpole", "constraint", "qfrc_constraint"),
+    contact_distance: ("primitives_on_plane", "collision", "contact"),
+    # the core bugs, now also localised
+    core.extra_damping: ("pendulum", "passive", "qfrc_passive"),
+    core.actuator_gain: ("pendulum", "actuation", "actuator_force"),
+    core.jointvel_sensor_gain: ("pendulum", "sensors", "sensordata"),
+    core.contact_friction: ("slope_slide", "collision", "contact"),
+    core.quaternion_update: ("ball_joint", "integration", "qpos/qvel update"),
+}
+
+
+@pytest.fixture
+def fresh_mjx():
+    engines.clear_compiled()
+    yield
+    engines.clear_compiled()
+
+
+@pytest.mark.parametrize("bug", list(STAGE_BUGS), ids=lambda b: b.__name__)
+def test_drill_down_names_the_stage(bug, fresh_mjx, monkeypatch):
+    scenario, stage, field = STAGE_BUGS[bug]
+    bug(monkeypatch)
+    result = run_scenario(load_scenario(scenario), BASIC)
+    assert result.status == "fail", result.message
+    drill = result.diagnosis["drill_down"]
+    assert (drill["first_stage"], drill["first_field"]) == (stage, field), result.message
+    assert "first field to differ" in result.message or "integration" in result.message
+    # the one-step (re-synchronised) error shows the bug, far above rounding
+    assert max(result.diagnosis["local_error"].values()) > 1e-12
+
+
+def test_cause_attribution_blames_contacts_for_a_contact_bug(fresh_mjx, monkeypatch):
+    contact_distance(monkeypatch)
+    result = run_scenario(load_scenario("primitives_on_plane"), SweepConfig(seed=0, batch=4, diagnose="full"))
+    cause = result.diagnosis["cause"]
+    assert cause["cause"] == "contact generation", cause
+    assert "likely cause: contact generation" in result.message
+
+
+def test_cause_attribution_calls_a_damping_bug_genuine(fresh_mjx, monkeypatch):
+    core.extra_damping(monkeypatch)
+    result = run_scenario(load_scenario("pendulum"), SweepConfig(seed=0, batch=4, diagnose="full"))
+    assert result.diagnosis["cause"]["cause"] == "genuine model/engine discrepancy"
+    assert len(result.diagnosis["cause"]["tried"]) == 4
+
+
+def test_chaotic_scenario_passes_under_envelope_not_fixed_tolerance():
+    """float32 rounding alone decorrelates the double pendulum over 1500 steps."""
+    args = ["sweep", "double_pendulum", "--precision", "float32", "--steps", "1500", "--batch", "4", "--format", "json"]
+    import subprocess
+    import sys
+
+    runs = {flag: subprocess.run([sys.executable, "-m", "mjxdiff", *args, flag], capture_output=True, text=True,
+                                 timeout=600) for flag in ("--envelope", "--no-envelope")}
+    enveloped = json.loads(runs["--envelope"].stdout)["scenarios"][0]
+    fixed = json.loads(runs["--no-envelope"].stdout)["scenarios"][0]
+    assert runs["--envelope"].returncode == 0 and enveloped["status"] == "pass", enveloped["message"]
+    assert runs["--no-envelope"].returncode == 1 and fixed["status"] == "fail", fixed["message"]
+    assert enveloped["fields"]["qpos"]["envelope"] > enveloped["fields"]["qpos"]["tolerance"]
+    assert enveloped["noise_rate"]["qpos"] > 0.5  # chaotic: positive finite-time growth rate, 1/s
+
+
+def test_local_error_is_rounding_level_on_a_chaotic_scenario():
+    result = run_scenario(load_scenario("double_pendulum"), SweepConfig(seed=0, batch=4, diagnose="basic"))
+    assert result.status == "pass"
+    from mjxdiff import diagnose
+    from mjxdiff.engines import CEngine
+    from mjxdiff.inputs import make_inputs
+    from mjxdiff.scenario import load_model
+    from mjxdiff.verdict import rangefinder_mask
+
+    scenario = load_scenario("double_pendulum")
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, 0, 4, scenario.steps)
+    traj_c = CEngine().rollout(inputs)
+    local = diagnose.local_error(inputs, traj_c, m, rangefinder_mask(m))
+    free = result.field("qpos").max_error
+    assert local["qpos"] < 1e-13 < free  # chaos amplifies the free-running error, not the local one
+
+
+def test_replay_reproduces_a_saved_failure_bit_for_bit(fresh_mjx, monkeypatch, tmp_path, capsys):
+    core.extra_damping(monkeypatch)
+    assert main(["sweep", "pendulum", "--batch", "4", "--diagnose", "basic", "--out", str(tmp_path)]) == 1
+    (path,) = (tmp_path / "reproducers").glob("pendulum-member*.json")
+    capsys.readouterr()
+    outs = []
+    for _ in range(2):
+        assert main(["replay", str(path), "--format", "json"]) == 1
+        outs.append(json.loads(capsys.readouterr().out))
+    assert outs[0]["reproduced"] is True
+    a, b = outs[0]["replayed"], outs[1]["replayed"]
+    for doc in (a, b):
+        doc["info"].pop("seconds"), doc["info"].pop("mjx_compiles")
+    assert a == b  # every number identical
+    assert a["diagnosis"]["drill_down"]["first_field"] == "qfrc_passive"
+
+
+def test_replay_rejects_a_non_reproducer(tmp_path, capsys):
+    bad = tmp_path / "x.json"
+    bad.write_text("{}")
+    assert main(["replay", str(bad)]) == 2
+    assert "not a reproducer" in capsys.readouterr().err
