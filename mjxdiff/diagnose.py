@@ -104,30 +104,31 @@ Contacts = dict[tuple[int, int], list[tuple[float, ...]]]
 
 
 def _contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> Contacts:
-    """Active contacts by geom pair: (dist, friction[0], friction[1]) each."""
+    """Active contacts by geom pair: (dist, pos x, y, z, friction[0], friction[1]) each."""
     out: Contacts = {}
     for c in d.contact[:d.ncon]:
         key = tuple(sorted((int(c.geom1), int(c.geom2))))
-        out.setdefault(key, []).append((float(c.dist), float(c.friction[0]), float(c.friction[1])))
+        out.setdefault(key, []).append((float(c.dist), *map(float, c.pos), float(c.friction[0]), float(c.friction[1])))
     return out
 
 
 def _contacts_mjx(dx: Any) -> Contacts:
     c = dx._impl.contact
-    dist, margin, geom, friction = map(np.asarray, (c.dist, c.includemargin, c.geom, c.friction))
+    dist, margin, geom, pos, friction = map(np.asarray, (c.dist, c.includemargin, c.geom, c.pos, c.friction))
     out: Contacts = {}
     for i in np.flatnonzero(dist < margin):
         key = tuple(sorted(int(g) for g in geom[i]))
-        out.setdefault(key, []).append((float(dist[i]), float(friction[i, 0]), float(friction[i, 1])))
+        out.setdefault(key, []).append((float(dist[i]), *map(float, pos[i]), float(friction[i, 0]), float(friction[i, 1])))
     return out
 
 
 def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float, str]:
-    """Worst contact disagreement: inf for a geom pair whose contact count differs,
-    else the largest |dist| or |friction| difference (contacts matched in sorted order)."""
+    """Worst contact disagreement: inf for a geom pair whose contact count differs, else the
+    largest |dist|, |pos| or |friction| difference, each engine's contacts matched by position."""
     worst, obj = 0.0, ""
     for pair in sorted(set(cc) | set(cx)):
-        a, b = sorted(cc.get(pair, [])), sorted(cx.get(pair, []))
+        by_pos = lambda c: (round(c[1], 6), round(c[2], 6), round(c[3], 6))
+        a, b = sorted(cc.get(pair, []), key=by_pos), sorted(cx.get(pair, []), key=by_pos)
         err = np.inf if len(a) != len(b) else float(np.max(np.abs(np.subtract(a, b)), initial=0.0))
         if err > worst:
             names = " / ".join(_name(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in pair)
