@@ -103,6 +103,22 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("file", metavar="FILE", help="reproducer .json")
     rp.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     rp.add_argument("--cache-dir", metavar="DIR", help="JAX persistent compilation cache (see sweep --help)")
+    fz = sub.add_parser("fuzz", help="hunt for divergences with generated models (Hypothesis), shrink what is found",
+                        description="Generate MJX-supported models, initial states and controls with Hypothesis, "
+                                    "compare MJX with MuJoCo C on each (as 'sweep' does), and shrink a divergence to "
+                                    "a minimal MJCF. The shrunk model is printed and, with --out, saved as a "
+                                    "reproducer for 'mjxdiff replay'. Found failures are kept in Hypothesis's "
+                                    "example database and tried first next time. Exit 0 none found, 1 found.",
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    fz.add_argument("--max-examples", type=_positive, default=300, help="most models to try (default 300)")
+    fz.add_argument("--seed", type=int, default=0, help="Hypothesis seed (default 0)")
+    fz.add_argument("--budget", type=float, default=None, metavar="SECONDS",
+                    help="seconds of generation (default 60); shrinking a find may take longer")
+    fz.add_argument("--out", metavar="DIR", help="save the reproducer and the example database under DIR")
+    fz.add_argument("--include-known", action="store_true",
+                    help="also generate features with known, documented C/MJX divergences "
+                         "(connect/weld, RK4/implicitfast, box and mesh geoms)")
+    fz.add_argument("--cache-dir", metavar="DIR", help="JAX persistent compilation cache (see sweep --help)")
     sub.add_parser("list", help="list bundled scenarios and what each exercises",
                    description="List bundled scenarios with their model, size and what they exercise.")
     return parser
@@ -199,10 +215,36 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return exit_code([result])
 
 
+def _cmd_fuzz(args: argparse.Namespace) -> int:
+    from mjxdiff import engines
+    from mjxdiff.fuzz import DEFAULT_BUDGET, fuzz
+
+    engines.configure_jax("float64", args.cache_dir)
+    budget = DEFAULT_BUDGET if args.budget is None else args.budget
+    if budget <= 0:
+        print("mjxdiff: error: --budget must be positive (see 'mjxdiff fuzz --help')", file=sys.stderr)
+        return 2
+    result = fuzz(max_examples=args.max_examples, seed=args.seed, budget=budget, out=args.out,
+                  include_known=args.include_known, progress=sys.stderr.isatty())
+    rate = result.examples / max(result.seconds, 1e-9) * 60
+    if result.failure is None:
+        print(f"no divergence in {result.examples} generated models ({result.seconds:.0f} s, {rate:.1f}/min)")
+        return 0
+    f = result.failure
+    print(f"DIVERGENCE ({f['status']}) after {result.examples} models ({result.seconds:.0f} s): {f['message']}")
+    print(f"shrunk to {f['nbody']} bodies, {f['ngeom']} geoms; features: {', '.join(f['features']) or 'none'}")
+    if f["reproducer"]:
+        print(f"reproducer: {f['reproducer']} (python -m mjxdiff replay {f['reproducer']})")
+    print(f["xml"])
+    return 1
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "list":
         return _cmd_list()
+    if args.command == "fuzz":
+        return _cmd_fuzz(args)
     if args.command == "replay":
         return _cmd_replay(args)
     return _cmd_sweep(args)

@@ -27,6 +27,7 @@ Example::
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any, NamedTuple
@@ -283,7 +284,7 @@ class _Spec:
     flags: dict[str, str] = dataclasses.field(default_factory=dict)
     assets: list[str] = dataclasses.field(default_factory=list)
     world: list[str] = dataclasses.field(default_factory=list)
-    world_geoms: int = 0
+    world_geoms: list[dict[str, str]] = dataclasses.field(default_factory=list)
     bodies: list[_Body] = dataclasses.field(default_factory=list)
     tendon: list[str] = dataclasses.field(default_factory=list)
     equality: list[str] = dataclasses.field(default_factory=list)
@@ -300,13 +301,26 @@ class _Spec:
             body.sites.append({"name": f"s{b}", "size": "0.05"})
         return body.sites[0]["name"]
 
-    def scalar_joints(self) -> list[str]:
-        return [b.joint["name"] for b in self.bodies
-                if b.joint is not None and b.joint.get("type") in ("hinge", "slide")]
+    def scalar_joints(self) -> tuple[str, ...]:
+        return tuple(b.joint["name"] for b in self.bodies
+                     if b.joint is not None and b.joint.get("type") in ("hinge", "slide"))
 
-    def world_geom(self, attrs: Mapping[str, Any]) -> None:
+    def world_geom(self, attrs: dict[str, str]) -> None:
         self.world.append(_tag("geom", attrs))
-        self.world_geoms += 1
+        self.world_geoms.append(attrs)
+
+    def contact_possible(self) -> bool:
+        """Whether any geom pair passes MuJoCo's filters (bodies, parent-child, contype/conaffinity)."""
+        geoms = [(-1, g) for g in self.world_geoms] + [(i, g) for i, b in enumerate(self.bodies) for g in b.geoms]
+        for (b1, g1), (b2, g2) in itertools.combinations(geoms, 2):
+            if b1 == b2 or (b1 >= 0 and b2 >= 0 and b1 in (b2, self.bodies[b2].parent)
+                            or b1 >= 0 and b2 >= 0 and b2 == self.bodies[b1].parent):
+                continue  # same body, or parent and child (filterparent)
+            t1, c1, a1 = int(g1.get("contype", 1)), int(g1.get("conaffinity", 1)), g1["type"]
+            t2, c2, a2 = int(g2.get("contype", 1)), int(g2.get("conaffinity", 1)), g2["type"]
+            if (t1 & c2 or t2 & c1) and not {a1, a2} <= {"plane", "hfield"}:
+                return True
+        return False
 
     def render(self) -> str:
         children: dict[int, list[int]] = {}
@@ -324,7 +338,7 @@ class _Spec:
 
         option_attrs = {k: (_f(v) if isinstance(v, float) else v) for k, v in self.option.items()}
         flags = f"\n    {_tag('flag', self.flags)}\n  " if self.flags else ""
-        parts = ["<mujoco>", "  " + _tag("option", option_attrs, flags)]
+        parts = ["<mujoco>", '  <compiler angle="radian"/>', "  " + _tag("option", option_attrs, flags)]
         if self.assets:
             parts += ["  <asset>", *(f"    {a}" for a in self.assets), "  </asset>"]
         parts.append("  <worldbody>")
@@ -339,17 +353,47 @@ class _Spec:
         return "\n".join(parts) + "\n"
 
 
+@functools.cache  # strategies are built once: Hypothesis validates each new one on first draw
+def _floats(lo: float, hi: float) -> st.SearchStrategy:
+    """Finite floats in [lo, hi] without subnormals (which only clutter the XML)."""
+    return st.floats(lo, hi, allow_nan=False, allow_infinity=False, allow_subnormal=False)
+
+
+@functools.cache
 def _maybe(default: Any, alternative: st.SearchStrategy) -> st.SearchStrategy:
     """``default`` first (what shrinking reaches), else a value from ``alternative``."""
     return st.one_of(st.just(default), alternative)
 
 
+@functools.cache
+def _ints(lo: int, hi: int) -> st.SearchStrategy:
+    return st.integers(lo, hi)
+
+
+@functools.cache
+def _sampled(values: tuple) -> st.SearchStrategy:
+    return st.sampled_from(values)
+
+
+@functools.cache
+def _box(*bounds: tuple[float, float]) -> st.SearchStrategy:
+    """Tuples of floats, the i-th in ``bounds[i] = (lo, hi)``."""
+    return st.tuples(*(_floats(lo, hi) for lo, hi in bounds))
+
+
+@functools.cache
+def _optional(strategy: st.SearchStrategy) -> st.SearchStrategy:
+    """None first (what shrinking reaches), else a value from ``strategy``."""
+    return st.none() | strategy
+
+
 _AXES = ((0.0, 0.0, 1.0), (0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (1.0, 1.0, 0.0), (0.0, 1.0, 1.0))
 _CHILD_OFFSETS = ((0.3, 0.0, 0.0), (0.0, 0.3, 0.0), (0.0, 0.0, -0.3), (0.2, 0.2, 0.0))
-_SIZE = st.floats(0.02, 0.3)
+_SIZE = _floats(0.02, 0.3)  # m
+_SIZE2 = st.tuples(_maybe(0.05, _SIZE), _maybe(0.1, _SIZE))
+_SIZE3 = st.tuples(_maybe(0.1, _SIZE), _maybe(0.1, _SIZE), _maybe(0.1, _SIZE))
 
 
-@st.composite
 def _options(draw: Callable, options: Any, mjx_only: bool) -> dict[str, Any]:
     """``<option>`` attributes: :data:`DEFAULT_OPTIONS`, overridden or drawn."""
     options = _value(draw, options)
@@ -359,13 +403,13 @@ def _options(draw: Callable, options: Any, mjx_only: bool) -> dict[str, Any]:
         return opt
     if not options:
         return opt
-    opt["timestep"] = draw(_maybe(0.002, st.floats(0.002, 0.01)))
-    opt["integrator"] = draw(st.sampled_from(("Euler", "RK4", "implicitfast") + (() if mjx_only else ("implicit",))))
-    opt["cone"] = draw(st.sampled_from(("pyramidal", "elliptic")))
-    opt["solver"] = draw(st.sampled_from(("Newton", "CG") + (() if mjx_only else ("PGS",))))
-    opt["iterations"] = draw(_maybe(100, st.integers(20, 200)))
-    opt["ls_iterations"] = draw(_maybe(50, st.integers(10, 100)))
-    opt["tolerance"] = draw(_maybe(1e-10, st.sampled_from((1e-8, 1e-9, 1e-12))))
+    opt["timestep"] = draw(_maybe(0.002, _floats(0.002, 0.01)))
+    opt["integrator"] = draw(_sampled(("Euler", "RK4", "implicitfast") + (() if mjx_only else ("implicit",))))
+    opt["cone"] = draw(_sampled(("pyramidal", "elliptic")))
+    opt["solver"] = draw(_sampled(("Newton", "CG") + (() if mjx_only else ("PGS",))))
+    opt["iterations"] = draw(_maybe(100, _ints(20, 200)))
+    opt["ls_iterations"] = draw(_maybe(50, _ints(10, 100)))
+    opt["tolerance"] = draw(_maybe(1e-10, _sampled((1e-8, 1e-9, 1e-12))))
     return opt
 
 
@@ -385,22 +429,21 @@ def _option_features(opt: Mapping[str, Any]) -> set[str]:
     return out
 
 
-@st.composite
 def _joint(draw: Callable, name: str, jtype: str) -> tuple[dict[str, str], set[str]]:
     """A joint's attributes and the features it uses (hinge/slide ranges contain 0)."""
     attrs: dict[str, str] = {"name": name, "type": jtype}
     features = {f"{jtype} joint"}
     if jtype in ("hinge", "slide"):
-        attrs["axis"] = _vec(draw(st.sampled_from(_AXES)))
+        attrs["axis"] = _vec(draw(_sampled(_AXES)))
     for key, lo, hi in (("damping", 0.01, 2.0), ("stiffness", 0.1, 10.0),
                         ("armature", 0.001, 0.1), ("frictionloss", 0.001, 0.5)):
-        v = draw(_maybe(0.0, st.floats(lo, hi)))
+        v = draw(_maybe(0.0, _floats(lo, hi)))
         if v:
             attrs[key] = _f(v)
             features.add(f"joint {key}")
     if jtype in ("hinge", "slide"):
         span = 1.5 if jtype == "hinge" else 0.3  # rad or m
-        rng = draw(st.none() | st.tuples(st.floats(-span, -0.1 * span), st.floats(0.1 * span, span)))
+        rng = draw(_optional(_box((-span, -0.1 * span), (0.1 * span, span))))
         if rng is not None:
             attrs["limited"], attrs["range"] = "true", _vec(rng)
             features.add("joint limit")
@@ -413,96 +456,92 @@ def _mesh_vertices(scale: float, extra: np.ndarray) -> np.ndarray:
     return np.concatenate([tetra, scale * extra.reshape(-1, 3)])
 
 
-@st.composite
 def _geom(draw: Callable, spec: _Spec, name: str, gtype: str, first: bool) -> dict[str, str]:
     """A body geom's shape attributes (sizes in m); a mesh adds its asset to ``spec``."""
     attrs: dict[str, str] = {"name": name, "type": gtype}
     if gtype == "sphere":
         attrs["size"] = _f(draw(_maybe(0.1, _SIZE)))
     elif gtype in ("capsule", "cylinder"):
-        attrs["size"] = _vec(draw(st.tuples(_maybe(0.05, _SIZE), _maybe(0.1, _SIZE))))
+        attrs["size"] = _vec(draw(_SIZE2))
     elif gtype in ("box", "ellipsoid"):
-        attrs["size"] = _vec(draw(st.tuples(_maybe(0.1, _SIZE), _maybe(0.1, _SIZE), _maybe(0.1, _SIZE))))
+        attrs["size"] = _vec(draw(_SIZE3))
     else:
-        scale = draw(_maybe(0.1, st.floats(0.02, 0.2)))
-        nextra = draw(st.integers(0, 4))
-        extra = draw(hnp.arrays(np.float64, (nextra, 3), elements=st.floats(-1, 1)))
+        scale = draw(_maybe(0.1, _floats(0.02, 0.2)))
+        nextra = draw(_ints(0, 4))
+        extra = draw(hnp.arrays(np.float64, (nextra, 3), elements=_floats(-1, 1)))
         spec.assets.append(_tag("mesh", {"name": f"mesh_{name}", "vertex": _vec(_mesh_vertices(scale, extra).ravel())}))
         attrs["mesh"] = f"mesh_{name}"
     if not first:
-        attrs["pos"] = _vec(draw(st.tuples(*[st.floats(-0.1, 0.1)] * 3)))
+        attrs["pos"] = _vec(draw(_box(*[(-0.1, 0.1)] * 3)))
     if gtype != "sphere":
-        euler = draw(st.none() | st.tuples(*[st.floats(-3.14, 3.14)] * 3))
+        euler = draw(_optional(_box(*[(-3.14, 3.14)] * 3)))
         if euler is not None:
             attrs["euler"] = _vec(euler)
             spec.features.add("geom orientation")
     return attrs
 
 
-@st.composite
 def _contact_attrs(draw: Callable, spec: _Spec, geom: dict[str, str], mjx_only: bool, allow_margin: bool) -> None:
     """Adds drawn contact parameters (condim, friction, solref, solimp, margin) to ``geom``."""
     condims = (3, 1, 4, 6)
     if mjx_only and spec.option["cone"] == "elliptic":
         condims = (3, 4, 6)  # MJX: condim 1 with an elliptic cone raises in make_data
-    condim = draw(st.sampled_from(condims))
+    condim = draw(_sampled(condims))
     if condim != 3:
         geom["condim"] = str(condim)
         spec.features.add(f"condim {condim}")
-    friction = draw(st.none() | st.tuples(st.floats(0.1, 1.5), st.floats(1e-3, 1e-2), st.floats(1e-5, 1e-3)))
+    friction = draw(_optional(_box((0.1, 1.5), (1e-3, 1e-2), (1e-5, 1e-3))))
     if friction is not None:
         geom["friction"] = _vec(friction)
         spec.features.add("geom friction")
     # time constants >= 2 * the largest timestep, so no solref clamping
-    solref = draw(st.none() | st.tuples(st.floats(0.02, 0.1), st.floats(0.5, 2.0)))
+    solref = draw(_optional(_box((0.02, 0.1), (0.5, 2.0))))
     if solref is not None:
         geom["solref"] = _vec(solref)
         spec.features.add("geom solref")
-    solimp = draw(st.none() | st.tuples(st.floats(0.5, 0.9), st.floats(0.9, 0.999), st.floats(5e-4, 1e-2)))
+    solimp = draw(_optional(_box((0.5, 0.9), (0.9, 0.999), (5e-4, 1e-2))))
     if solimp is not None:
         geom["solimp"] = _vec(solimp)
         spec.features.add("geom solimp")
     if allow_margin:
-        margin = draw(_maybe(0.0, st.floats(1e-3, 1e-2)))
+        margin = draw(_maybe(0.0, _floats(1e-3, 1e-2)))
         if margin:
             geom["margin"] = _f(margin)
             spec.features.add("contact margin")
 
 
-@st.composite
 def _tree(draw: Callable, spec: _Spec, max_bodies: int, joint_types: tuple[str, ...]) -> None:
     """Bodies (each with one joint) in a tree; free joints only on children of the world."""
-    n = draw(st.integers(1, max_bodies))
+    n = draw(_ints(1, max_bodies))
     nroots = 0
     for i in range(n):
         allowed = tuple(t for t in joint_types if t != "free")
-        parent = draw(st.integers(0, i)) - 1 if allowed else -1  # 0 draws the world
+        parent = draw(_ints(0, i)) - 1 if allowed else -1  # 0 draws the world
         if parent < 0:
             allowed = joint_types
             pos = (1.0 * nroots, 0.0, 0.5)  # roots 1 m apart, 0.5 m above the ground
             nroots += 1
         else:
             # lengths grow with i, so no two bodies start exactly on top of each other
-            pos = tuple(x * (1 + 0.1 * i) for x in draw(st.sampled_from(_CHILD_OFFSETS)))
-        jtype = draw(st.sampled_from(allowed))
-        joint, features = draw(_joint(f"j{i}", jtype))
+            pos = tuple(x * (1 + 0.1 * i) for x in draw(_sampled(_CHILD_OFFSETS)))
+        jtype = draw(_sampled(allowed))
+        joint, features = _joint(draw, f"j{i}", jtype)
         spec.features |= features
         spec.bodies.append(_Body(name=f"b{i}", parent=parent, pos=pos, joint=joint))
     nchildren = [sum(b.parent == i for b in spec.bodies) for i in range(n)]
     if max(nchildren) > 1:
         spec.features.add("branching tree")
     if max(nchildren) > 0:
-        spec.features.add("chain")
+        spec.features.add("nested bodies")
 
 
-@st.composite
 def _geoms(draw: Callable, spec: _Spec, max_geoms: int, geom_types: tuple[str, ...],
            contacts: bool, mjx_only: bool) -> None:
     """Geoms on every body, an optional ground plane, and their contact parameters."""
     for i, body in enumerate(spec.bodies):
-        for k in range(draw(st.integers(1, max_geoms))):
-            gtype = draw(st.sampled_from(geom_types))
-            body.geoms.append(draw(_geom(spec, f"g{i}_{k}", gtype, first=k == 0)))
+        for k in range(draw(_ints(1, max_geoms))):
+            gtype = draw(_sampled(geom_types))
+            body.geoms.append(_geom(draw, spec, f"g{i}_{k}", gtype, first=k == 0))
             spec.features.add(f"{gtype} geom")
     plane = draw(st.booleans())
     if plane:
@@ -520,7 +559,7 @@ def _geoms(draw: Callable, spec: _Spec, max_geoms: int, geom_types: tuple[str, .
         present = {g["type"] for g in geoms} | ({"plane"} if plane else set())
         masked = mjx_only and not all(pair_supported(a, b) for a, b in itertools.combinations(present, 2))
         for g in geoms:
-            draw(_contact_attrs(spec, g, mjx_only, allow_margin))
+            _contact_attrs(draw, spec, g, mjx_only, allow_margin)
             if masked:
                 g["contype"] = g["conaffinity"] = str(_MASKS[g["type"]])
         if masked:
@@ -534,26 +573,31 @@ def _geoms(draw: Callable, spec: _Spec, max_geoms: int, geom_types: tuple[str, .
         spec.world_geom(floor)
 
 
-@st.composite
+def _other_body(draw: Callable, a: int, nbody: int) -> int:
+    """A body index other than ``a`` among ``nbody`` bodies, or -1 for the world (drawn first)."""
+    k = draw(_ints(0, nbody - 1)) - 1
+    return k + (k >= a) if k >= 0 else -1
+
+
 def _tendons(draw: Callable, spec: _Spec) -> None:
     """Fixed tendons on hinge/slide joints and spatial tendons between sites."""
     joints = spec.scalar_joints()
-    for k in range(draw(st.integers(0, 2))):
-        kind = draw(st.sampled_from(("fixed", "spatial") if joints else ("spatial",)))
+    for k in range(draw(_ints(1, 2))):
+        kind = draw(_sampled(("fixed", "spatial") if joints else ("spatial",)))
         attrs: dict[str, str] = {"name": f"t{k}"}
         for key, lo, hi in (("stiffness", 0.1, 10.0), ("damping", 0.01, 1.0)):
-            v = draw(_maybe(0.0, st.floats(lo, hi)))
+            v = draw(_maybe(0.0, _floats(lo, hi)))
             if v:
                 attrs[key] = _f(v)
                 spec.features.add(f"tendon {key}")
         if kind == "fixed":
-            names = draw(st.lists(st.sampled_from(joints), min_size=1, max_size=min(3, len(joints)), unique=True))
-            coefs = [draw(_maybe(1.0, st.floats(0.1, 2.0))) * draw(st.sampled_from((1, -1))) for _ in names]
+            names = draw(st.lists(_sampled(joints), min_size=1, max_size=min(3, len(joints)), unique=True))
+            coefs = [draw(_maybe(1.0, _floats(0.1, 2.0))) * draw(_sampled((1, -1))) for _ in names]
             inner = "".join(_tag("joint", {"joint": j, "coef": _f(c)}) for j, c in zip(names, coefs))
             spec.fixed_tendons.append(attrs["name"])
         else:
-            a = draw(st.integers(0, len(spec.bodies) - 1))
-            b = draw(st.integers(-1, len(spec.bodies) - 1).filter(lambda b: b != a))
+            a = draw(_ints(0, len(spec.bodies) - 1))
+            b = _other_body(draw, a, len(spec.bodies))
             if b < 0:
                 if not any('name="anchor"' in w for w in spec.world):
                     spec.world.append(_tag("site", {"name": "anchor", "pos": "0 1 1.5"}))
@@ -565,56 +609,54 @@ def _tendons(draw: Callable, spec: _Spec) -> None:
         spec.features.add(f"{kind} tendon")
 
 
-@st.composite
 def _actuators(draw: Callable, spec: _Spec) -> None:
     """Motor/position/velocity/general actuators on hinge/slide joints and fixed tendons."""
-    targets = [("joint", j) for j in spec.scalar_joints()]
-    targets += [("tendon", t) for t in spec.fixed_tendons]
+    targets = tuple(("joint", j) for j in spec.scalar_joints()) + tuple(("tendon", t) for t in spec.fixed_tendons)
     if not targets:
         return
-    for _ in range(draw(st.integers(0, 3))):
-        kind = draw(st.sampled_from(("motor", "position", "velocity", "general")))
-        trn, target = draw(st.sampled_from(targets))
+    for _ in range(draw(_ints(1, 3))):
+        kind = draw(_sampled(("motor", "position", "velocity", "general")))
+        trn, target = draw(_sampled(targets))
         attrs: dict[str, str] = {trn: target}
-        gear = draw(_maybe(1.0, st.floats(0.5, 5.0)))
+        gear = draw(_maybe(1.0, _floats(0.5, 5.0)))
         if gear != 1.0:
             attrs["gear"] = _f(gear)
             spec.features.add("actuator gear")
-        ctrlrange = draw(_maybe((-1.0, 1.0), st.none() | st.tuples(st.floats(-2, -0.1), st.floats(0.1, 2))))
+        ctrlrange = draw(_maybe((-1.0, 1.0), _optional(_box((-2, -0.1), (0.1, 2)))))
         if ctrlrange is not None:
             attrs["ctrllimited"], attrs["ctrlrange"] = "true", _vec(ctrlrange)
         if kind == "position":
-            attrs["kp"] = _f(draw(_maybe(10.0, st.floats(1.0, 50.0))))
+            attrs["kp"] = _f(draw(_maybe(10.0, _floats(1.0, 50.0))))
         elif kind == "velocity":
-            attrs["kv"] = _f(draw(_maybe(1.0, st.floats(0.1, 5.0))))
+            attrs["kv"] = _f(draw(_maybe(1.0, _floats(0.1, 5.0))))
         elif kind == "general":
-            dyntype = draw(st.sampled_from(("none", "filter", "integrator")))
+            dyntype = draw(_sampled(("none", "filter", "integrator")))
             attrs["dyntype"] = dyntype
             if dyntype == "filter":
-                attrs["dynprm"] = _f(draw(st.floats(0.02, 0.2)))  # time constant (s)
+                attrs["dynprm"] = _f(draw(_floats(0.02, 0.2)))  # time constant (s)
             if dyntype != "none":
                 spec.features.add(f"{dyntype} dynamics")
-            attrs["gainprm"] = _f(draw(_maybe(1.0, st.floats(0.1, 10.0))))
+            attrs["gainprm"] = _f(draw(_maybe(1.0, _floats(0.1, 10.0))))
         spec.actuator.append(_tag(kind, attrs))
         spec.features.add(f"{kind} actuator")
         if trn == "tendon":
             spec.features.add("tendon actuator")
 
 
-@st.composite
 def _equalities(draw: Callable, spec: _Spec) -> None:
     """connect/weld between distinct bodies (or the world), joint between hinge/slide joints."""
     joints = spec.scalar_joints()
     nb = len(spec.bodies)
-    for _ in range(draw(st.integers(0, 2))):
-        kind = draw(st.sampled_from(("connect", "weld", "joint") if joints else ("connect", "weld")))
+    for _ in range(draw(_ints(1, 2))):
+        kind = draw(_sampled(("connect", "weld", "joint") if joints else ("connect", "weld")))
         if kind == "joint":
-            j1 = draw(st.sampled_from(joints))
-            j2 = draw(st.none() | st.sampled_from(joints).filter(lambda j: j != j1)) if len(joints) > 1 else None
-            attrs = {"joint1": j1, "joint2": j2}
+            i1 = draw(_ints(0, len(joints) - 1))
+            i2 = draw(_optional(_ints(0, len(joints) - 2))) if len(joints) > 1 else None
+            j2 = None if i2 is None else joints[i2 + (i2 >= i1)]  # any joint but the first
+            attrs = {"joint1": joints[i1], "joint2": j2}
         else:
-            a = draw(st.integers(0, nb - 1))
-            b = draw(st.integers(-1, nb - 1).filter(lambda b: b != a))
+            a = draw(_ints(0, nb - 1))
+            b = _other_body(draw, a, nb)
             attrs = {"body1": f"b{a}", "body2": "world" if b < 0 else f"b{b}"}
             if kind == "connect":
                 attrs["anchor"] = "0 0 0"
@@ -626,17 +668,17 @@ _SITE_SENSORS = ("accelerometer", "gyro", "velocimeter", "touch", "rangefinder")
 _BODY_SENSORS = ("framepos", "framequat", "subtreecom")
 
 
-@st.composite
-def _sensors(draw: Callable, spec: _Spec) -> None:
-    """Joint, frame, subtree and site sensors on existing objects."""
+def _sensors(draw: Callable, spec: _Spec, touch: bool) -> None:
+    """Joint, frame, subtree and site sensors on existing objects (touch only when ``touch``)."""
     joints = spec.scalar_joints()
-    kinds = (("jointpos", "jointvel") if joints else ()) + _BODY_SENSORS + _SITE_SENSORS
-    for _ in range(draw(st.integers(0, 4))):
-        kind = draw(st.sampled_from(kinds))
+    site_sensors = tuple(k for k in _SITE_SENSORS if touch or k != "touch")
+    kinds = (("jointpos", "jointvel") if joints else ()) + _BODY_SENSORS + site_sensors
+    for _ in range(draw(_ints(1, 4))):
+        kind = draw(_sampled(kinds))
         if kind in ("jointpos", "jointvel"):
-            attrs = {"joint": draw(st.sampled_from(joints))}
+            attrs = {"joint": draw(_sampled(joints))}
         else:
-            b = draw(st.integers(0, len(spec.bodies) - 1))
+            b = draw(_ints(0, len(spec.bodies) - 1))
             if kind == "subtreecom":
                 attrs = {"body": f"b{b}"}
             elif kind in _BODY_SENSORS:
@@ -704,14 +746,14 @@ def _inject_option(**values: Any) -> Callable:
 
 
 def _inject_pair(draw: Callable, spec: _Spec) -> None:
-    a, b = draw(st.sampled_from(UNSUPPORTED_PAIRS))
+    a, b = draw(_sampled(UNSUPPORTED_PAIRS))
     _isolated_pair(spec, _shape(spec, a, "upair_a"), _shape(spec, b, "upair_b"))
     spec.features.add(f"{a}-{b} pair")
 
 
 def _inject_mesh_margin(draw: Callable, spec: _Spec) -> None:
     mesh = _shape(spec, "mesh", "upair_b")
-    mesh["margin"] = _f(draw(st.floats(1e-3, 1e-2)))
+    mesh["margin"] = _f(draw(_floats(1e-3, 1e-2)))
     _isolated_pair(spec, _shape(spec, "box", "upair_a"), mesh)
 
 
@@ -762,7 +804,8 @@ _INJECTORS: dict[str, Callable[[Callable, _Spec], None]] = {
     "flex": _inject_flex,
     "adhesion actuator": _inject_element("actuator", _with_helper('<adhesion body="ub" ctrlrange="0 1"/>')),
     "slider-crank actuator": _inject_element("actuator", _slider_crank),
-    "dcmotor actuator": _inject_element("actuator", _with_helper('<dcmotor joint="uj" motorconst="1" resistance="1"/>')),
+    "dcmotor actuator": _inject_element("actuator",
+                                        _with_helper('<dcmotor joint="uj" motorconst="1" resistance="1"/>')),
     "pid actuator": _inject_element("actuator", _with_helper('<pid joint="uj" kp="1"/>')),
     "geom distance sensor": _inject_element("sensor", _with_helper('<distance geom1="ug" body2="b0"/>')),
     "potential energy sensor": _inject_element("sensor", lambda spec: "<e_potential/>"),
@@ -799,12 +842,19 @@ def mjcf_models(draw: Callable, *, max_bodies: Any = 4, max_geoms_per_body: Any 
                 mjx_only: Any = True, unsupported: Any = False, options: Any = True) -> MjcfModel:
     """Random MJCF models: a kinematic tree of bodies with joints, geoms, and optional extras.
 
-    Each body has one joint (free only on children of the world) and 1 to
-    ``max_geoms_per_body`` geoms (sizes 0.02-0.3 m). A ground plane, contact
-    parameters, actuators, tendons, equality constraints, sensors and
-    non-default options are each drawn when allowed; all shrink away. The
-    minimal model is one body with a hinge and a sphere, and
-    :data:`DEFAULT_OPTIONS`. Every argument accepts a value or a strategy.
+    Each body has one joint (free only on children of the world; hinge and
+    slide ranges, when drawn, contain 0) and 1 to ``max_geoms_per_body``
+    geoms (sizes 0.02-0.3 m). A ground plane, contact parameters, actuators,
+    tendons, equality constraints, sensors and non-default options are each
+    drawn when allowed; all shrink away. The minimal model is one body with
+    a hinge and a sphere, and :data:`DEFAULT_OPTIONS`. Angles in the XML are
+    radians. Every argument accepts a value or a strategy.
+
+    With ``mjx_only``, a model in which no geom pair can collide gets the
+    pyramidal cone and no touch sensor, whatever was drawn: MJX 3.17 fails
+    to trace ``mjx.step`` (a TypeError or ValueError, not NotImplementedError)
+    for an elliptic cone or a touch sensor when there are constraints but no
+    possible contacts; without contacts the cone changes nothing in C.
 
     Args:
       max_bodies: at most this many bodies (at least 1), world excluded.
@@ -825,7 +875,8 @@ def mjcf_models(draw: Callable, *, max_bodies: Any = 4, max_geoms_per_body: Any 
         :data:`UNSUPPORTED_FEATURES` to an otherwise MJX-only model; or a name
         (or names) from it to add that one. Requires ``mjx_only=True``.
       options: True to draw ``<option>`` values, False for
-        :data:`DEFAULT_OPTIONS`, or a mapping of fixed overrides of them.
+        :data:`DEFAULT_OPTIONS`, or a mapping of ``<option>`` attributes
+        overriding them (not checked against ``mjx_only``).
 
     Returns:
       A strategy of :class:`MjcfModel`.
@@ -840,24 +891,29 @@ def mjcf_models(draw: Callable, *, max_bodies: Any = 4, max_geoms_per_body: Any 
     if unsupported is not False and unsupported is not None and not mjx_only:
         raise InvalidArgument("unsupported requires mjx_only=True: the model must use exactly one unsupported feature")
 
-    spec = _Spec(option=draw(_options(options, bool(mjx_only))))
+    spec = _Spec(option=_options(draw, options, bool(mjx_only)))
     spec.features |= _option_features(spec.option)
-    draw(_tree(spec, max_bodies, joint_types))
-    draw(_geoms(spec, max_geoms, geom_types, bool(_value(draw, contacts)), bool(mjx_only)))
+    _tree(draw, spec, max_bodies, joint_types)
+    _geoms(draw, spec, max_geoms, geom_types, bool(_value(draw, contacts)), bool(mjx_only))
+    touch = True
+    if mjx_only and not spec.contact_possible():  # see the docstring: MJX 3.17 trace failures
+        spec.option["cone"] = "pyramidal"
+        spec.features.discard("elliptic cone")
+        touch = False
     if _value(draw, tendons) and draw(st.booleans()):
-        draw(_tendons(spec))
+        _tendons(draw, spec)
     if _value(draw, actuators) and draw(st.booleans()):
-        draw(_actuators(spec))
+        _actuators(draw, spec)
     if _value(draw, equality) and draw(st.booleans()):
-        draw(_equalities(spec))
+        _equalities(draw, spec)
     if _value(draw, sensors) and draw(st.booleans()):
-        draw(_sensors(spec))
+        _sensors(draw, spec, touch)
     if unsupported:
-        name = draw(st.sampled_from(_unsupported_names(unsupported)))
+        name = draw(_sampled(_unsupported_names(unsupported)))
         _INJECTORS[name](draw, spec)
         spec.unsupported = name
         spec.features.add(name)
-    ngeom = spec.world_geoms + sum(len(b.geoms) for b in spec.bodies)
+    ngeom = len(spec.world_geoms) + sum(len(b.geoms) for b in spec.bodies)
     return MjcfModel(xml=spec.render(), nbody=len(spec.bodies), ngeom=ngeom,
                      features=tuple(sorted(spec.features)), unsupported_feature=spec.unsupported)
 
@@ -867,9 +923,10 @@ def mjcf_models(draw: Callable, *, max_bodies: Any = 4, max_geoms_per_body: Any 
 
 
 def _unit_floats() -> st.SearchStrategy:
-    return st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False)
+    return _floats(-1.0, 1.0)
 
 
+@functools.cache
 def _unit_array(shape: tuple[int, ...]) -> st.SearchStrategy:
     """float64 arrays of ``shape`` with elements in [-1, 1], shrinking to zeros."""
     return hnp.arrays(np.float64, shape, elements=_unit_floats())
@@ -930,8 +987,8 @@ def _check_batch(batch: Any) -> int:
 
 @st.composite
 def initial_states(draw: Callable, m: mujoco.MjModel, *, batch: int | None = None,
-                   qpos_scale: Any = st.floats(0, 0.5), qvel_scale: Any = st.floats(0, 1.0),
-                   act_scale: Any = st.floats(0, 1.0), within_limits: bool = True) -> State:
+                   qpos_scale: Any = _floats(0, 0.5), qvel_scale: Any = _floats(0, 1.0),
+                   act_scale: Any = _floats(0, 1.0), within_limits: bool = True) -> State:
     """Initial states near ``qpos0``, shrinking to ``qpos0`` and zero velocities and activations.
 
     Args:
@@ -1026,8 +1083,8 @@ def control_sequences(draw: Callable, m: mujoco.MjModel, steps: Any, *, batch: i
             level = knots[:, i] * (1 - w) + knots[:, i + 1] * w
     elif family == "sinusoid":
         amp = draw(_unit_array((nbatch, 1, nu)))
-        freq = draw(hnp.arrays(np.float64, (nbatch, 1, nu), elements=st.floats(0.5, 2.0)))  # Hz
-        phase = draw(hnp.arrays(np.float64, (nbatch, 1, nu), elements=st.floats(0.0, 2 * np.pi)))
+        freq = draw(hnp.arrays(np.float64, (nbatch, 1, nu), elements=_floats(0.5, 2.0)))  # Hz
+        phase = draw(hnp.arrays(np.float64, (nbatch, 1, nu), elements=_floats(0.0, 2 * np.pi)))
         level = amp * np.sin(2 * np.pi * freq * t[None, :, None] + phase)
     else:
         level = draw(_unit_array((nbatch, steps, nu)))

@@ -1,0 +1,24 @@
+"""mjxdiff's pytest plugin (registered through the ``pytest11`` entry point).
+
+Offers the ``mjx_matches_c`` fixture (the :func:`mjxdiff.testing.assert_mjx_matches_c`
+helper) and registers Hypothesis profiles ``mjxdiff-dev`` and ``mjxdiff-ci``
+with ``deadline=None``, since JIT compiles break any per-example deadline.
+"""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import HealthCheck, settings
+
+from mjxdiff.testing import assert_mjx_matches_c
+
+settings.register_profile("mjxdiff-dev", deadline=None, max_examples=20,
+                          suppress_health_check=[HealthCheck.too_slow])
+settings.register_profile("mjxdiff-ci", deadline=None, max_examples=10, derandomize=True,
+                          suppress_health_check=[HealthCheck.too_slow])
+
+
+@pytest.fixture
+def mjx_matches_c():
+    """``mjx_matches_c(model, qpos=..., ctrl=...)`` asserts MJX follows MuJoCo C, with a diagnosis on failure."""
+    return assert_mjx_matches_c
