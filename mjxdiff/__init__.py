@@ -4,6 +4,7 @@ The public surface, one name per line; everything else is an implementation
 detail of its module.
 """
 
+from mjxdiff import engines  # noqa: F401  (first: sets XLA_FLAGS before JAX's backend starts)
 from mjxdiff import metrics
 from mjxdiff.engines import CEngine
 from mjxdiff.engines import MJXEngine

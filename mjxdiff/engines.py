@@ -26,10 +26,17 @@ import os
 from pathlib import Path
 from typing import Protocol
 
-import jax
-import jax.numpy as jnp
-import mujoco
-import numpy as np
+# Load-bearing: with XLA CPU's multithreaded Eigen pool, materialising large vmapped MJX
+# rollouts sometimes never returns (0% CPU, all threads parked): seen here on the
+# 56-dof primitive_pairs rollout and reported upstream (PyAutoFit #1528: 2/16 runs pass
+# without the flag, 12/12 with it). It must be set before JAX's backend starts.
+if "--xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
 
 with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import warp" to stdout
     from mujoco import mjx
