@@ -77,7 +77,7 @@ def save(path: str | Path, scenario: str, member: int, inputs: BatchedInputs, mo
     one = member_inputs(inputs, member)
     doc = dict(
         format=FORMAT, scenario=scenario, member=member, member_id=int(one.ids[0]), seed=inputs.seed,
-        energy=inputs.energy, config=config, tolerances=tolerances.as_dict(), versions=versions,
+        energy=inputs.energy, steps=inputs.steps, config=config, tolerances=tolerances.as_dict(), versions=versions,
         verdict=verdict, model_mjb_base64=_model_to_b64(one.models[0]), model_xml=model_xml,
         factors={k: v[0].tolist() for k, v in one.factors.items()},
         qpos=one.qpos[0].tolist(), qvel=one.qvel[0].tolist(), act=one.act[0].tolist(), ctrl=one.ctrl[0].tolist(),
@@ -100,7 +100,7 @@ def load(path: str | Path) -> Reproducer:
         raise ScenarioError(f"{path}: not a reproducer (expected format {FORMAT!r})")
     m = _model_from_b64(doc["model_mjb_base64"])
     arr = lambda key: np.asarray(doc[key], dtype=np.float64)[None]
-    ctrl = np.asarray(doc["ctrl"], dtype=np.float64).reshape(1, -1, m.nu)
+    ctrl = np.asarray(doc["ctrl"], dtype=np.float64).reshape(1, doc["steps"], m.nu)  # nu may be 0
     inputs = BatchedInputs(qpos=arr("qpos"), qvel=arr("qvel"), act=arr("act").reshape(1, m.na), ctrl=ctrl,
                            models=(m,), factors={k: np.asarray(v)[None] for k, v in doc["factors"].items()},
                            seed=doc["seed"], energy=doc["energy"], member_ids=np.array([doc["member_id"]]))
