@@ -108,6 +108,7 @@ def test_drill_down_names_the_stage(bug, fresh_mjx, monkeypatch):
     assert max(result.diagnosis["local_error"].values()) > 1e-12
 
 
+@pytest.mark.slow  # four ablations, each a recompile
 def test_cause_attribution_blames_contacts_for_a_contact_bug(fresh_mjx, monkeypatch):
     contact_distance(monkeypatch)
     result = run_scenario(load_scenario("primitives_on_plane"), SweepConfig(seed=0, batch=4, diagnose="full"))

@@ -24,6 +24,7 @@ def fresh_mjx():
     engines.clear_compiled()
 
 
+@pytest.mark.slow  # ~4 min: a default-budget search plus shrinking, every candidate a new compile
 def test_fuzz_finds_and_shrinks_an_injected_bug(fresh_mjx, monkeypatch, tmp_path):
     bias_force_0p1_percent(monkeypatch)
     result = fuzz(budget=DEFAULT_BUDGET, out=tmp_path, seed=0, shrink_budget=60)
@@ -41,10 +42,19 @@ def test_fuzz_finds_and_shrinks_an_injected_bug(fresh_mjx, monkeypatch, tmp_path
     assert again.status == "fail"
 
 
+@pytest.mark.slow  # the full default budget
 def test_fuzz_on_unmodified_mjx_finds_nothing(tmp_path):
     result = fuzz(budget=DEFAULT_BUDGET, out=tmp_path, seed=1)
     assert result.failure is None, result.failure and (result.failure["message"] + "\n" + result.failure["xml"])
     assert result.examples >= 5
+
+
+def test_fuzz_smoke_unmodified(tmp_path):
+    """A short search in CI: examples run, nothing is flagged, the database is written."""
+    result = fuzz(budget=15, out=tmp_path, seed=2, max_examples=20)
+    assert result.failure is None, result.failure and result.failure["message"]
+    assert result.examples >= 1
+    assert (tmp_path / ".hypothesis").is_dir()
 
 
 PENDULUM = """<mujoco><option timestep="0.002"/><worldbody>
