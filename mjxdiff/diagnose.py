@@ -18,7 +18,6 @@ import copy
 import dataclasses
 from typing import Any, Callable
 
-import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np

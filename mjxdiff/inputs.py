@@ -70,7 +70,8 @@ def _rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng([seed, zlib.crc32(name.encode())])
 
 
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of (w, x, y, z) quaternions, ``(..., 4) x (..., 4) -> (..., 4)``."""
     w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
     w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
     return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
@@ -79,7 +80,8 @@ def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=-1)
 
 
-def _axis_angle_quat(rotvec: np.ndarray) -> np.ndarray:
+def rotvec_quat(rotvec: np.ndarray) -> np.ndarray:
+    """Unit quaternions (w, x, y, z) of rotation vectors (rad), ``(..., 3) -> (..., 4)``."""
     angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
     axis = np.divide(rotvec, angle, out=np.zeros_like(rotvec), where=angle > 0)
     return np.concatenate([np.cos(angle / 2), axis * np.sin(angle / 2)], axis=-1)
@@ -95,7 +97,7 @@ def _initial_qpos(m: mujoco.MjModel, base: np.ndarray, noise: float, batch: int,
             qpos[:, adr:adr + 3] += rng.normal(0, noise, (batch, 3))
             adr += 3
         if jtype in (int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)):
-            q = _quat_mul(qpos[:, adr:adr + 4], _axis_angle_quat(rng.normal(0, noise, (batch, 3))))
+            q = quat_mul(qpos[:, adr:adr + 4], rotvec_quat(rng.normal(0, noise, (batch, 3))))
             qpos[:, adr:adr + 4] = q / np.linalg.norm(q, axis=-1, keepdims=True)
         else:
             qpos[:, adr] += rng.normal(0, noise, batch)

@@ -38,6 +38,8 @@ from hypothesis import strategies as st
 from hypothesis.errors import InvalidArgument
 from hypothesis.extra import numpy as hnp
 
+from mjxdiff.inputs import quat_mul, rotvec_quat
+
 __all__ = [
     "CONTROL_FAMILIES",
     "DEFAULT_OPTIONS",
@@ -932,22 +934,6 @@ def _unit_array(shape: tuple[int, ...]) -> st.SearchStrategy:
     return hnp.arrays(np.float64, shape, elements=_unit_floats())
 
 
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
-    w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
-    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-                     w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                     w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=-1)
-
-
-def _rotvec_quat(rotvec: np.ndarray) -> np.ndarray:
-    """Unit quaternions (w, x, y, z) of rotation vectors (rad), ``(..., 3) -> (..., 4)``."""
-    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-    axis = np.divide(rotvec, angle, out=np.zeros_like(rotvec), where=angle > 0)
-    return np.concatenate([np.cos(angle / 2), axis * np.sin(angle / 2)], axis=-1)
-
-
 def _perturbed_qpos(m: mujoco.MjModel, noise: np.ndarray, scale: float, within_limits: bool) -> np.ndarray:
     """``qpos0`` moved by ``scale * noise``: ``(B, nv)`` noise in [-1, 1] to ``(B, nq)`` qpos.
 
@@ -968,7 +954,7 @@ def _perturbed_qpos(m: mujoco.MjModel, noise: np.ndarray, scale: float, within_l
                 top = (1 - 1e-3) * m.jnt_range[j, 1]
                 angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
                 rotvec = rotvec * np.minimum(1.0, top / np.maximum(angle, 1e-300))
-            quat = _quat_mul(qpos[:, q:q + 4], _rotvec_quat(rotvec))
+            quat = quat_mul(qpos[:, q:q + 4], rotvec_quat(rotvec))
             qpos[:, q:q + 4] = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
         else:
             qpos[:, q] += scale * noise[:, v]

@@ -6,6 +6,7 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, settings
 
+from mjxdiff import engines
 from mjxdiff.engines import configure_jax
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -26,3 +27,11 @@ configure_jax("float64")
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return ROOT
+
+
+@pytest.fixture
+def fresh_mjx():
+    """Compiled rollouts are cached per model structure; re-trace around a monkeypatch of MJX."""
+    engines.clear_compiled()
+    yield
+    engines.clear_compiled()

@@ -4,7 +4,6 @@ scenarios. Each bug is a monkeypatch of one function inside mujoco.mjx._src."""
 
 import re
 
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
@@ -14,7 +13,6 @@ from mujoco.mjx._src import math as mjx_math
 from mujoco.mjx._src import passive as mjx_passive
 from mujoco.mjx._src import sensor as mjx_sensor
 
-from mjxdiff import engines
 from mjxdiff.scenario import load_model, load_scenario
 from mjxdiff.sweep import SweepConfig, run_scenario
 
@@ -73,14 +71,6 @@ BUGS = {
     contact_friction: ("slope_slide", {"qpos", "qvel"}, r"joint '.*'"),
     quaternion_update: ("ball_joint", {"qpos", "sensordata"}, r"(joint|sensor) '.*'"),
 }
-
-
-@pytest.fixture
-def fresh_mjx():
-    """Compiled rollouts are cached per model structure; re-trace around a patch."""
-    engines.clear_compiled()
-    yield
-    engines.clear_compiled()
 
 
 @pytest.mark.parametrize("bug", list(BUGS), ids=lambda b: b.__name__)

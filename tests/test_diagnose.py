@@ -5,13 +5,11 @@ replay reproduces a saved failure."""
 
 import json
 
-import numpy as np
 import pytest
 from mujoco.mjx._src import collision_driver as mjx_collision
 from mujoco.mjx._src import constraint as mjx_constraint
 from mujoco.mjx._src import smooth as mjx_smooth
 
-from mjxdiff import engines
 from mjxdiff.cli import main
 from mjxdiff.scenario import load_scenario
 from mjxdiff.sweep import SweepConfig, run_scenario
@@ -86,13 +84,6 @@ STAGE_BUGS = {
     core.contact_friction: ("slope_slide", "collision", "contact"),
     core.quaternion_update: ("ball_joint", "integration", "qpos/qvel update"),
 }
-
-
-@pytest.fixture
-def fresh_mjx():
-    engines.clear_compiled()
-    yield
-    engines.clear_compiled()
 
 
 @pytest.mark.parametrize("bug", list(STAGE_BUGS), ids=lambda b: b.__name__)

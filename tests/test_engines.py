@@ -7,7 +7,7 @@ import pytest
 
 from mjxdiff.engines import CEngine, MJXEngine, UnsupportedError, compile_count, put_models
 from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import Randomization, load_model, load_scenario
+from mjxdiff.scenario import load_model, load_scenario
 
 XML = """<mujoco><option timestep="0.002"/>
 <worldbody>

@@ -17,13 +17,6 @@ def bias_force_0p1_percent(monkeypatch):
         qfrc_bias=d.qfrc_bias * (1 + 1e-3)))(orig(m, d, *a, **k)))
 
 
-@pytest.fixture
-def fresh_mjx():
-    engines.clear_compiled()
-    yield
-    engines.clear_compiled()
-
-
 @pytest.mark.slow  # ~4 min: a default-budget search plus shrinking, every candidate a new compile
 def test_fuzz_finds_and_shrinks_an_injected_bug(fresh_mjx, monkeypatch, tmp_path):
     bias_force_0p1_percent(monkeypatch)

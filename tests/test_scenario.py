@@ -2,8 +2,7 @@
 
 import pytest
 
-from mjxdiff.scenario import (BUNDLED_DIR, Scenario, ScenarioError, Tolerances, bundled_scenarios,
-                              load_model, load_scenario)
+from mjxdiff.scenario import ScenarioError, Tolerances, bundled_scenarios, load_model, load_scenario
 
 
 def test_bundled_scenarios_load_and_compile():
