@@ -26,12 +26,16 @@ import os
 from pathlib import Path
 from typing import Protocol
 
-# Load-bearing: with XLA CPU's multithreaded Eigen pool, materialising large vmapped MJX
-# rollouts sometimes never returns (0% CPU, all threads parked): seen here on the
-# 56-dof primitive_pairs rollout and reported upstream (PyAutoFit #1528: 2/16 runs pass
-# without the flag, 12/12 with it). It must be set before JAX's backend starts.
-if "--xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
+# Load-bearing: materialising large vmapped MJX rollouts sometimes never returns (0% CPU,
+# XLA CPU pool threads waiting on each other), seen here on the 56-dof primitive_pairs
+# rollout. The batched Cholesky of the Newton solver splits across the pool under the
+# concurrency-optimised scheduler; turning that scheduler off took a standalone reproducer
+# from 3/3 hangs to 3/3 passes. The multithreaded Eigen pool has the same reported failure
+# upstream (PyAutoFit #1528), so it is off too. Set before JAX's backend starts.
+_XLA_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false", "--xla_cpu_multi_thread_eigen=false")
+for _flag in _XLA_FLAGS:
+    if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
