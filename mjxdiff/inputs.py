@@ -169,7 +169,8 @@ def _scaled_model(m: mujoco.MjModel, factors: dict[str, np.ndarray], i: int) -> 
     return mi
 
 
-_FACTOR_SHAPE = {
+#: Parameter name -> shape of its per-member factors for a model.
+FACTOR_SHAPES = {
     "body_mass": lambda m: (m.nbody,),
     "geom_friction": lambda m: (m.ngeom,),
     "dof_damping": lambda m: (m.nv,),
@@ -205,7 +206,7 @@ def make_inputs(scenario: Scenario, m: mujoco.MjModel, seed: int,
         lo, hi = rz.scale[name]
         if lo == hi == 1.0:
             continue
-        factors[name] = rng.uniform(lo, hi, (batch, *_FACTOR_SHAPE[name](m)))
+        factors[name] = rng.uniform(lo, hi, (batch, *FACTOR_SHAPES[name](m)))
     ctrl = make_controls(m, rz, batch, steps, m.opt.timestep, rng)
     models = tuple(_scaled_model(m, factors, i) for i in range(batch)) if factors else (m,) * batch
     return BatchedInputs(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl, models=models, factors=factors, seed=seed,

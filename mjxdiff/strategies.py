@@ -38,7 +38,7 @@ from hypothesis import strategies as st
 from hypothesis.errors import InvalidArgument
 from hypothesis.extra import numpy as hnp
 
-from mjxdiff.inputs import quat_mul, rotvec_quat
+from mjxdiff.inputs import FACTOR_SHAPES, quat_mul, rotvec_quat
 
 __all__ = [
     "CONTROL_FAMILIES",
@@ -1079,14 +1079,7 @@ def control_sequences(draw: Callable, m: mujoco.MjModel, steps: Any, *, batch: i
     return ctrl if batch is not None else ctrl[0]
 
 
-PERTURBATION_FIELDS = {
-    "body_mass": lambda m: (m.nbody,),
-    "geom_friction": lambda m: (m.ngeom,),
-    "dof_damping": lambda m: (m.nv,),
-    "actuator_gain": lambda m: (m.nu,),
-    "gravity": lambda m: (),
-    "timestep": lambda m: (),
-}
+PERTURBATION_FIELDS = FACTOR_SHAPES
 """Parameter name -> factor shape for a model, as :mod:`mjxdiff.inputs` scales them."""
 
 
