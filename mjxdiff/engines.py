@@ -13,6 +13,8 @@ integration).
   members are batched inputs (``vmap`` axis 0), the rest are shared. One
   compiled function therefore serves every randomized variant of a model
   structure: it is cached by JAX on (structure, which leaves vary, B, T).
+  The batch is split across host CPU devices (``shard_map``; XLA CPU runs one
+  device per thread): by default one device per core, see :data:`DEVICES`.
 """
 
 from __future__ import annotations
@@ -32,7 +34,13 @@ from typing import Protocol
 # concurrency-optimised scheduler; turning that scheduler off took a standalone reproducer
 # from 3/3 hangs to 3/3 passes. The multithreaded Eigen pool has the same reported failure
 # upstream (PyAutoFit #1528), so it is off too. Set before JAX's backend starts.
-_XLA_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false", "--xla_cpu_multi_thread_eigen=false")
+#
+# One host device per core: a single XLA CPU device runs a vmapped MJX rollout on about
+# one core; split over devices, each runs its share of the batch on its own thread
+# (measured: ant and humanoid, batch 64, about 2x on 2 cores). MJXDIFF_DEVICES overrides.
+DEVICES = int(os.environ.get("MJXDIFF_DEVICES") or os.cpu_count() or 1)
+_XLA_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false", "--xla_cpu_multi_thread_eigen=false",
+              f"--xla_force_host_platform_device_count={DEVICES}")
 for _flag in _XLA_FLAGS:
     if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()
@@ -44,6 +52,7 @@ import numpy as np  # noqa: E402
 
 with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import warp" to stdout
     from mujoco import mjx
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from mujoco.batch import Batch, SimulationError
 
 from mjxdiff.inputs import BatchedInputs
@@ -55,6 +64,7 @@ __all__ = [
     "Trajectory",
     "UnsupportedError",
     "configure_jax",
+    "device_count",
     "put_models",
 ]
 
@@ -310,27 +320,48 @@ def _model_axes(mx, varying):
     return jax.tree.unflatten(jax.tree.structure(mx), [0 if v else None for v in varying])
 
 
-@functools.partial(jax.jit, static_argnames=("varying", "with_energy"))
-def _rollout(mx, dx0, qpos, qvel, act, ctrl, varying, with_energy=False):
+def _split(fn, mesh: Mesh | None, mx, varying, nbatched: int):
+    """``fn(mx, dx0, *batched)`` with its batch axis split over ``mesh``'s devices.
+
+    Each device runs ``fn`` on its slice (``shard_map``): stacked model leaves
+    and the batched arguments are split, shared leaves and ``dx0`` replicated.
+    """
+    if mesh is None:
+        return fn
+    b, shared = PartitionSpec("batch"), PartitionSpec()
+    mspec = jax.tree.unflatten(jax.tree.structure(mx), [b if v else shared for v in varying])
+    return jax.shard_map(fn, mesh=mesh, in_specs=(mspec, shared) + (b,) * nbatched, out_specs=b,
+                         check_vma=False)
+
+
+@functools.partial(jax.jit, static_argnames=("varying", "with_energy", "mesh"))
+def _rollout(mx, dx0, qpos, qvel, act, ctrl, varying, with_energy=False, mesh=None):
     """(B, T, ...) records of B members from their initial states."""
     _COMPILES["count"] += 1  # runs only while tracing
-    member = functools.partial(_member_rollout, dx0=dx0, time=dx0.time, with_energy=with_energy)
-    return jax.vmap(lambda mx, q, v, a, u: member(mx, qpos=q, qvel=v, act=a, ctrl=u),
-                    in_axes=(_model_axes(mx, varying), 0, 0, 0, 0))(mx, qpos, qvel, act, ctrl)
+
+    def batch(mx, dx0, qpos, qvel, act, ctrl):
+        member = functools.partial(_member_rollout, dx0=dx0, time=dx0.time, with_energy=with_energy)
+        return jax.vmap(lambda mx, q, v, a, u: member(mx, qpos=q, qvel=v, act=a, ctrl=u),
+                        in_axes=(_model_axes(mx, varying), 0, 0, 0, 0))(mx, qpos, qvel, act, ctrl)
+
+    return _split(batch, mesh, mx, varying, 4)(mx, dx0, qpos, qvel, act, ctrl)
 
 
-@functools.partial(jax.jit, static_argnames=("varying",))
-def _resync_rollout(mx, dx0, qpos, qvel, act, time, ctrl, varying):
+@functools.partial(jax.jit, static_argnames=("varying", "mesh"))
+def _resync_rollout(mx, dx0, qpos, qvel, act, time, ctrl, varying, mesh=None):
     """(B, S, k, ...) records of B members restarted from S given states, k steps each."""
     _COMPILES["count"] += 1
 
-    def member(mx, q, v, a, t, u):
-        # restarts one after another (scan), members side by side (vmap): the shape of
-        # _rollout, rather than a (B x S)-wide nested vmap, which hung XLA CPU here
-        restart = lambda _, start: (None, _member_rollout(mx, dx0, *start, False))
-        return jax.lax.scan(restart, None, (q, v, a, t, u))[1]
+    def batch(mx, dx0, qpos, qvel, act, time, ctrl):
+        def member(mx, q, v, a, t, u):
+            # restarts one after another (scan), members side by side (vmap): the shape of
+            # _rollout, rather than a (B x S)-wide nested vmap, which hung XLA CPU here
+            restart = lambda _, start: (None, _member_rollout(mx, dx0, *start, False))
+            return jax.lax.scan(restart, None, (q, v, a, t, u))[1]
 
-    return jax.vmap(member, in_axes=(_model_axes(mx, varying), 0, 0, 0, 0, 0))(mx, qpos, qvel, act, time, ctrl)
+        return jax.vmap(member, in_axes=(_model_axes(mx, varying), 0, 0, 0, 0, 0))(mx, qpos, qvel, act, time, ctrl)
+
+    return _split(batch, mesh, mx, varying, 5)(mx, dx0, qpos, qvel, act, time, ctrl)
 
 
 def _canonical_ints(dx: mjx.Data) -> mjx.Data:
@@ -340,18 +371,56 @@ def _canonical_ints(dx: mjx.Data) -> mjx.Data:
     return jax.tree.map(lambda x: x.astype(int_t) if jnp.issubdtype(x.dtype, jnp.integer) else x, dx)
 
 
+def device_count() -> int:
+    """Host CPU devices JAX has: :data:`DEVICES` unless JAX started before mjxdiff set the flag."""
+    return len(jax.devices("cpu"))
+
+
+def _pad(x: np.ndarray, n: int) -> np.ndarray:
+    """``x`` with its last row repeated ``n`` more times along axis 0."""
+    return np.concatenate([x, np.repeat(x[-1:], n, axis=0)]) if n else x
+
+
 class MJXEngine:
-    """MJX: ``jit(vmap(scan(mjx.step)))`` with per-member model parameters batched."""
+    """MJX: ``jit(vmap(scan(mjx.step)))`` with per-member model parameters batched.
+
+    Args:
+      devices: host CPU devices to split the batch over; None: all of them
+        (:func:`device_count`), 1: no split. A batch that does not divide
+        evenly is padded with copies of its last member, whose records are
+        dropped.
+    """
 
     name = "mjx"
 
-    def rollout(self, inputs: BatchedInputs) -> Trajectory:
-        mx, varying = put_models(inputs.models)
+    def __init__(self, devices: int | None = None):
+        self.devices = devices
+
+    def _mesh(self, batch: int) -> Mesh | None:
+        n = min(self.devices or device_count(), device_count(), batch)
+        return Mesh(np.array(jax.devices("cpu")[:n]), ("batch",)) if n > 1 else None
+
+    def _prepare(self, inputs: BatchedInputs, batched: tuple[np.ndarray, ...]):
+        """Padded, placed model, initial data and batched arrays: (mx, varying, dx0, arrays, mesh)."""
+        mesh = self._mesh(inputs.batch)
+        pad = -inputs.batch % mesh.size if mesh else 0
+        models = inputs.models + (inputs.models[-1],) * pad
+        mx, varying = put_models(models)
         dx0 = _canonical_ints(mjx.make_data(inputs.models[0]))
-        ft = dx0.qpos.dtype
-        rec = _rollout(mx, dx0, jnp.asarray(inputs.qpos, ft), jnp.asarray(inputs.qvel, ft),
-                       jnp.asarray(inputs.act, ft), jnp.asarray(inputs.ctrl, ft), varying, inputs.energy)
-        return _trajectory(jax.tree.map(np.asarray, jax.block_until_ready(rec)), inputs)
+        arrays = tuple(jnp.asarray(_pad(np.asarray(x), pad), dx0.qpos.dtype) for x in batched)
+        if mesh is not None:
+            split, shared = NamedSharding(mesh, PartitionSpec("batch")), NamedSharding(mesh, PartitionSpec())
+            mx = jax.tree.map(lambda x, v: jax.device_put(x, split if v else shared), mx,
+                              jax.tree.unflatten(jax.tree.structure(mx), list(varying)))
+            dx0 = jax.device_put(dx0, shared)
+            arrays = tuple(jax.device_put(x, split) for x in arrays)
+        return mx, varying, dx0, arrays, mesh
+
+    def rollout(self, inputs: BatchedInputs) -> Trajectory:
+        mx, varying, dx0, arrays, mesh = self._prepare(inputs, (inputs.qpos, inputs.qvel, inputs.act, inputs.ctrl))
+        rec = _rollout(mx, dx0, *arrays, varying, inputs.energy, mesh)
+        rec = jax.tree.map(lambda x: np.asarray(x)[:inputs.batch], jax.block_until_ready(rec))
+        return _trajectory(rec, inputs)
 
     def resync(self, inputs: BatchedInputs, reference: Trajectory, every: int = 1) -> Trajectory:
         """MJX re-synchronised to ``reference`` (C) every ``every`` steps.
@@ -368,16 +437,13 @@ class MJXEngine:
         def state(field, initial):
             full = np.concatenate([initial[:, None], np.asarray(getattr(reference, field))], axis=1)
             return full[:, starts]
-        mx, varying = put_models(inputs.models)
-        dx0 = _canonical_ints(mjx.make_data(inputs.models[0]))
-        ft = dx0.qpos.dtype
         ctrl = np.zeros((B, S * k, inputs.ctrl.shape[2]))
         ctrl[:, :T] = inputs.ctrl
-        rec = _resync_rollout(mx, dx0, jnp.asarray(state("qpos", inputs.qpos), ft),
-                              jnp.asarray(state("qvel", inputs.qvel), ft), jnp.asarray(state("act", inputs.act), ft),
-                              jnp.asarray(state("time", np.zeros(B)), ft),
-                              jnp.asarray(ctrl.reshape(B, S, k, -1), ft), varying)
-        rec = {key: np.asarray(v).reshape(B, S * k, *v.shape[3:])[:, :T] for key, v in rec.items()}
+        batched = (state("qpos", inputs.qpos), state("qvel", inputs.qvel), state("act", inputs.act),
+                   state("time", np.zeros(B)), ctrl.reshape(B, S, k, -1))
+        mx, varying, dx0, arrays, mesh = self._prepare(inputs, batched)
+        rec = _resync_rollout(mx, dx0, *arrays, varying, mesh)
+        rec = {key: np.asarray(v)[:B].reshape(B, S * k, *v.shape[3:])[:, :T] for key, v in rec.items()}
         return _trajectory(rec, inputs)
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import platform
 from importlib import metadata
 from pathlib import Path
@@ -33,6 +34,13 @@ def versions() -> dict[str, str]:
     return out
 
 
+def machine() -> dict[str, Any]:
+    """What the numbers were measured on: cores, and the host devices MJX's batch is split over."""
+    import jax
+
+    return dict(cpus=os.cpu_count(), platform=platform.machine(), jax_cpu_devices=len(jax.devices("cpu")))
+
+
 def summary(results: Sequence[ScenarioResult], threshold: float) -> dict[str, Any]:
     """Counts per status and the scenario pass rate (unsupported scenarios excluded).
 
@@ -42,8 +50,9 @@ def summary(results: Sequence[ScenarioResult], threshold: float) -> dict[str, An
     counts = {s: sum(r.status == s for r in results) for s in ("pass", "fail", "unsupported", "error")}
     ran = len(results) - counts["unsupported"]
     rate = counts["pass"] / ran if ran else 1.0
+    compiles = sum(r.info.get("mjx_compiles", 0) for r in results)
     return dict(total=len(results), **counts, pass_rate=rate, member_pass_threshold=threshold,
-                consistent=counts["fail"] == 0 and counts["error"] == 0)
+                consistent=counts["fail"] == 0 and counts["error"] == 0, mjx_compiles=compiles)
 
 
 def _clean(x: Any) -> Any:
@@ -69,6 +78,7 @@ def to_json(results: Sequence[ScenarioResult], config: dict[str, Any]) -> dict[s
     return _clean(dict(
         schema_version=SCHEMA_VERSION,
         versions=versions(),
+        machine=machine(),
         config=config,
         summary=summary(results, config.get("threshold", 0.95)),
         scenarios=[result_dict(r) for r in results],

@@ -2,10 +2,11 @@
 
 import dataclasses
 
+import jax
 import numpy as np
 import pytest
 
-from mjxdiff.engines import CEngine, MJXEngine, UnsupportedError, compile_count, put_models
+from mjxdiff.engines import CEngine, MJXEngine, UnsupportedError, compile_count, device_count, put_models
 from mjxdiff.inputs import make_inputs
 from mjxdiff.scenario import load_model, load_scenario
 
@@ -78,6 +79,22 @@ def test_one_compile_serves_other_seeds(rollouts):
     engine.rollout(make_inputs(scenario, pm, seed=1, batch=4, steps=60))
     engine.rollout(make_inputs(scenario, pm, seed=2, batch=4, steps=60))
     assert compile_count() == before
+
+
+def test_device_split_is_bit_identical_to_one_device(rollouts):
+    """The batch split over host devices (padded: 3 members on 2 devices) changes no number."""
+    m, inputs, c, split = rollouts
+    assert device_count() >= 2  # one device per core (mjxdiff.engines.DEVICES); CI has 2 cores
+    three = dataclasses.replace(inputs, qpos=inputs.qpos[:3], qvel=inputs.qvel[:3], act=inputs.act[:3],
+                                ctrl=inputs.ctrl[:3], models=inputs.models[:3])
+    one = MJXEngine(devices=1).rollout(three)
+    padded = MJXEngine().rollout(three)
+    for field in ("qpos", "qvel", "sensordata", "energy"):
+        np.testing.assert_array_equal(getattr(padded, field), getattr(one, field), err_msg=field)
+        np.testing.assert_array_equal(getattr(split, field)[:3], getattr(one, field), err_msg=field)
+    c3 = jax.tree.map(lambda x: x[:3], c)
+    resync_one = MJXEngine(devices=1).resync(three, c3, every=10)
+    np.testing.assert_array_equal(MJXEngine().resync(three, c3, every=10).qpos, resync_one.qpos)
 
 
 def test_unsupported_feature_named(tmp_path):
