@@ -1,4 +1,4 @@
-"""``python -m mjxdiff``: sweep scenarios, list them.
+"""``python -m mjxdiff``: sweep scenarios, replay a failure, fuzz, benchmark, list scenarios.
 
 Exit codes: 0 every scenario consistent (unsupported ones are reported, not
 failing), 1 at least one divergence (fail, or a non-finite rollout), 2 bad
@@ -33,6 +33,24 @@ statuses: PASS within tolerance; FAIL a field left its tolerance (the line names
 field, object, step and time); UNSUP MJX refused the model (feature named);
 ERROR bad input, or a non-finite state (engine, member and step named).
 exit codes: 0 consistent, 1 divergence found, 2 bad usage or input."""
+
+
+_BENCH_DEFAULT = ("pendulum", "cartpole", "ant")
+_BENCH_DESCRIPTION = """\
+Measure both platforms on the same batch, horizon and cores: steps/s of MJX and
+of MuJoCo C for several batch sizes (MJX's best batch size is model-specific),
+their ratio, MJX compile seconds, peak memory and CPU utilisation of each side,
+the speedup of splitting MJX's batch over host devices, and how much the
+verification itself (noise floor, metrics, verdict) costs on top of the two
+engines. Ends with plain-language recommendations. float64 throughout."""
+_BENCH_EPILOG = """\
+examples:
+  python -m mjxdiff bench                         # pendulum, cartpole, ant
+  python -m mjxdiff bench humanoid --batch 16 64  # one scenario, two batch sizes
+  python -m mjxdiff bench ant --out bench-results --format json
+
+steps/s counts member-steps (batch x steps) per wall second, best of --repeats
+warm runs. Host devices: one per core by default; set MJXDIFF_DEVICES=N to change."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -119,6 +137,20 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also generate features with known, documented C/MJX divergences "
                          "(connect/weld, RK4/implicitfast, box and mesh geoms)")
     fz.add_argument("--cache-dir", metavar="DIR", help="JAX persistent compilation cache (see sweep --help)")
+    bn = sub.add_parser("bench", help="measure MJX and MuJoCo C throughput, compile time and memory per scenario",
+                        description=_BENCH_DESCRIPTION, epilog=_BENCH_EPILOG,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    bn.add_argument("scenarios", nargs="*", metavar="SCENARIO",
+                    help=f"bundled scenario name, scenario .toml or MJCF .xml (default: {' '.join(_BENCH_DEFAULT)}, "
+                         "a small, a medium and an ant-class model)")
+    bn.add_argument("--batch", type=_positive, nargs="+", metavar="B",
+                    help="batch sizes of the throughput curve (default 8 32 128)")
+    bn.add_argument("--steps", type=_positive, default=200, help="steps per rollout (default 200)")
+    bn.add_argument("--repeats", type=_positive, default=2, help="warm runs per measurement, best kept (default 2)")
+    bn.add_argument("--seed", type=int, default=0, help="seed of the randomized inputs (default 0)")
+    bn.add_argument("--out", metavar="DIR", help="write DIR/bench.json (versions, machine, every number)")
+    bn.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
+    bn.add_argument("--cache-dir", metavar="DIR", help="JAX persistent compilation cache (see sweep --help)")
     sub.add_parser("list", help="list bundled scenarios and what each exercises",
                    description="List bundled scenarios with their model, size and what they exercise.")
     return parser
@@ -215,6 +247,38 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return exit_code([result])
 
 
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from mjxdiff import bench, engines, report
+    from mjxdiff.scenario import ScenarioError, load_scenario
+
+    engines.configure_jax("float64", args.cache_dir)
+    try:
+        scenarios = [load_scenario(ref) for ref in args.scenarios or _BENCH_DEFAULT]
+    except ScenarioError as e:
+        print(f"mjxdiff: error: {e}", file=sys.stderr)
+        return 2
+    say = (lambda text: print(f"... {text}", file=sys.stderr, flush=True)) if sys.stderr.isatty() else None
+    results = []
+    for scenario in scenarios:
+        try:
+            results.append(bench.bench_scenario(scenario, args.batch or bench.DEFAULT_BATCHES, args.steps,
+                                                args.seed, args.repeats, say))
+        except engines.UnsupportedError as e:
+            print(f"mjxdiff: {scenario.name}: skipped, MJX does not support: {e.feature}", file=sys.stderr)
+            continue
+        if args.format == "text":
+            print(bench.format_text(results[-1:]), flush=True)
+    doc = dict(versions=report.versions(), machine=report.machine(), steps=args.steps, scenarios=results)
+    if args.out:
+        path = Path(args.out)
+        path.mkdir(parents=True, exist_ok=True)
+        (path / "bench.json").write_text(json.dumps(doc, indent=2))
+        print(f"bench written to {path / 'bench.json'}", file=sys.stderr)
+    if args.format == "json":
+        print(json.dumps(doc, indent=2))
+    return 0 if results else 1
+
+
 def _cmd_fuzz(args: argparse.Namespace) -> int:
     from mjxdiff import engines
     from mjxdiff.fuzz import DEFAULT_BUDGET, fuzz
@@ -245,6 +309,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _cmd_list()
     if args.command == "fuzz":
         return _cmd_fuzz(args)
+    if args.command == "bench":
+        return _cmd_bench(args)
     if args.command == "replay":
         return _cmd_replay(args)
     return _cmd_sweep(args)

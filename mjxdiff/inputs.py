@@ -65,6 +65,15 @@ class BatchedInputs:
     def steps(self) -> int:
         return self.ctrl.shape[1]
 
+    def take(self, members) -> "BatchedInputs":
+        """The members selected by ``members`` (a slice or index array), keeping their identities."""
+        pick = lambda x: np.asarray(x)[members]
+        ids = pick(self.ids)
+        return dataclasses.replace(
+            self, qpos=pick(self.qpos), qvel=pick(self.qvel), act=pick(self.act), ctrl=pick(self.ctrl),
+            models=tuple(self.models[int(i)] for i in np.arange(self.batch)[members]),
+            factors={k: pick(v) for k, v in self.factors.items()}, member_ids=ids)
+
 
 def _rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng([seed, zlib.crc32(name.encode())])

@@ -64,11 +64,7 @@ def _model_from_b64(text: str) -> mujoco.MjModel:
 
 def member_inputs(inputs: BatchedInputs, member: int) -> BatchedInputs:
     """A batch of one: ``member`` of ``inputs``, keeping its identity for seeded draws."""
-    take = lambda x: np.asarray(x)[member:member + 1]
-    return dataclasses.replace(
-        inputs, qpos=take(inputs.qpos), qvel=take(inputs.qvel), act=take(inputs.act), ctrl=take(inputs.ctrl),
-        models=(inputs.models[member],), factors={k: take(v) for k, v in inputs.factors.items()},
-        member_ids=take(inputs.ids))
+    return inputs.take(slice(member, member + 1))
 
 
 def save(path: str | Path, scenario: str, member: int, inputs: BatchedInputs, model_xml: str,
