@@ -63,6 +63,8 @@ __all__ = [
     "MJXEngine",
     "Trajectory",
     "UnsupportedError",
+    "compile_count",
+    "compile_seconds",
     "configure_jax",
     "device_count",
     "put_models",
@@ -132,7 +134,9 @@ def configure_jax(precision: str = "float64", cache_dir: str | os.PathLike | Non
         cache_dir = os.environ.get("MJXDIFF_CACHE", Path.home() / ".cache" / "mjxdiff" / "jax")
     if cache_dir:
         jax.config.update("jax_compilation_cache_dir", str(cache_dir))
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        # every compile, however small: a sweep's many small eager ops (stacking leaves,
+        # casts, metrics of each shape) otherwise recompile in every new process
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
@@ -229,17 +233,35 @@ def put_models(models: tuple[mujoco.MjModel, ...]) -> tuple[mjx.Model, tuple[boo
         columns.append(leaves)
     varying = tuple(any(not np.array_equal(col[k], leaves0[k]) for col in columns[1:])
                     for k in range(len(leaves0)))
-    stacked = [jnp.stack([col[k] for col in columns]) if v else leaves0[k]
-               for k, v in enumerate(varying)]
+    stacked = [jnp.asarray(np.stack([np.asarray(col[k]) for col in columns])) if v else leaves0[k]
+               for k, v in enumerate(varying)]  # numpy: jnp.stack compiles once per leaf shape
     return jax.tree.unflatten(treedef, stacked), varying
 
 
-_COMPILES = {"count": 0}
+_COMPILES = {"count": 0, "seconds": 0.0}
+# JAX's own timings of tracing, lowering and XLA compilation (a persistent-cache hit is
+# timed as the load that replaces compilation).
+_COMPILE_EVENTS = frozenset({"/jax/core/compile/jaxpr_trace_duration",
+                             "/jax/core/compile/jaxpr_to_mlir_module_duration",
+                             "/jax/core/compile/backend_compile_duration"})
+
+
+def _on_duration(event: str, duration: float, **_) -> None:
+    if event in _COMPILE_EVENTS:
+        _COMPILES["seconds"] += duration
+
+
+jax.monitoring.register_event_duration_secs_listener(_on_duration)
 
 
 def compile_count() -> int:
     """How many times the MJX rollout has been traced (compiled) in this process."""
     return _COMPILES["count"]
+
+
+def compile_seconds() -> float:
+    """Seconds this process has spent compiling JAX functions (trace, lower, XLA compile or cache load)."""
+    return _COMPILES["seconds"]
 
 
 def clear_compiled() -> None:

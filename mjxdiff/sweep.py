@@ -107,6 +107,7 @@ def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Swe
     seconds = info.setdefault("seconds", {})
     base = dict(name=name, tolerances=tol.as_dict(), info=info)
     t1 = time.perf_counter()
+    compile_s = engines.compile_seconds()
     try:
         traj_c = (c_engine or CEngine()).rollout(inputs)
     except Exception as e:  # noqa: BLE001 - reported as this scenario's error, the sweep goes on
@@ -125,7 +126,8 @@ def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Swe
     if result.status == "fail" and config.diagnose != "none":
         result = _diagnose(result, m, inputs, traj_c, tol, config, mjx_engine, c_engine)
     t5 = time.perf_counter()
-    seconds.update(c=t2 - t1, mjx=t3 - t2, verdict=t4 - t3, diagnosis=t5 - t4)
+    seconds.update(c=t2 - t1, mjx=t3 - t2, verdict=t4 - t3, diagnosis=t5 - t4,
+                   compile=engines.compile_seconds() - compile_s)
     info.update(mjx_compiles=engines.compile_count() - compiles, nq=m.nq, nv=m.nv, nu=m.nu,
                 nsensordata=m.nsensordata)
     return dataclasses.replace(result, info=info)
