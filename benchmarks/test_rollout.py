@@ -12,11 +12,11 @@ import time
 import pytest
 
 from mjxdiff import engines
-from mjxdiff.engines import CEngine, MJXEngine
+from mjxdiff.engines import CEngine, MJXEngine, device_count
 from mjxdiff.inputs import make_inputs
 from mjxdiff.report import versions
 from mjxdiff.scenario import load_model, load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.sweep import SweepConfig, _judge, run_scenario
 
 # small, medium and large model structures
 SCENARIOS = ["pendulum", "cartpole", "ant"]
@@ -35,7 +35,7 @@ def _inputs(name):
 
 def _extra(benchmark, **info):
     benchmark.extra_info.update(versions())
-    benchmark.extra_info.update(batch=BATCH, steps=STEPS, **info)
+    benchmark.extra_info.update(batch=BATCH, steps=STEPS, jax_cpu_devices=device_count(), **info)
 
 
 @pytest.mark.parametrize("name", SCENARIOS)
@@ -59,6 +59,22 @@ def test_mjx_rollout(benchmark, name):
     run = benchmark.stats.stats.mean
     _extra(benchmark, engine="mjx", steps_per_s=BATCH * STEPS / run, compile_s=first - run,
            peak_rss_mib=_peak_rss_mib())
+
+
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_metrics_overhead(benchmark, name):
+    """Noise floor + metrics + verdict on finished trajectories, against the two rollouts' time."""
+    inputs = _inputs(name)
+    scenario = load_scenario(name)
+    c_engine, mjx_engine = CEngine(), MJXEngine()
+    mjx_engine.rollout(inputs)
+    t0 = time.perf_counter()
+    traj_c, traj_mjx = c_engine.rollout(inputs), mjx_engine.rollout(inputs)
+    rollouts = time.perf_counter() - t0
+    judge = lambda: _judge(name, inputs.models[0], inputs, traj_c, traj_mjx, scenario.tolerance, SweepConfig(), c_engine)
+    result = benchmark.pedantic(judge, rounds=3, iterations=1, warmup_rounds=1)
+    assert result.status == "pass", result.message
+    _extra(benchmark, rollouts_s=rollouts, metrics_over_rollouts=benchmark.stats.stats.mean / rollouts)
 
 
 def test_sweep_end_to_end(benchmark):
