@@ -50,7 +50,8 @@ examples:
   python -m mjxdiff bench ant --out bench-results --format json
 
 steps/s counts member-steps (batch x steps) per wall second, best of --repeats
-warm runs. Host devices: one per core by default; set MJXDIFF_DEVICES=N to change."""
+warm runs. MJXDIFF_DEVICES=N (in the environment) splits MJX's batch over N host
+devices and adds a one-device comparison: MJXDIFF_DEVICES=2 python -m mjxdiff bench ant"""
 
 
 class _Parser(argparse.ArgumentParser):

@@ -13,8 +13,9 @@ integration).
   members are batched inputs (``vmap`` axis 0), the rest are shared. One
   compiled function therefore serves every randomized variant of a model
   structure: it is cached by JAX on (structure, which leaves vary, B, T).
-  The batch is split across host CPU devices (``shard_map``; XLA CPU runs one
-  device per thread): by default one device per core, see :data:`DEVICES`.
+  With ``MJXDIFF_DEVICES=N`` set before mjxdiff is imported, the batch is split
+  across N host CPU devices (``shard_map``; XLA CPU runs one device per thread),
+  see :data:`DEVICES`.
 """
 
 from __future__ import annotations
@@ -35,12 +36,17 @@ from typing import Protocol
 # from 3/3 hangs to 3/3 passes. The multithreaded Eigen pool has the same reported failure
 # upstream (PyAutoFit #1528), so it is off too. Set before JAX's backend starts.
 #
-# One host device per core: a single XLA CPU device runs a vmapped MJX rollout on about
-# one core; split over devices, each runs its share of the batch on its own thread
-# (measured: ant and humanoid, batch 64, about 2x on 2 cores). MJXDIFF_DEVICES overrides.
-DEVICES = int(os.environ.get("MJXDIFF_DEVICES") or os.cpu_count() or 1)
+# Host devices to split MJX's batch over (MJXDIFF_DEVICES, read once, before JAX starts).
+# A single XLA CPU device runs a vmapped MJX rollout on about one core; split over devices,
+# each runs its share on its own thread (measured: ant and humanoid, batch 64, 1.6-2.5x on
+# 2 cores). Not the default: one bench run with 2 devices hung the same way as above
+# (every XLA thread idle, the main thread waiting for buffers), so the split is opt-in.
+DEVICES = int(os.environ.get("MJXDIFF_DEVICES") or 1)
 _XLA_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false", "--xla_cpu_multi_thread_eigen=false",
               f"--xla_force_host_platform_device_count={DEVICES}")
+if os.environ.get("MJXDIFF_DEVICES"):  # an explicit request wins over an inherited flag
+    os.environ["XLA_FLAGS"] = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split()
+                                       if not f.startswith("--xla_force_host_platform_device_count"))
 for _flag in _XLA_FLAGS:
     if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()
