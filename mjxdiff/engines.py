@@ -91,6 +91,9 @@ class Trajectory:
       ncon: (B, T) number of active contacts, evaluated before each step.
       energy: (B, T, 2) potential and kinetic energy (J) before each step, as
         MuJoCo's ``d.energy``; (B, T, 0) unless the inputs ask for energy.
+        Exact for Euler and implicitfast. Under RK4 neither record is the
+        pre-step energy: C's is that of its last RK stage, MJX's mixes stage-4
+        kinematics with the pre-step qpos/qvel (measured 1e-3 apart, relative).
       diverged_at: (B,) first step at which the engine produced a non-finite
         state or stopped on a MuJoCo instability warning; -1 if never.
     """
@@ -109,11 +112,21 @@ class Trajectory:
 
 
 class UnsupportedError(Exception):
-    """MJX refused the model (``NotImplementedError`` in ``put_model``); ``feature`` names what."""
+    """MJX refused the model (``NotImplementedError`` in ``put_model``, ``make_data`` or
+    while tracing ``mjx.step``); ``feature`` names what."""
 
     def __init__(self, feature: str):
         super().__init__(feature)
         self.feature = feature
+
+
+@contextlib.contextmanager
+def _unsupported():
+    """Turns MJX's ``NotImplementedError`` into :class:`UnsupportedError`, naming the feature."""
+    try:
+        yield
+    except NotImplementedError as e:
+        raise UnsupportedError(" ".join(str(e).split()) or type(e).__name__) from None
 
 
 class Engine(Protocol):
@@ -220,10 +233,8 @@ def put_models(models: tuple[mujoco.MjModel, ...]) -> tuple[mjx.Model, tuple[boo
       UnsupportedError: MJX does not implement a feature the model uses.
       ValueError: members differ in a field MJX treats as static structure.
     """
-    try:
+    with _unsupported():
         mxs = [mjx.put_model(models[0])]
-    except NotImplementedError as e:
-        raise UnsupportedError(" ".join(str(e).split()) or type(e).__name__) from None
     cache = {id(models[0]): mxs[0]}
     for mi in models[1:]:
         if id(mi) not in cache:
@@ -445,8 +456,9 @@ class MJXEngine:
         return mx, varying, dx0, arrays, mesh
 
     def rollout(self, inputs: BatchedInputs) -> Trajectory:
-        mx, varying, dx0, arrays, mesh = self._prepare(inputs, (inputs.qpos, inputs.qvel, inputs.act, inputs.ctrl))
-        rec = _rollout(mx, dx0, *arrays, varying, inputs.energy, mesh)
+        with _unsupported():  # make_data and tracing mjx.step raise it for some features too
+            mx, varying, dx0, arrays, mesh = self._prepare(inputs, (inputs.qpos, inputs.qvel, inputs.act, inputs.ctrl))
+            rec = _rollout(mx, dx0, *arrays, varying, inputs.energy, mesh)
         rec = jax.tree.map(lambda x: np.asarray(x)[:inputs.batch], jax.block_until_ready(rec))
         return _trajectory(rec, inputs)
 
@@ -469,8 +481,9 @@ class MJXEngine:
         ctrl[:, :T] = inputs.ctrl
         batched = (state("qpos", inputs.qpos), state("qvel", inputs.qvel), state("act", inputs.act),
                    state("time", np.zeros(B)), ctrl.reshape(B, S, k, -1))
-        mx, varying, dx0, arrays, mesh = self._prepare(inputs, batched)
-        rec = _resync_rollout(mx, dx0, *arrays, varying, mesh)
+        with _unsupported():
+            mx, varying, dx0, arrays, mesh = self._prepare(inputs, batched)
+            rec = _resync_rollout(mx, dx0, *arrays, varying, mesh)
         rec = {key: np.asarray(v)[:B].reshape(B, S * k, *v.shape[3:])[:, :T] for key, v in rec.items()}
         return _trajectory(rec, inputs)
 

@@ -743,10 +743,9 @@ def test_bias_force_is_zero_at_rest_without_gravity(data):
 # ---------------------------------------------------------------------------
 # 3. Unsupported models: reported, never a crash.
 
+#: Random models use the put_model features (one compile-free check each); every feature,
+#: also those MJX raises later (make_data, tracing mjx.step), is checked once below.
 _PUT_MODEL_FEATURES = tuple(f.name for f in UNSUPPORTED_FEATURES if f.stage == "put_model")
-#: mjxdiff reports a NotImplementedError as `unsupported` only when mjx.put_model raises it;
-#: MJX raises these two later (make_data; tracing mjx.step), and compare() then says `error`.
-_REPORTED_AS_ERROR = "MJXEngine.rollout turns only put_model's NotImplementedError into `unsupported`"
 
 
 def _check_reported_unsupported(mm) -> None:
@@ -764,12 +763,10 @@ def test_unsupported_models_are_reported_unsupported_by_compare(mm):
     _check_reported_unsupported(mm)
 
 
-@pytest.mark.parametrize("feature", [
-    pytest.param(f, marks=() if f.stage == "put_model" else pytest.mark.xfail(strict=True, reason=_REPORTED_AS_ERROR))
-    for f in UNSUPPORTED_FEATURES], ids=lambda f: f.name)
+@pytest.mark.parametrize("feature", UNSUPPORTED_FEATURES, ids=lambda f: f.name)
 def test_each_unsupported_feature_is_reported_unsupported_by_compare(feature):
     """Every feature of UNSUPPORTED_FEATURES, end to end through :func:`mjxdiff.testing.compare`."""
-    @settings(max_examples=1, database=None, phases=[Phase.generate])  # an expected failure: no shrinking
+    @settings(max_examples=1, database=None, phases=[Phase.generate])
     @given(mjcf_models(unsupported=feature.name, max_bodies=1))
     def check(mm):
         _check_reported_unsupported(mm)
