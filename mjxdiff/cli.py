@@ -271,10 +271,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             print(bench.format_text(results[-1:]), flush=True)
     doc = dict(versions=report.versions(), machine=report.machine(), steps=args.steps, scenarios=results)
     if args.out:
-        path = Path(args.out)
-        path.mkdir(parents=True, exist_ok=True)
-        (path / "bench.json").write_text(json.dumps(doc, indent=2))
-        print(f"bench written to {path / 'bench.json'}", file=sys.stderr)
+        path = report.write_report(args.out, doc, "bench.json")
+        print(f"bench written to {path}", file=sys.stderr)
     if args.format == "json":
         print(json.dumps(doc, indent=2))
     return 0 if results else 1

@@ -355,8 +355,13 @@ def _member_rollout(mx, dx0, qpos, qvel, act, time, ctrl, with_energy):
 forward = jax.jit(mjx.forward)
 
 
+def _per_leaf(mx, varying, if_varying, if_shared):
+    """A tree shaped like ``mx`` holding ``if_varying`` at stacked leaves, ``if_shared`` elsewhere."""
+    return jax.tree.unflatten(jax.tree.structure(mx), [if_varying if v else if_shared for v in varying])
+
+
 def _model_axes(mx, varying):
-    return jax.tree.unflatten(jax.tree.structure(mx), [0 if v else None for v in varying])
+    return _per_leaf(mx, varying, 0, None)
 
 
 def _split(fn, mesh: Mesh | None, mx, varying, nbatched: int):
@@ -368,8 +373,8 @@ def _split(fn, mesh: Mesh | None, mx, varying, nbatched: int):
     if mesh is None:
         return fn
     b, shared = PartitionSpec("batch"), PartitionSpec()
-    mspec = jax.tree.unflatten(jax.tree.structure(mx), [b if v else shared for v in varying])
-    return jax.shard_map(fn, mesh=mesh, in_specs=(mspec, shared) + (b,) * nbatched, out_specs=b,
+    return jax.shard_map(fn, mesh=mesh, in_specs=(_per_leaf(mx, varying, b, shared), shared) + (b,) * nbatched,
+                         out_specs=b,
                          check_vma=False)
 
 
@@ -449,8 +454,7 @@ class MJXEngine:
         arrays = tuple(jnp.asarray(_pad(np.asarray(x), pad), dx0.qpos.dtype) for x in batched)
         if mesh is not None:
             split, shared = NamedSharding(mesh, PartitionSpec("batch")), NamedSharding(mesh, PartitionSpec())
-            mx = jax.tree.map(lambda x, v: jax.device_put(x, split if v else shared), mx,
-                              jax.tree.unflatten(jax.tree.structure(mx), list(varying)))
+            mx = jax.device_put(mx, _per_leaf(mx, varying, split, shared))
             dx0 = jax.device_put(dx0, shared)
             arrays = tuple(jax.device_put(x, split) for x in arrays)
         return mx, varying, dx0, arrays, mesh

@@ -36,9 +36,9 @@ def versions() -> dict[str, str]:
 
 def machine() -> dict[str, Any]:
     """What the numbers were measured on: cores, and the host devices MJX's batch is split over."""
-    import jax
+    from mjxdiff.engines import device_count
 
-    return dict(cpus=os.cpu_count(), platform=platform.machine(), jax_cpu_devices=len(jax.devices("cpu")))
+    return dict(cpus=os.cpu_count(), platform=platform.machine(), jax_cpu_devices=device_count())
 
 
 def summary(results: Sequence[ScenarioResult], threshold: float) -> dict[str, Any]:
@@ -87,10 +87,11 @@ def to_json(results: Sequence[ScenarioResult], config: dict[str, Any]) -> dict[s
     ))
 
 
-def write_report(out_dir: str | Path, report: dict[str, Any]) -> Path:
+def write_report(out_dir: str | Path, report: dict[str, Any], name: str = "report.json") -> Path:
+    """Writes ``report`` as JSON to ``out_dir/name``, creating the directory; returns the path."""
     path = Path(out_dir)
     path.mkdir(parents=True, exist_ok=True)
-    path = path / "report.json"
+    path = path / name
     path.write_text(json.dumps(report, indent=2, sort_keys=False) + "\n")
     return path
 
