@@ -16,7 +16,9 @@ from mjxdiff.engines import CEngine, MJXEngine, device_count
 from mjxdiff.inputs import make_inputs
 from mjxdiff.report import versions
 from mjxdiff.scenario import load_model, load_scenario
-from mjxdiff.sweep import SweepConfig, _judge, run_scenario
+from mjxdiff.noise import perturb
+from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.verdict import judge
 
 # small, medium and large model structures
 SCENARIOS = ["pendulum", "cartpole", "ant"]
@@ -71,8 +73,9 @@ def test_metrics_overhead(benchmark, name):
     t0 = time.perf_counter()
     traj_c, traj_mjx = c_engine.rollout(inputs), mjx_engine.rollout(inputs)
     rollouts = time.perf_counter() - t0
-    judge = lambda: _judge(name, inputs.models[0], inputs, traj_c, traj_mjx, scenario.tolerance, SweepConfig(), c_engine)
-    result = benchmark.pedantic(judge, rounds=3, iterations=1, warmup_rounds=1)
+    verdict = lambda: judge(name, inputs.models[0], traj_c, traj_mjx, scenario.tolerance,
+                            perturbed=c_engine.rollout(perturb(inputs, "float64")))
+    result = benchmark.pedantic(verdict, rounds=3, iterations=1, warmup_rounds=1)
     assert result.status == "pass", result.message
     _extra(benchmark, rollouts_s=rollouts, metrics_over_rollouts=benchmark.stats.stats.mean / rollouts)
 

@@ -27,7 +27,7 @@ import functools
 import io
 import os
 from pathlib import Path
-from typing import Protocol
+from typing import Iterator, Protocol
 
 # Load-bearing: materialising large vmapped MJX rollouts sometimes never returns (0% CPU,
 # XLA CPU pool threads waiting on each other), seen here on the 56-dof primitive_pairs
@@ -71,6 +71,7 @@ __all__ = [
     "UnsupportedError",
     "compile_count",
     "compile_seconds",
+    "concat",
     "configure_jax",
     "device_count",
     "put_models",
@@ -188,11 +189,21 @@ class CEngine:
         self.nthread = nthread
 
     def rollout(self, inputs: BatchedInputs) -> Trajectory:
+        return concat(list(self.stream(inputs, inputs.steps)))
+
+    def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
+        """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
+
+        One :class:`~mujoco.batch.Batch` carries on from where the previous
+        piece stopped, so the pieces concatenate to :meth:`rollout`'s result
+        bit for bit. ``diverged_at`` counts steps from the start of the
+        rollout and may repeat in later pieces; the first one counts.
+        """
         models = inputs.models
         if inputs.energy:  # C computes d.energy itself; MJX refuses the flag, so only C's copies get it
             models = tuple(_with_energy(mi) for mi in models)
-        m = models[0]
-        b = Batch(m, inputs.batch, nthread=self.nthread)
+        m, B = models[0], inputs.batch
+        b = Batch(m, B, nthread=self.nthread)
         b.set_models(list(models))
         b.qpos[:] = inputs.qpos
         b.qvel[:] = inputs.qvel
@@ -200,25 +211,45 @@ class CEngine:
             b.act[:] = inputs.act
         time_spec = mujoco.mjtState.mjSTATE_TIME
         record = ("qpos", "qvel", "act", "sensordata", "ncon", time_spec) + (("energy",) if inputs.energy else ())
-        # preallocated, so that records survive a SimulationError in some members
         d = mujoco.MjData(m)
-        out = {item: _record_buffer(m, d, item, inputs.batch, inputs.steps) for item in record}
-        raised = np.zeros(inputs.batch, bool)
-        try:
-            b.rollout(inputs.steps, control=inputs.ctrl, record=record, out=out)
-        except SimulationError as e:
-            raised[np.asarray(e.ids)] = True
-        time = out[time_spec][..., 0]
-        # A member whose warning counters rise stops, and its records then repeat.
-        warned = (b.warning[:, :, 1].sum(axis=1) > 0) | raised
-        prev = np.concatenate([np.zeros((inputs.batch, 1)), time[:, :-1]], axis=1)
-        stalled = _first_true(time <= prev)
-        nonfinite = _first_true(~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1))
-        diverged = np.where(warned, np.maximum(stalled, 0), nonfinite)
-        return Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"],
-                          sensordata=out["sensordata"], time=time, ncon=out["ncon"].astype(np.int64),
-                          energy=out.get("energy", np.zeros((inputs.batch, inputs.steps, 0))),
-                          diverged_at=diverged)
+        raised = np.zeros(B, bool)
+        last_time = np.zeros((B, 1))
+        for start in range(0, inputs.steps, chunk):
+            k = min(chunk, inputs.steps - start)
+            # preallocated, so that records survive a SimulationError in some members
+            out = {item: _record_buffer(m, d, item, B, k) for item in record}
+            try:
+                b.rollout(k, control=inputs.ctrl[:, start:start + k], record=record, out=out)
+            except SimulationError as e:
+                raised[np.asarray(e.ids)] = True
+            time = out[time_spec][..., 0]
+            # A member whose warning counters rise stops, and its records then repeat.
+            warned = (b.warning[:, :, 1].sum(axis=1) > 0) | raised
+            stalled = _first_true(time <= np.concatenate([last_time, time[:, :-1]], axis=1))
+            last_time = time[:, -1:]
+            nonfinite = _first_true(~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1))
+            diverged = np.where(warned, np.maximum(stalled, 0), nonfinite)
+            yield Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"],
+                             sensordata=out["sensordata"], time=time, ncon=out["ncon"].astype(np.int64),
+                             energy=out.get("energy", np.zeros((B, k, 0))),
+                             diverged_at=np.where(diverged >= 0, diverged + start, -1))
+
+
+def concat(pieces: list[Trajectory]) -> Trajectory:
+    """One trajectory from consecutive pieces (as the engines' ``stream`` yields them)."""
+    if len(pieces) == 1:
+        return pieces[0]
+    fields = {f.name: np.concatenate([getattr(p, f.name) for p in pieces], axis=1)
+              for f in dataclasses.fields(Trajectory) if f.name != "diverged_at"}
+    return Trajectory(**fields, diverged_at=first_diverged([p.diverged_at for p in pieces]))
+
+
+def first_diverged(diverged_at: list[np.ndarray]) -> np.ndarray:
+    """(B,) the first non-negative ``diverged_at`` of consecutive pieces, -1 if none."""
+    out = np.asarray(diverged_at[0])
+    for later in diverged_at[1:]:
+        out = np.where(out >= 0, out, later)
+    return out
 
 
 def put_models(models: tuple[mujoco.MjModel, ...]) -> tuple[mjx.Model, tuple[bool, ...]]:
@@ -336,8 +367,8 @@ def energy(mx: mjx.Model, dx: mjx.Data, qpos: jax.Array, qvel: jax.Array) -> jax
     return jnp.stack([pot, kin])
 
 
-def _member_rollout(mx, dx0, qpos, qvel, act, time, ctrl, with_energy):
-    """One member: scan ``mjx.step`` over ``ctrl`` (T, nu) from the given state."""
+def _scan_steps(mx, dx, ctrl, with_energy):
+    """One member: scan ``mjx.step`` over ``ctrl`` (T, nu) from ``dx``; returns (last dx, records)."""
     def step(dx, u):
         qpos_before, qvel_before = dx.qpos, dx.qvel
         dx = mjx.step(mx, dx.replace(ctrl=u))
@@ -347,8 +378,7 @@ def _member_rollout(mx, dx0, qpos, qvel, act, time, ctrl, with_energy):
             rec["energy"] = energy(mx, dx, qpos_before, qvel_before)
         return dx, rec
 
-    _, rec = jax.lax.scan(step, dx0.replace(qpos=qpos, qvel=qvel, act=act, time=time), ctrl)
-    return rec
+    return jax.lax.scan(step, dx, ctrl)
 
 
 #: ``mjx.forward``, compiled: every stage of one state, for the drill-down.
@@ -364,31 +394,30 @@ def _model_axes(mx, varying):
     return _per_leaf(mx, varying, 0, None)
 
 
-def _split(fn, mesh: Mesh | None, mx, varying, nbatched: int):
-    """``fn(mx, dx0, *batched)`` with its batch axis split over ``mesh``'s devices.
+def _split(fn, mesh: Mesh | None, mx, varying, batched: tuple[bool, ...]):
+    """``fn(mx, *args)`` with its batch axis split over ``mesh``'s devices.
 
     Each device runs ``fn`` on its slice (``shard_map``): stacked model leaves
-    and the batched arguments are split, shared leaves and ``dx0`` replicated.
+    and the arguments marked in ``batched`` are split, the rest replicated.
     """
     if mesh is None:
         return fn
     b, shared = PartitionSpec("batch"), PartitionSpec()
-    return jax.shard_map(fn, mesh=mesh, in_specs=(_per_leaf(mx, varying, b, shared), shared) + (b,) * nbatched,
-                         out_specs=b,
-                         check_vma=False)
+    return jax.shard_map(fn, mesh=mesh, in_specs=(_per_leaf(mx, varying, b, shared),) + tuple(
+        b if split else shared for split in batched), out_specs=b, check_vma=False)
 
 
 @functools.partial(jax.jit, static_argnames=("varying", "with_energy", "mesh"))
-def _rollout(mx, dx0, qpos, qvel, act, ctrl, varying, with_energy=False, mesh=None):
-    """(B, T, ...) records of B members from their initial states."""
+def _rollout(mx, dx, ctrl, varying, with_energy=False, mesh=None):
+    """B members stepped from their data ``dx`` (leaves (B, ...)) over ``ctrl`` (B, T, nu):
+    (last data, (B, T, ...) records)."""
     _COMPILES["count"] += 1  # runs only while tracing
 
-    def batch(mx, dx0, qpos, qvel, act, ctrl):
-        member = functools.partial(_member_rollout, dx0=dx0, time=dx0.time, with_energy=with_energy)
-        return jax.vmap(lambda mx, q, v, a, u: member(mx, qpos=q, qvel=v, act=a, ctrl=u),
-                        in_axes=(_model_axes(mx, varying), 0, 0, 0, 0))(mx, qpos, qvel, act, ctrl)
+    def batch(mx, dx, ctrl):
+        member = functools.partial(_scan_steps, with_energy=with_energy)
+        return jax.vmap(member, in_axes=(_model_axes(mx, varying), 0, 0))(mx, dx, ctrl)
 
-    return _split(batch, mesh, mx, varying, 4)(mx, dx0, qpos, qvel, act, ctrl)
+    return _split(batch, mesh, mx, varying, (True, True))(mx, dx, ctrl)
 
 
 @functools.partial(jax.jit, static_argnames=("varying", "mesh"))
@@ -400,12 +429,14 @@ def _resync_rollout(mx, dx0, qpos, qvel, act, time, ctrl, varying, mesh=None):
         def member(mx, q, v, a, t, u):
             # restarts one after another (scan), members side by side (vmap): the shape of
             # _rollout, rather than a (B x S)-wide nested vmap, which hung XLA CPU here
-            restart = lambda _, start: (None, _member_rollout(mx, dx0, *start, False))
+            def restart(_, start):
+                q, v, a, t, u = start
+                return None, _scan_steps(mx, dx0.replace(qpos=q, qvel=v, act=a, time=t), u, False)[1]
             return jax.lax.scan(restart, None, (q, v, a, t, u))[1]
 
         return jax.vmap(member, in_axes=(_model_axes(mx, varying), 0, 0, 0, 0, 0))(mx, qpos, qvel, act, time, ctrl)
 
-    return _split(batch, mesh, mx, varying, 5)(mx, dx0, qpos, qvel, act, time, ctrl)
+    return _split(batch, mesh, mx, varying, (False,) + (True,) * 5)(mx, dx0, qpos, qvel, act, time, ctrl)
 
 
 def _canonical_ints(dx: mjx.Data) -> mjx.Data:
@@ -444,27 +475,59 @@ class MJXEngine:
         n = min(self.devices or device_count(), device_count(), batch)
         return Mesh(np.array(jax.devices("cpu")[:n]), ("batch",)) if n > 1 else None
 
-    def _prepare(self, inputs: BatchedInputs, batched: tuple[np.ndarray, ...]):
-        """Padded, placed model, initial data and batched arrays: (mx, varying, dx0, arrays, mesh)."""
+    def _prepare(self, inputs: BatchedInputs):
+        """Model, initial data and a placer for batched arrays: (mx, varying, dx0, place, mesh).
+
+        ``place(x)`` pads ``x`` along its batch axis to the split and puts it
+        on the devices; ``mx`` and ``dx0`` are already placed.
+        """
         mesh = self._mesh(inputs.batch)
         pad = -inputs.batch % mesh.size if mesh else 0
-        models = inputs.models + (inputs.models[-1],) * pad
-        mx, varying = put_models(models)
+        mx, varying = put_models(inputs.models + (inputs.models[-1],) * pad)
         dx0 = _canonical_ints(mjx.make_data(inputs.models[0]))
-        arrays = tuple(jnp.asarray(_pad(np.asarray(x), pad), dx0.qpos.dtype) for x in batched)
-        if mesh is not None:
-            split, shared = NamedSharding(mesh, PartitionSpec("batch")), NamedSharding(mesh, PartitionSpec())
-            mx = jax.device_put(mx, _per_leaf(mx, varying, split, shared))
-            dx0 = jax.device_put(dx0, shared)
-            arrays = tuple(jax.device_put(x, split) for x in arrays)
-        return mx, varying, dx0, arrays, mesh
+        if mesh is None:
+            return mx, varying, dx0, lambda x: jnp.asarray(_pad(np.asarray(x), pad)), None
+        split, shared = NamedSharding(mesh, PartitionSpec("batch")), NamedSharding(mesh, PartitionSpec())
+        mx = jax.device_put(mx, _per_leaf(mx, varying, split, shared))
+        return mx, varying, jax.device_put(dx0, shared), lambda x: jax.device_put(_pad(np.asarray(x), pad), split), mesh
 
     def rollout(self, inputs: BatchedInputs) -> Trajectory:
+        return concat(list(self.stream(inputs, inputs.steps)))
+
+    def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
+        """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
+
+        Each piece continues from the full MJX data the previous one ended in
+        (solver warm start included), so the pieces concatenate to
+        :meth:`rollout`'s result bit for bit; only one piece of records is
+        held at a time. Every piece runs the same compiled function: the last
+        one is padded with zero controls and its extra records dropped. The
+        next piece is dispatched before this one is handed over, so it runs
+        while the caller works on this one.
+        """
+        B, T = inputs.batch, inputs.steps
         with _unsupported():  # make_data and tracing mjx.step raise it for some features too
-            mx, varying, dx0, arrays, mesh = self._prepare(inputs, (inputs.qpos, inputs.qvel, inputs.act, inputs.ctrl))
-            rec = _rollout(mx, dx0, *arrays, varying, inputs.energy, mesh)
-        rec = jax.tree.map(lambda x: np.asarray(x)[:inputs.batch], jax.block_until_ready(rec))
-        return _trajectory(rec, inputs)
+            mx, varying, dx0, place, mesh = self._prepare(inputs)
+            dtype = dx0.qpos.dtype
+            state = dict(qpos=inputs.qpos, qvel=inputs.qvel, act=inputs.act)
+            dx = jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (B, *x.shape)), jax.device_get(dx0))
+            dx = jax.tree.map(place, dx.replace(**{k: np.asarray(v, dtype) for k, v in state.items()}))
+        ctrl = np.zeros((B, -(-T // chunk) * chunk, inputs.ctrl.shape[2]), dtype)
+        ctrl[:, :T] = inputs.ctrl
+        def piece(rec, start):
+            k = min(chunk, T - start)
+            rec = jax.tree.map(lambda x: np.asarray(x)[:B, :k], jax.block_until_ready(rec))
+            p = _trajectory(rec, B, k)
+            return dataclasses.replace(p, diverged_at=np.where(p.diverged_at >= 0, p.diverged_at + start, -1))
+
+        pending = None
+        for start in range(0, T, chunk):
+            with _unsupported():  # dispatched, not awaited: it runs while the caller handles the last piece
+                dx, rec = _rollout(mx, dx, place(ctrl[:, start:start + chunk]), varying, inputs.energy, mesh)
+            if pending is not None:
+                yield piece(*pending)
+            pending = rec, start
+        yield piece(*pending)
 
     def resync(self, inputs: BatchedInputs, reference: Trajectory, every: int = 1) -> Trajectory:
         """MJX re-synchronised to ``reference`` (C) every ``every`` steps.
@@ -486,16 +549,17 @@ class MJXEngine:
         batched = (state("qpos", inputs.qpos), state("qvel", inputs.qvel), state("act", inputs.act),
                    state("time", np.zeros(B)), ctrl.reshape(B, S, k, -1))
         with _unsupported():
-            mx, varying, dx0, arrays, mesh = self._prepare(inputs, batched)
+            mx, varying, dx0, place, mesh = self._prepare(inputs)
+            arrays = tuple(place(np.asarray(x, dx0.qpos.dtype)) for x in batched)
             rec = _resync_rollout(mx, dx0, *arrays, varying, mesh)
         rec = {key: np.asarray(v)[:B].reshape(B, S * k, *v.shape[3:])[:, :T] for key, v in rec.items()}
-        return _trajectory(rec, inputs)
+        return _trajectory(rec, B, T)
 
 
-def _trajectory(rec: dict[str, np.ndarray], inputs: BatchedInputs) -> Trajectory:
-    """A Trajectory from MJX records, with non-finite states located."""
+def _trajectory(rec: dict[str, np.ndarray], batch: int, steps: int) -> Trajectory:
+    """A Trajectory from (batch, steps, ...) MJX records, with non-finite states located."""
     nonfinite = ~np.isfinite(rec["qpos"]).all(-1) | ~np.isfinite(rec["qvel"]).all(-1)
     return Trajectory(qpos=rec["qpos"], qvel=rec["qvel"], act=rec["act"],
                       sensordata=rec["sensordata"], time=rec["time"], ncon=rec["ncon"].astype(np.int64),
-                      energy=rec.get("energy", np.zeros((inputs.batch, inputs.steps, 0))),
+                      energy=rec.get("energy", np.zeros((batch, steps, 0))),
                       diverged_at=_first_true(nonfinite))

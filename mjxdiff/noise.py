@@ -24,7 +24,7 @@ import mujoco
 import numpy as np
 
 from mjxdiff import metrics
-from mjxdiff.engines import CEngine, Trajectory
+from mjxdiff.engines import Trajectory
 from mjxdiff.inputs import BatchedInputs
 
 __all__ = ["EPS", "NoiseFloor", "noise_floor", "perturb"]
@@ -37,27 +37,61 @@ ULPS = 4.0
 MARGIN = 1e3
 
 
-@dataclasses.dataclass(frozen=True)
 class NoiseFloor:
-    """Self-divergence of C under ulp-level perturbations, per member and step.
+    """Self-divergence of C under ulp-level perturbations, followed piece by piece.
+
+    Feed it consecutive pieces of the perturbed and the reference C rollout
+    (:meth:`update`); each call returns that piece's envelope. Only (B,)
+    running values and a (T,) batch-max series per field are kept, so memory
+    does not grow with the horizon beyond T numbers.
 
     Attributes:
-      self_divergence: field -> (B, T) max-over-components error of the perturbed
-        C rollout against the reference C rollout (same units as the MJX errors).
-      contact_fraction: (B,) fraction of steps whose contact count changed.
-      rate: field -> finite-time Lyapunov-style growth rate of the batch-max
-        self-divergence, 1/s.
       margin: envelope factor over the running max of the self-divergence.
     """
 
-    self_divergence: dict[str, np.ndarray]
-    contact_fraction: np.ndarray
-    rate: dict[str, float]
-    margin: float = MARGIN
+    def __init__(self, m: mujoco.MjModel, rf_mask: np.ndarray, margin: float = MARGIN):
+        self.margin = margin
+        self.dt = float(m.opt.timestep)
+        self._layout, self._rf_mask = metrics.qpos_layout(m), jnp.asarray(rf_mask)
+        self._running: dict[str, np.ndarray] = {}
+        self._batch_max: dict[str, list[np.ndarray]] = {}
+        self._blown: np.ndarray | None = None  # (B,) the perturbed rerun has blown up
+        self._contact_changes = 0
+        self._steps = 0
 
-    def envelope(self, field: str) -> np.ndarray:
-        """(B, T) the envelope of ``field``: margin x running max of the self-divergence."""
-        return self.margin * np.maximum.accumulate(self.self_divergence[field], axis=1)
+    def update(self, perturbed: Trajectory, reference: Trajectory) -> dict[str, np.ndarray]:
+        """The envelope of each field over this piece, (B, K): margin x running max of the self-divergence."""
+        B, K = reference.time.shape
+        div = jax.tree.map(np.asarray, _self_divergence_fields(perturbed, reference, self._layout, self._rf_mask))
+        if self._blown is None:
+            self._blown = np.zeros(B, bool)
+        # a perturbed member that blew up is all envelope: nothing can be judged after that step
+        at = np.where(perturbed.diverged_at >= 0, perturbed.diverged_at - self._steps, K)
+        blown = self._blown[:, None] | (np.arange(K)[None, :] >= at[:, None])
+        self._blown = blown[:, -1]
+        envelope = {}
+        for key, v in div.items():
+            v = np.where(blown | ~np.isfinite(v), np.inf, v)
+            self._batch_max.setdefault(key, []).append(np.where(np.isfinite(v), v, 0).max(axis=0))
+            running = np.maximum.accumulate(v, axis=1)
+            if key in self._running:
+                running = np.maximum(running, self._running[key][:, None])
+            self._running[key] = running[:, -1]
+            envelope[key] = self.margin * running
+        self._contact_changes = self._contact_changes + (perturbed.ncon != reference.ncon).sum(axis=1)
+        self._steps += K
+        return envelope
+
+    @property
+    def contact_fraction(self) -> np.ndarray:
+        """(B,) fraction of the steps so far whose contact count changed."""
+        return self._contact_changes / max(self._steps, 1)
+
+    @property
+    def rate(self) -> dict[str, float]:
+        """Field -> finite-time Lyapunov-style growth rate of the batch-max self-divergence, 1/s."""
+        return {k: float(metrics.error_growth(jnp.asarray(np.concatenate(v)), self.dt).rate)
+                for k, v in self._batch_max.items()}
 
 
 def perturb(inputs: BatchedInputs, precision: str) -> BatchedInputs:
@@ -88,18 +122,8 @@ def _self_divergence_fields(a: Trajectory, b: Trajectory, layout: metrics.QposLa
     return jax.vmap(one)(a.qpos, b.qpos, a.qvel, b.qvel, a.act, b.act, a.sensordata, b.sensordata)
 
 
-def noise_floor(m: mujoco.MjModel, inputs: BatchedInputs, reference: Trajectory, precision: str,
-                rf_mask: np.ndarray, c_engine: CEngine | None = None, margin: float = MARGIN) -> NoiseFloor:
-    """Runs C once more from perturbed initial states and measures the divergence from ``reference``."""
-    perturbed = (c_engine or CEngine()).rollout(perturb(inputs, precision))
-    div = jax.tree.map(np.asarray, _self_divergence_fields(perturbed, reference, metrics.qpos_layout(m),
-                                                           jnp.asarray(rf_mask)))
-    # a perturbed member that blew up is all envelope: nothing can be judged after that step
-    blown = np.arange(inputs.steps)[None, :] >= np.where(perturbed.diverged_at >= 0, perturbed.diverged_at,
-                                                          inputs.steps)[:, None]
-    div = {k: np.where(blown | ~np.isfinite(v), np.inf, v) for k, v in div.items()}
-    dt = float(m.opt.timestep)
-    rate = {k: float(metrics.error_growth(jnp.asarray(np.where(np.isfinite(v), v, 0).max(axis=0)), dt).rate)
-            for k, v in div.items()}
-    contacts = (perturbed.ncon != reference.ncon).mean(axis=1)
-    return NoiseFloor(self_divergence=div, contact_fraction=contacts, rate=rate, margin=margin)
+def noise_floor(m: mujoco.MjModel, perturbed: Trajectory, reference: Trajectory, rf_mask: np.ndarray,
+                margin: float = MARGIN) -> tuple[NoiseFloor, dict[str, np.ndarray]]:
+    """The noise floor of whole trajectories: (floor, field -> (B, T) envelope)."""
+    floor = NoiseFloor(m, rf_mask, margin)
+    return floor, floor.update(perturbed, reference)

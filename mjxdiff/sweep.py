@@ -12,7 +12,7 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import jax
 
@@ -20,8 +20,8 @@ from mjxdiff import diagnose, engines, report, reproducer
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
 from mjxdiff.inputs import BatchedInputs, make_inputs
 from mjxdiff.scenario import Scenario, ScenarioError, Tolerances, load_model
-from mjxdiff.noise import noise_floor
-from mjxdiff.verdict import ScenarioResult, judge, rangefinder_mask
+from mjxdiff.noise import NoiseFloor, perturb
+from mjxdiff.verdict import Judge, ScenarioResult, rangefinder_mask
 
 __all__ = ["SweepConfig", "run_scenario", "sweep"]
 
@@ -43,6 +43,7 @@ class SweepConfig:
         (re-synchronised) error and the stage drill-down; ``full``: also the
         cause attribution by ablations (each ablation recompiles).
       reproducers: directory to save failing members in, or None.
+      piece_steps: steps per streamed piece; None: :func:`piece_steps` of the memory budget.
     """
 
     seed: int = 0
@@ -54,6 +55,7 @@ class SweepConfig:
     envelope: bool = True
     diagnose: str = "full"
     reproducers: str | None = None
+    piece_steps: int | None = None
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -99,52 +101,111 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
     return result
 
 
+#: Budget for the records of one piece of a rollout (C, C's perturbed rerun, MJX, the errors), MiB.
+PIECE_BUDGET_MIB = 64
+#: Shortest piece, steps: shorter ones spend more time in per-call overhead than they save.
+MIN_PIECE_STEPS = 50
+
+
+def piece_steps(m, batch: int, steps: int, budget_mib: float = PIECE_BUDGET_MIB) -> int:
+    """Steps per piece of a streamed comparison: equal pieces whose records fit ``budget_mib``.
+
+    A member-step records ``nq + nv + na + nsensordata + 4`` float64 numbers
+    in each of about six arrays alive at once (C, C perturbed, MJX, their
+    errors and the bounds), so a piece of K steps holds about
+    ``48 (nq + nv + na + nsensordata + 4) B K`` bytes.
+    """
+    width = 48 * (m.nq + m.nv + m.na + m.nsensordata + 4)
+    most = max(MIN_PIECE_STEPS, int(budget_mib * 2**20 // (width * batch)))
+    pieces = -(-steps // most)
+    return -(-steps // pieces)
+
+
+class _EngineFailed(Exception):
+    def __init__(self, engine: str, error: BaseException):
+        super().__init__(_one_line(error))
+        self.engine = engine
+
+
+def _timed(pieces: Iterable[Trajectory], engine: str, seconds: dict[str, float]) -> Iterator[Trajectory]:
+    """The pieces of one engine's stream, wall time added to ``seconds[engine]``; a crash
+    becomes :class:`_EngineFailed` (MJX's :class:`UnsupportedError` passes through)."""
+    it = iter(pieces)
+    while True:
+        t = time.perf_counter()
+        try:
+            piece = next(it, None)
+        except UnsupportedError:
+            raise
+        except Exception as e:  # noqa: BLE001 - reported as this scenario's error, the sweep goes on
+            raise _EngineFailed(engine, e) from e
+        finally:
+            seconds[engine] = seconds.get(engine, 0.0) + time.perf_counter() - t
+        if piece is None:
+            return
+        yield piece
+
+
+def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig, mjx_engine: MJXEngine,
+             c_engine: CEngine, seconds: dict[str, float]) -> ScenarioResult:
+    """Streams both engines (and C's perturbed rerun) piece by piece into a :class:`Judge`.
+
+    Raises:
+      UnsupportedError, _EngineFailed: from the engines.
+    """
+    chunk = config.piece_steps or piece_steps(m, inputs.batch, inputs.steps)
+    mjx = _timed(mjx_engine.stream(inputs, chunk), "mjx", seconds)
+    c = _timed(c_engine.stream(inputs, chunk), "c", seconds)
+    floor = NoiseFloor(m, rangefinder_mask(m)) if config.envelope else None
+    perturbed = _timed(c_engine.stream(perturb(inputs, config.precision), chunk), "c", seconds) if floor else None
+    judge = Judge(m, tol, inputs.batch)
+    for piece_mjx in mjx:  # MJX first: its next piece is computed while C and the verdict run
+        piece_c = next(c)
+        t = time.perf_counter()
+        judge.update(piece_c, piece_mjx, floor.update(next(perturbed), piece_c) if floor else None)
+        seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
+    t = time.perf_counter()
+    result = judge.result(name, config.threshold, floor)
+    seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
+    return result
+
+
 def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig = SweepConfig(),
                mjx_engine: MJXEngine | None = None, c_engine: CEngine | None = None,
                info: dict | None = None) -> ScenarioResult:
-    """Both engines on given inputs, then the verdict (and diagnosis of a failure)."""
+    """Both engines on given inputs, then the verdict (and diagnosis of a failure).
+
+    The comparison is streamed in pieces of :func:`piece_steps` steps, so its
+    memory does not grow with the horizon; a failing scenario's C trajectory
+    is rerun in full for the diagnosis.
+    """
     info = dict(info or {}, batch=inputs.batch, steps=inputs.steps)
     seconds = info.setdefault("seconds", {})
     base = dict(name=name, tolerances=tol.as_dict(), info=info)
-    t1 = time.perf_counter()
-    compile_s = engines.compile_seconds()
+    compile_s, compiles = engines.compile_seconds(), engines.compile_count()
+    mjx_engine, c_engine = mjx_engine or MJXEngine(), c_engine or CEngine()
+    clock: dict[str, float] = {}
     try:
-        traj_c = (c_engine or CEngine()).rollout(inputs)
-    except Exception as e:  # noqa: BLE001 - reported as this scenario's error, the sweep goes on
-        return ScenarioResult(status="error", error_kind="engine", message=f"MuJoCo C failed: {_one_line(e)}", **base)
-    t2 = time.perf_counter()
-    compiles = engines.compile_count()
-    try:
-        traj_mjx = (mjx_engine or MJXEngine()).rollout(inputs)
+        result = _verdict(name, m, inputs, tol, config, mjx_engine, c_engine, clock)
     except UnsupportedError as e:
         return ScenarioResult(status="unsupported", message=f"MJX does not support: {e.feature}", **base)
-    except Exception as e:  # noqa: BLE001
-        return ScenarioResult(status="error", error_kind="engine", message=f"MJX failed: {_one_line(e)}", **base)
-    t3 = time.perf_counter()
-    result = _judge(name, m, inputs, traj_c, traj_mjx, tol, config, c_engine)
-    t4 = time.perf_counter()
+    except _EngineFailed as e:
+        engine = "MuJoCo C" if e.engine == "c" else "MJX"
+        return ScenarioResult(status="error", error_kind="engine", message=f"{engine} failed: {e}", **base)
+    t = time.perf_counter()
     if result.status == "fail" and config.diagnose != "none":
-        result = _diagnose(result, m, inputs, traj_c, tol, config, mjx_engine, c_engine)
-    t5 = time.perf_counter()
-    seconds.update(c=t2 - t1, mjx=t3 - t2, verdict=t4 - t3, diagnosis=t5 - t4,
-                   compile=engines.compile_seconds() - compile_s)
+        result = _diagnose(result, m, inputs, tol, config, mjx_engine, c_engine)
+    seconds.update(c=clock.get("c", 0.0), mjx=clock.get("mjx", 0.0), verdict=clock.get("verdict", 0.0),
+                   diagnosis=time.perf_counter() - t, compile=engines.compile_seconds() - compile_s)
     info.update(mjx_compiles=engines.compile_count() - compiles, nq=m.nq, nv=m.nv, nu=m.nu,
                 nsensordata=m.nsensordata)
     return dataclasses.replace(result, info=info)
 
 
-def _judge(name: str, m, inputs: BatchedInputs, traj_c: Trajectory, traj_mjx: Trajectory, tol: Tolerances,
-           config: SweepConfig, c_engine: CEngine | None) -> ScenarioResult:
-    """The verdict, against the chaos envelope when the config asks for it."""
-    floor = None
-    if config.envelope:
-        floor = noise_floor(m, inputs, traj_c, config.precision, rangefinder_mask(m), c_engine)
-    return judge(name, m, traj_c, traj_mjx, tol, config.threshold, floor)
-
-
-def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances,
-              config: SweepConfig, mjx_engine: MJXEngine | None, c_engine: CEngine | None) -> ScenarioResult:
+def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
+              config: SweepConfig, mjx_engine: MJXEngine, c_engine: CEngine) -> ScenarioResult:
     """Adds local error, the stage drill-down and (``full``) the likely cause to a failing verdict."""
+    traj_c = c_engine.rollout(inputs)  # whole, for the failing scenario only
     first = result.first_divergence
     member, step = first["member"], first["step"]
     drill = diagnose.drill_down(inputs.models[member], *diagnose.state_before(inputs, traj_c, member, step),
@@ -164,9 +225,8 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, traj_c: Trajecto
     if config.diagnose == "full":
         def passes(ablated: BatchedInputs, precision: str) -> bool:
             with _precision(precision):
-                c = (c_engine or CEngine()).rollout(ablated)
-                x = (mjx_engine or MJXEngine()).rollout(ablated)
-                return _judge(result.name, ablated.models[0], ablated, c, x, tol, config, c_engine).status == "pass"
+                return _verdict(result.name, ablated.models[0], ablated, tol, config, mjx_engine, c_engine,
+                                {}).status == "pass"
 
         cause = diagnose.attribute_cause(passes, inputs, config.precision)
         diagnosis["cause"] = cause

@@ -26,11 +26,11 @@ import mujoco
 import numpy as np
 
 from mjxdiff import metrics
-from mjxdiff.engines import Trajectory
-from mjxdiff.noise import NoiseFloor
+from mjxdiff.engines import Trajectory, first_diverged
+from mjxdiff.noise import NoiseFloor, noise_floor
 from mjxdiff.scenario import Tolerances
 
-__all__ = ["FieldResult", "ScenarioResult", "judge", "error_series", "STATUSES"]
+__all__ = ["FieldResult", "Judge", "ScenarioResult", "judge", "error_series", "STATUSES"]
 
 STATUSES = ("pass", "fail", "unsupported", "error")
 
@@ -148,39 +148,101 @@ def error_series(a: Trajectory, b: Trajectory, layout: metrics.QposLayout, rf_ma
     return out
 
 
-def _field_result(field: str, err: np.ndarray, bound: np.ndarray, tol: float, healthy: np.ndarray,
-                  objects: list[str], dt: float) -> FieldResult:
-    """Reduces a (B, T, n) error array over healthy members against a (B, T) bound."""
-    if err.shape[-1] == 0 or not healthy.any():
-        return FieldResult(field, 0.0, tol, -1, -1, "", 0.0)
-    e = np.where(healthy[:, None, None], err, 0.0)
-    per_step = e.max(axis=2)  # (B, T)
-    ratio = per_step / bound
-    exceeded = ~(ratio <= 1.0)  # NaN exceeds
-    if exceeded.any():
-        step = int(exceeded.any(axis=0).argmax())
-        member = int(exceeded[:, step].argmax())
-    else:
-        step, member = -1, int(ratio.max(axis=1).argmax())
-    at = step if step >= 0 else int(ratio[member].argmax())
-    comp = int(e[member, at].argmax())
-    growth = metrics.error_growth(jnp.asarray(per_step.max(axis=0)), dt)
-    envelope = float(np.where(healthy, bound[:, -1], 0).max()) if np.any(bound > tol) else 0.0
-    return FieldResult(field, float(e.max()), tol, step, member, objects[comp] if objects else "",
-                       float(growth.rate), envelope, float(np.nanmax(ratio)))
+class _FieldTrack:
+    """Running per-member reduction of one field's (B, K, n) errors against (B, K) bounds.
+
+    Keeps (B,) values: worst error, first step out of bound (with its
+    component and C time), worst ratio error/bound (with its step and
+    component), the last bound; and the (T,) batch-max error series.
+    """
+
+    def __init__(self, batch: int, tol: float):
+        self.tol, self.above_tol = tol, False
+        self.max_error = np.zeros(batch)
+        self.first_step = np.full(batch, -1)
+        self.first_comp = np.zeros(batch, int)
+        self.first_time = np.zeros(batch)
+        self.max_ratio = np.zeros(batch)
+        self.ratio_comp = np.zeros(batch, int)
+        self.last_bound = np.full(batch, tol)
+        self.batch_max: list[np.ndarray] = []
+        self.width = 0
+
+    def update(self, err: np.ndarray, bound: np.ndarray, time: np.ndarray, start: int, healthy: np.ndarray) -> None:
+        self.width = err.shape[-1]
+        if self.width == 0:
+            return
+        rows = np.arange(err.shape[0])
+        per_step = err.max(axis=2)
+        with np.errstate(invalid="ignore"):  # inf / inf where a blown-up member's envelope is infinite
+            ratio = per_step / bound
+        exceeded = ~(ratio <= 1.0)  # NaN exceeds
+        k = exceeded.argmax(axis=1)
+        new = exceeded.any(axis=1) & (self.first_step < 0)
+        self.first_step = np.where(new, start + k, self.first_step)
+        self.first_comp = np.where(new, err[rows, k].argmax(axis=-1), self.first_comp)
+        self.first_time = np.where(new, time[rows, k], self.first_time)
+        at = np.nan_to_num(ratio, nan=np.inf).argmax(axis=1)
+        better = ratio[rows, at] > self.max_ratio
+        self.ratio_comp = np.where(better, err[rows, at].argmax(axis=-1), self.ratio_comp)
+        self.max_ratio = np.fmax(self.max_ratio, np.nanmax(ratio, axis=1, initial=0.0))
+        self.max_error = np.maximum(self.max_error, per_step.max(axis=1))  # NaN propagates
+        self.last_bound = bound[:, -1]
+        self.above_tol |= bool(np.any(bound > self.tol))
+        self.batch_max.append(np.where(healthy[:, None], per_step, 0.0).max(axis=0))
+
+    def result(self, field: str, healthy: np.ndarray, objects: list[str], dt: float) -> FieldResult:
+        if self.width == 0 or not healthy.any():
+            return FieldResult(field, 0.0, self.tol, -1, -1, "", 0.0)
+        out = healthy & (self.first_step >= 0)
+        if out.any():
+            step = int(self.first_step[out].min())
+            member = int(np.flatnonzero(out & (self.first_step == step))[0])
+            comp = int(self.first_comp[member])
+        else:
+            step = -1
+            member = int(np.where(healthy, self.max_ratio, 0.0).argmax())
+            comp = int(self.ratio_comp[member])
+        growth = metrics.error_growth(jnp.asarray(np.concatenate(self.batch_max)), dt)
+        envelope = float(np.where(healthy, self.last_bound, 0.0).max()) if self.above_tol else 0.0
+        return FieldResult(field, float(np.where(healthy, self.max_error, 0.0).max()), self.tol, step, member,
+                           objects[comp] if objects else "", float(growth.rate), envelope,
+                           float(np.where(healthy, self.max_ratio, 0.0).max()))
 
 
-def _fraction_result(field: str, mismatched: np.ndarray, allowed: np.ndarray, tol: float,
-                     healthy: np.ndarray) -> FieldResult:
-    """A mismatch-fraction metric: (B, T) booleans -> fraction per member vs (B,) allowed fractions."""
-    if not healthy.any():
-        return FieldResult(field, 0.0, tol, -1, -1, "", 0.0)
-    frac = np.where(healthy, mismatched.mean(axis=1), 0.0)
-    ratio = frac / allowed
-    member = int(ratio.argmax())
-    step = int(mismatched[member].argmax()) if ratio[member] > 1 else -1
-    return FieldResult(field, float(frac[member]), tol, step, member, "", 0.0,
-                       float(allowed.max()) if np.any(allowed > tol) else 0.0, float(ratio.max()))
+class _FractionTrack:
+    """Running per-member sum and first non-zero step of a (B, K) mismatch series."""
+
+    def __init__(self, batch: int, tol: float):
+        self.tol = tol
+        self.total = np.zeros(batch)
+        self.first_step = np.full(batch, -1)
+        self.first_time = np.zeros(batch)
+        self.steps = 0
+
+    def update(self, mismatch: np.ndarray, time: np.ndarray, start: int) -> None:
+        k = (mismatch > 0).argmax(axis=1)
+        new = (mismatch > 0).any(axis=1) & (self.first_step < 0)
+        self.first_step = np.where(new, start + k, self.first_step)
+        self.first_time = np.where(new, time[np.arange(len(k)), k], self.first_time)
+        self.total = self.total + mismatch.sum(axis=1)
+        self.steps += mismatch.shape[1]
+
+    @property
+    def fraction(self) -> np.ndarray:
+        """(B,) mean mismatch over the steps so far."""
+        return self.total / max(self.steps, 1)
+
+    def result(self, field: str, allowed: np.ndarray, healthy: np.ndarray) -> FieldResult:
+        """A FieldResult of each member's mismatch fraction against its (B,) allowed fraction."""
+        if not healthy.any():
+            return FieldResult(field, 0.0, self.tol, -1, -1, "", 0.0)
+        frac = np.where(healthy, self.fraction, 0.0)
+        ratio = frac / allowed
+        member = int(ratio.argmax())
+        step = int(self.first_step[member]) if ratio[member] > 1 else -1
+        return FieldResult(field, float(frac[member]), self.tol, step, member, "", 0.0,
+                           float(allowed.max()) if np.any(allowed > self.tol) else 0.0, float(ratio.max()))
 
 
 def _track(m: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
@@ -195,116 +257,187 @@ def _track(m: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
     return qpos[..., scalar]
 
 
-def behaviour(m: mujoco.MjModel, traj_c: Trajectory, traj_mjx: Trajectory, dt: float,
-              healthy: np.ndarray) -> dict[str, Any]:
-    """Batch-mean behaviour statistics of both engines and their relative difference.
+class _BehaviourTrack:
+    """One engine's running track statistics per member (see :func:`metrics.behaviour_stats`).
 
-    Speeds (m/s or rad/s), distance and displacement of :func:`_track`; path
-    efficiency = displacement / distance; with energy recorded, the relative
-    energy drift (E_end - E_0) / |E_0|.
+    Per member: first and last tracked position, path length, largest step,
+    steps seen; with energy, the first and last total energy and sum |total|.
     """
-    if not healthy.any() or _track(m, traj_c.qpos[:1]).shape[-1] == 0:
-        return {}
-    stats = jax.vmap(metrics.behaviour_stats, in_axes=(0, None))
-    out = {}
-    for engine, traj in (("c", traj_c), ("mjx", traj_mjx)):
-        s = stats(jnp.asarray(_track(m, traj.qpos[healthy])), dt)
-        out[engine] = {k: float(np.mean(v)) for k, v in s._asdict().items()}
-        if traj.energy.shape[-1]:
-            out[engine]["energy_drift"] = float(np.mean(jax.vmap(metrics.energy_drift)(jnp.asarray(traj.energy[healthy]))))
-    out["relative_difference"] = {
-        k: abs(out["mjx"][k] - out["c"][k]) / max(abs(out["c"][k]), 1e-12) for k in out["c"]}
-    return out
+
+    def __init__(self):
+        self.first = self.last = None
+        self.distance = self.max_step = 0.0
+        self.steps = 0
+        self.energy_first = self.energy_last = None
+        self.energy_abs = 0.0
+        self.energy_records = 0
+
+    def update(self, pos: np.ndarray, energy: np.ndarray) -> None:
+        if self.first is None:
+            self.first = pos[:, 0]
+        else:
+            pos = np.concatenate([self.last[:, None], pos], axis=1)
+        step = np.linalg.norm(np.diff(pos, axis=1), axis=-1)
+        self.distance = self.distance + step.sum(axis=1)
+        self.max_step = np.maximum(self.max_step, step.max(axis=1, initial=0.0))
+        self.last = pos[:, -1]
+        self.steps += step.shape[1]
+        if energy.shape[-1]:
+            total = energy.sum(axis=-1)
+            self.energy_first = total[:, 0] if self.energy_first is None else self.energy_first
+            self.energy_last = total[:, -1]
+            self.energy_abs = self.energy_abs + np.abs(total).sum(axis=1)
+            self.energy_records += total.shape[1]
+
+    def stats(self, dt: float, healthy: np.ndarray) -> dict[str, float]:
+        """Batch means over healthy members: speeds (units/s), distance, displacement,
+        path efficiency, and with energy the relative drift (E_end - E_0) / max(|E_0|, mean |E|)."""
+        displacement = np.linalg.norm(self.last - self.first, axis=-1)
+        moved = self.distance > 0
+        out = dict(mean_speed=self.distance / max(self.steps, 1) / dt, max_speed=self.max_step / dt,
+                   distance=self.distance, displacement=displacement,
+                   path_efficiency=np.where(moved, displacement / np.where(moved, self.distance, 1), 1.0))
+        if self.energy_first is not None:
+            scale = np.maximum(np.maximum(np.abs(self.energy_first), self.energy_abs / self.energy_records),
+                               np.finfo(float).tiny)
+            out["energy_drift"] = (self.energy_last - self.energy_first) / scale
+        return {k: float(np.mean(np.asarray(v)[healthy])) for k, v in out.items()}
 
 
-def _bounds(series: dict[str, np.ndarray], tol: Tolerances, noise: NoiseFloor | None) -> dict[str, np.ndarray]:
-    """Per field, the bound each member's error is held to: (B, T) for series, (B,) for fractions.
-
-    Without a noise floor the bound is the fixed tolerance; with one it is
-    max(tolerance, envelope) per member and step, and a contact-count mismatch
-    may reach twice what C's own perturbed rerun shows.
-    """
-    B, T = series["ncon"].shape
-    out = {}
-    for key in ("qpos", "qvel", "act", "sensordata"):
-        fixed = np.full((B, T), getattr(tol, key))
-        out[key] = fixed if noise is None else np.maximum(fixed, noise.envelope(key))
-    frac = np.full(B, tol.contact_mismatch)
-    out["contacts"] = frac if noise is None else np.maximum(frac, np.minimum(1.0, 2 * noise.contact_fraction))
-    out["rangefinder"] = np.full(B, tol.rangefinder_mismatch)
-    return out
+_SERIES = ("qpos", "qvel", "act", "sensordata")
 
 
-def _member_fails(series: dict[str, np.ndarray], bounds: dict[str, np.ndarray], nrays: int) -> np.ndarray:
-    """(B,) True for members where some field exceeds its bound."""
-    bad = np.zeros(series["qpos"].shape[0], bool)
-    for key in ("qpos", "qvel", "act", "sensordata"):
-        if series[key].shape[-1]:
-            bad |= ~(series[key].max(axis=2) <= bounds[key]).all(axis=1)  # NaN counts as exceeding
-    bad |= (series["ncon"] > 0).mean(axis=1) > bounds["contacts"]
-    if nrays:
-        bad |= (series["rangefinder"] / nrays).mean(axis=1) > bounds["rangefinder"]
-    return bad
+class Judge:
+    """Compares MJX against C (the reference) piece by piece and decides the scenario's status.
 
-
-def judge(name: str, m: mujoco.MjModel, traj_c: Trajectory, traj_mjx: Trajectory,
-          tol: Tolerances, threshold: float = 0.95, noise: NoiseFloor | None = None) -> ScenarioResult:
-    """Compares MJX against C (the reference) and decides the scenario's status.
+    Feed consecutive pieces of both rollouts, with the noise floor's envelope
+    of each piece when judging against the chaos envelope (:meth:`update`),
+    then ask for the verdict (:meth:`result`). Only per-member running values
+    and (T,) batch-max series are kept, so memory depends on the batch size,
+    not on the horizon.
 
     A member passes when every field stays within its bound at every step: the
-    fixed tolerance, or with a ``noise`` floor, max(tolerance, chaos envelope).
+    fixed tolerance, or with a noise floor, max(tolerance, chaos envelope).
     The scenario passes when the fraction of healthy members that pass is at
     least ``threshold`` (the pass-rate criterion of cross-platform validation).
     """
-    layout = metrics.qpos_layout(m)
-    dt = float(m.opt.timestep)
-    diverged = []
-    for engine, traj in (("c", traj_c), ("mjx", traj_mjx)):
-        for i in np.flatnonzero(traj.diverged_at >= 0):
-            step = int(traj.diverged_at[i])
-            diverged.append(dict(engine=engine, member=int(i), step=step, time=round((step + 1) * dt, 9)))
-    healthy = (traj_c.diverged_at < 0) & (traj_mjx.diverged_at < 0)
-    series = jax.tree.map(np.asarray, error_series(traj_mjx, traj_c, layout, jnp.asarray(rangefinder_mask(m))))
-    objects = component_objects(m, layout)
-    bounds = _bounds(series, tol, noise)
-    fields = [_field_result(key, series[key], bounds[key], getattr(tol, key), healthy, objects[key], dt)
-              for key in ("qpos", "qvel", "act", "sensordata")]
-    fields.append(_fraction_result("contacts", series["ncon"] > 0, bounds["contacts"], tol.contact_mismatch, healthy))
-    rf = rangefinder_mask(m)
-    if rf.any():
-        fields.append(_fraction_result("rangefinder", series["rangefinder"] / rf.sum(), bounds["rangefinder"],
-                                       tol.rangefinder_mismatch, healthy))
-    member_fails = _member_fails(series, bounds, int(rf.sum())) & healthy
-    pass_rate = 1.0 - member_fails.sum() / max(int(healthy.sum()), 1)
-    failed = [f for f in fields if not f.ok] if pass_rate < threshold else []
-    first = None
-    if failed:
-        f = min(failed, key=lambda f: (f.first_step if f.first_step >= 0 else 1 << 30))
-        step = max(f.first_step, 0)
-        first = dict(field=f.field, step=step, time=float(traj_c.time[f.member, step]) if f.member >= 0 else None,
-                     member=f.member, object=f.object, error=f.max_error, tolerance=f.tolerance)
-    if diverged:
-        d0 = min(diverged, key=lambda d: d["step"])
-        engines = sorted({d["engine"] for d in diverged})
-        status, kind = "error", "nan"
-        message = (f"non-finite or unstable state in {len(diverged)} member(s) ({'/'.join(engines)}); "
-                   f"first: {d0['engine']} member {d0['member']} at step {d0['step']} (t={d0['time']:g} s)")
-    elif failed:
-        status, kind = "fail", ""
-        where = "leaves the envelope" if noise is not None else f"exceeds {first['tolerance']:.1e}"
-        message = (f"{first['field']} of {first['object'] or 'member ' + str(first['member'])} {where} "
-                   f"at step {first['step']} (t={first['time']:.4g} s), member {first['member']}; "
-                   f"worst {first['error']:.3g}")
+
+    def __init__(self, m: mujoco.MjModel, tol: Tolerances, batch: int):
+        self.m, self.tol, self.batch = m, tol, batch
+        self.dt = float(m.opt.timestep)
+        self.layout = metrics.qpos_layout(m)
+        self.rf_mask = rangefinder_mask(m)
+        self.fields = {key: _FieldTrack(batch, getattr(tol, key)) for key in _SERIES}
+        self.contacts = _FractionTrack(batch, tol.contact_mismatch)
+        self.rangefinder = _FractionTrack(batch, tol.rangefinder_mismatch)
+        self.behaviour = {"c": _BehaviourTrack(), "mjx": _BehaviourTrack()}
+        self.diverged_at = {"c": np.full(batch, -1), "mjx": np.full(batch, -1)}
+        self.steps = 0
+
+    def update(self, traj_c: Trajectory, traj_mjx: Trajectory, envelope: dict[str, np.ndarray] | None = None) -> None:
+        """Adds the next piece: (B, K, ...) trajectories and optionally field -> (B, K) envelopes."""
+        start = self.steps
+        for engine, traj in (("c", traj_c), ("mjx", traj_mjx)):
+            self.diverged_at[engine] = first_diverged([self.diverged_at[engine], traj.diverged_at])
+            with np.errstate(invalid="ignore", over="ignore"):  # a blown-up member is not healthy
+                self.behaviour[engine].update(_track(self.m, traj.qpos), traj.energy)
+        healthy = (self.diverged_at["c"] < 0) & (self.diverged_at["mjx"] < 0)
+        series = jax.tree.map(np.asarray, error_series(traj_mjx, traj_c, self.layout, jnp.asarray(self.rf_mask)))
+        for key, track in self.fields.items():
+            bound = np.full(series["ncon"].shape, getattr(self.tol, key))
+            if envelope is not None:
+                bound = np.maximum(bound, envelope[key])
+            track.update(series[key], bound, traj_c.time, start, healthy)
+        self.contacts.update(series["ncon"] > 0, traj_c.time, start)
+        if self.rf_mask.any():
+            self.rangefinder.update(series["rangefinder"] / self.rf_mask.sum(), traj_c.time, start)
+        self.steps += traj_c.time.shape[1]
+
+    def result(self, name: str, threshold: float = 0.95, noise: NoiseFloor | None = None) -> ScenarioResult:
+        """The verdict on everything fed so far; ``noise`` is the floor whose envelopes were fed."""
+        m, tol, dt = self.m, self.tol, self.dt
+        diverged = [dict(engine=engine, member=int(i), step=int(at[i]), time=round((int(at[i]) + 1) * dt, 9))
+                    for engine, at in self.diverged_at.items() for i in np.flatnonzero(at >= 0)]
+        healthy = (self.diverged_at["c"] < 0) & (self.diverged_at["mjx"] < 0)
+        objects = component_objects(m, self.layout)
+        fields = [track.result(key, healthy, objects[key], dt) for key, track in self.fields.items()]
+        allowed = np.full(self.batch, tol.contact_mismatch)
+        if noise is not None:  # a contact-count mismatch may reach twice what C's perturbed rerun shows
+            allowed = np.maximum(allowed, np.minimum(1.0, 2 * noise.contact_fraction))
+        fields.append(self.contacts.result("contacts", allowed, healthy))
+        member_fails = np.zeros(self.batch, bool)
+        for track in self.fields.values():
+            member_fails |= track.first_step >= 0
+        member_fails |= self.contacts.fraction > allowed
+        if self.rf_mask.any():
+            rf_allowed = np.full(self.batch, tol.rangefinder_mismatch)
+            fields.append(self.rangefinder.result("rangefinder", rf_allowed, healthy))
+            member_fails |= self.rangefinder.fraction > rf_allowed
+        member_fails &= healthy
+        pass_rate = 1.0 - member_fails.sum() / max(int(healthy.sum()), 1)
+        failed = [f for f in fields if not f.ok] if pass_rate < threshold else []
+        first = None
+        if failed:
+            f = min(failed, key=lambda f: (f.first_step if f.first_step >= 0 else 1 << 30))
+            step = max(f.first_step, 0)
+            time = None
+            if f.member >= 0:  # C's time after that step
+                track = {"contacts": self.contacts, "rangefinder": self.rangefinder}.get(f.field) or self.fields[f.field]
+                exact = track.first_step[f.member] == step
+                time = float(track.first_time[f.member]) if exact else round((step + 1) * dt, 9)
+            first = dict(field=f.field, step=step, time=time, member=f.member, object=f.object,
+                         error=f.max_error, tolerance=f.tolerance)
+        if diverged:
+            d0 = min(diverged, key=lambda d: d["step"])
+            engines = sorted({d["engine"] for d in diverged})
+            status, kind = "error", "nan"
+            message = (f"non-finite or unstable state in {len(diverged)} member(s) ({'/'.join(engines)}); "
+                       f"first: {d0['engine']} member {d0['member']} at step {d0['step']} (t={d0['time']:g} s)")
+        elif failed:
+            status, kind = "fail", ""
+            where = "leaves the envelope" if noise is not None else f"exceeds {first['tolerance']:.1e}"
+            message = (f"{first['field']} of {first['object'] or 'member ' + str(first['member'])} {where} "
+                       f"at step {first['step']} (t={first['time']:.4g} s), member {first['member']}; "
+                       f"worst {first['error']:.3g}")
+        else:
+            worst = max((f for f in fields if f.field in ("qpos", "qvel")), key=lambda f: f.ratio)
+            status, kind = "pass", ""
+            message = f"worst {worst.field} {worst.max_error:.2g} (tol {worst.tolerance:.0e}"
+            message += f", envelope {worst.envelope:.1e})" if worst.envelope else ")"
+            if member_fails.any():
+                message += (f"; {int(member_fails.sum())}/{int(healthy.sum())} members out of tolerance, "
+                            f"pass rate {pass_rate:.0%}")
+        return ScenarioResult(
+            name=name, status=status, message=message, error_kind=kind, fields=tuple(fields),
+            first_divergence=first, diverged_members=tuple(diverged),
+            behaviour=self._behaviour(healthy), tolerances=tol.as_dict(),
+            pass_rate=float(pass_rate), threshold=threshold,
+            noise_rate=noise.rate if noise is not None else {})
+
+    def _behaviour(self, healthy: np.ndarray) -> dict[str, Any]:
+        """Batch-mean behaviour statistics of both engines and their relative difference."""
+        c = self.behaviour["c"]
+        if not healthy.any() or c.first is None or c.first.shape[-1] == 0 or c.steps == 0:
+            return {}
+        out = {engine: track.stats(self.dt, healthy) for engine, track in self.behaviour.items()}
+        out["relative_difference"] = {
+            k: abs(out["mjx"][k] - out["c"][k]) / max(abs(out["c"][k]), 1e-12) for k in out["c"]}
+        return out
+
+
+def judge(name: str, m: mujoco.MjModel, traj_c: Trajectory, traj_mjx: Trajectory, tol: Tolerances,
+          threshold: float = 0.95, perturbed: Trajectory | None = None) -> ScenarioResult:
+    """The verdict on whole trajectories (see :class:`Judge`).
+
+    Args:
+      perturbed: C rerun from perturbed initial states (:func:`mjxdiff.noise.perturb`);
+        when given, errors are judged against the chaos envelope it implies.
+    """
+    j = Judge(m, tol, traj_c.time.shape[0])
+    noise = None
+    if perturbed is not None:
+        noise, envelope = noise_floor(m, perturbed, traj_c, j.rf_mask)
     else:
-        worst = max((f for f in fields if f.field in ("qpos", "qvel")), key=lambda f: f.ratio)
-        status, kind = "pass", ""
-        message = f"worst {worst.field} {worst.max_error:.2g} (tol {worst.tolerance:.0e}"
-        message += f", envelope {worst.envelope:.1e})" if worst.envelope else ")"
-        if member_fails.any():
-            message += f"; {int(member_fails.sum())}/{int(healthy.sum())} members out of tolerance, pass rate {pass_rate:.0%}"
-    return ScenarioResult(
-        name=name, status=status, message=message, error_kind=kind, fields=tuple(fields),
-        first_divergence=first, diverged_members=tuple(diverged),
-        behaviour=behaviour(m, traj_c, traj_mjx, dt, healthy), tolerances=tol.as_dict(),
-        pass_rate=float(pass_rate), threshold=threshold,
-        noise_rate=dict(noise.rate) if noise is not None else {})
+        envelope = None
+    j.update(traj_c, traj_mjx, envelope)
+    return j.result(name, threshold, noise)
