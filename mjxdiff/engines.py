@@ -29,19 +29,24 @@ import os
 from pathlib import Path
 from typing import Iterator, Protocol
 
-# Load-bearing: materialising large vmapped MJX rollouts sometimes never returns (0% CPU,
-# XLA CPU pool threads waiting on each other), seen here on the 56-dof primitive_pairs
-# rollout. The batched Cholesky of the Newton solver splits across the pool under the
-# concurrency-optimised scheduler; turning that scheduler off took a standalone reproducer
-# from 3/3 hangs to 3/3 passes. The multithreaded Eigen pool has the same reported failure
-# upstream (PyAutoFit #1528), so it is off too. Set before JAX's backend starts.
+# Load-bearing, the XLA CPU thread pool: jax's batched LAPACK kernels (the Newton solver's
+# Cholesky) split a large enough batch into tasks on XLA's intra-op pool and block their own
+# thread until those finish. If every pool thread is blocked that way, nothing runs the tasks
+# and the rollout never returns (0% CPU; gdb: two threads in CholeskyFactorization::Kernel,
+# the rest idle). The pool has one thread per core by default, so two concurrent kernels
+# deadlock a 2-core machine: two devices of a split batch (humanoid, 64 members per device,
+# 3/3 hangs), or two kernels one device runs side by side (the concurrency-optimised
+# scheduler; 56-dof primitive_pairs). PJRT_NPROC sizes the pool: with more threads than
+# kernels that can block at once (devices + cores) it cannot deadlock (3/3 passes). The
+# scheduler and the multithreaded Eigen pool (PyAutoFit #1528) stay off as well.
+# All of this is read once, before JAX's backend starts.
 #
-# Host devices to split MJX's batch over (MJXDIFF_DEVICES, read once, before JAX starts).
-# A single XLA CPU device runs a vmapped MJX rollout on about one core; split over devices,
-# each runs its share on its own thread (measured: ant and humanoid, batch 64, 1.6-2.5x on
-# 2 cores). Not the default: one bench run with 2 devices hung the same way as above
-# (every XLA thread idle, the main thread waiting for buffers), so the split is opt-in.
+# Host devices to split MJX's batch over: MJXDIFF_DEVICES, default one per core. A single
+# XLA CPU device runs a vmapped MJX rollout on about one core; split over devices, each runs
+# its share on its own thread. MJXEngine splits only batches big enough to gain from it.
+CORES = os.cpu_count() or 1
 DEVICES = int(os.environ.get("MJXDIFF_DEVICES") or 1)
+os.environ.setdefault("PJRT_NPROC", str(CORES + 2 * DEVICES))
 _XLA_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false", "--xla_cpu_multi_thread_eigen=false",
               f"--xla_force_host_platform_device_count={DEVICES}")
 if os.environ.get("MJXDIFF_DEVICES"):  # an explicit request wins over an inherited flag
@@ -444,6 +449,18 @@ def _canonical_ints(dx: mjx.Data) -> mjx.Data:
     # scan needs the carry's dtypes fixed.
     int_t = jnp.asarray(0).dtype
     return jax.tree.map(lambda x: x.astype(int_t) if jnp.issubdtype(x.dtype, jnp.integer) else x, dx)
+
+
+#: MJX's working set per member while stepping, in multiples of the size of its ``mjx.Data``
+#: (scan carry, solver and collision temporaries, one piece of records).
+WORKING_SET_FACTOR = 40
+
+
+def member_bytes(m: mujoco.MjModel) -> int:
+    """Estimated bytes MJX holds per batch member while stepping ``m``: WORKING_SET_FACTOR x its data."""
+    with _unsupported():
+        dx = mjx.make_data(m)
+    return WORKING_SET_FACTOR * sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(dx))
 
 
 def device_count() -> int:

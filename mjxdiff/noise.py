@@ -40,58 +40,56 @@ MARGIN = 1e3
 class NoiseFloor:
     """Self-divergence of C under ulp-level perturbations, followed piece by piece.
 
-    Feed it consecutive pieces of the perturbed and the reference C rollout
-    (:meth:`update`); each call returns that piece's envelope. Only (B,)
-    running values and a (T,) batch-max series per field are kept, so memory
-    does not grow with the horizon beyond T numbers.
+    Feed it pieces of the perturbed and the reference C rollout
+    (:meth:`update`, the same pieces the :class:`~mjxdiff.verdict.Judge`
+    gets); each call returns that piece's envelope. Only (B,) running values
+    and a (T,) batch-max series per field are kept.
 
-    Attributes:
+    Args:
+      batch, steps: B members and T steps in all.
       margin: envelope factor over the running max of the self-divergence.
     """
 
-    def __init__(self, m: mujoco.MjModel, rf_mask: np.ndarray, margin: float = MARGIN):
-        self.margin = margin
+    def __init__(self, m: mujoco.MjModel, rf_mask: np.ndarray, batch: int, steps: int, margin: float = MARGIN):
+        self.margin, self.steps, self.batch = margin, steps, batch
         self.dt = float(m.opt.timestep)
         self._layout, self._rf_mask = metrics.qpos_layout(m), jnp.asarray(rf_mask)
-        self._running: dict[str, np.ndarray] = {}
-        self._batch_max: dict[str, list[np.ndarray]] = {}
-        self._blown: np.ndarray | None = None  # (B,) the perturbed rerun has blown up
-        self._contact_changes = 0
-        self._steps = 0
+        self._running: dict[str, np.ndarray] = {}  # field -> (B,) running max so far
+        self._batch_max: dict[str, np.ndarray] = {}  # field -> (T,)
+        self._blown = np.zeros(batch, bool)  # the perturbed rerun has blown up
+        self._contact_changes = np.zeros(batch)
 
-    def update(self, perturbed: Trajectory, reference: Trajectory) -> dict[str, np.ndarray]:
-        """The envelope of each field over this piece, (B, K): margin x running max of the self-divergence."""
-        B, K = reference.time.shape
+    def update(self, perturbed: Trajectory, reference: Trajectory, start: int = 0,
+               members: np.ndarray | slice = slice(None)) -> dict[str, np.ndarray]:
+        """The envelope of each field over this piece, (b, K): margin x running max of the self-divergence."""
+        members = np.arange(self.batch)[members]
+        K = reference.time.shape[1]
         div = jax.tree.map(np.asarray, _self_divergence_fields(perturbed, reference, self._layout, self._rf_mask))
-        if self._blown is None:
-            self._blown = np.zeros(B, bool)
         # a perturbed member that blew up is all envelope: nothing can be judged after that step
-        at = np.where(perturbed.diverged_at >= 0, perturbed.diverged_at - self._steps, K)
-        blown = self._blown[:, None] | (np.arange(K)[None, :] >= at[:, None])
-        self._blown = blown[:, -1]
+        at = np.where(perturbed.diverged_at >= 0, perturbed.diverged_at - start, K)
+        blown = self._blown[members, None] | (np.arange(K)[None, :] >= at[:, None])
+        self._blown[members] = blown[:, -1]
         envelope = {}
         for key, v in div.items():
             v = np.where(blown | ~np.isfinite(v), np.inf, v)
-            self._batch_max.setdefault(key, []).append(np.where(np.isfinite(v), v, 0).max(axis=0))
-            running = np.maximum.accumulate(v, axis=1)
-            if key in self._running:
-                running = np.maximum(running, self._running[key][:, None])
-            self._running[key] = running[:, -1]
-            envelope[key] = self.margin * running
-        self._contact_changes = self._contact_changes + (perturbed.ncon != reference.ncon).sum(axis=1)
-        self._steps += K
+            series = self._batch_max.setdefault(key, np.zeros(self.steps))
+            series[start:start + K] = np.maximum(series[start:start + K], np.where(np.isfinite(v), v, 0).max(axis=0))
+            running = self._running.setdefault(key, np.zeros(self.batch))
+            piece = np.maximum(np.maximum.accumulate(v, axis=1), running[members, None])
+            running[members] = piece[:, -1]
+            envelope[key] = self.margin * piece
+        self._contact_changes[members] += (perturbed.ncon != reference.ncon).sum(axis=1)
         return envelope
 
     @property
     def contact_fraction(self) -> np.ndarray:
-        """(B,) fraction of the steps so far whose contact count changed."""
-        return self._contact_changes / max(self._steps, 1)
+        """(B,) fraction of the steps whose contact count changed."""
+        return self._contact_changes / max(self.steps, 1)
 
     @property
     def rate(self) -> dict[str, float]:
         """Field -> finite-time Lyapunov-style growth rate of the batch-max self-divergence, 1/s."""
-        return {k: float(metrics.error_growth(jnp.asarray(np.concatenate(v)), self.dt).rate)
-                for k, v in self._batch_max.items()}
+        return {k: float(metrics.error_growth(jnp.asarray(v), self.dt).rate) for k, v in self._batch_max.items()}
 
 
 def perturb(inputs: BatchedInputs, precision: str) -> BatchedInputs:
@@ -125,5 +123,5 @@ def _self_divergence_fields(a: Trajectory, b: Trajectory, layout: metrics.QposLa
 def noise_floor(m: mujoco.MjModel, perturbed: Trajectory, reference: Trajectory, rf_mask: np.ndarray,
                 margin: float = MARGIN) -> tuple[NoiseFloor, dict[str, np.ndarray]]:
     """The noise floor of whole trajectories: (floor, field -> (B, T) envelope)."""
-    floor = NoiseFloor(m, rf_mask, margin)
+    floor = NoiseFloor(m, rf_mask, *reference.time.shape, margin=margin)
     return floor, floor.update(perturbed, reference)

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
 
 import jax
+import numpy as np
 
 from mjxdiff import diagnose, engines, report, reproducer
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
@@ -44,6 +45,7 @@ class SweepConfig:
         cause attribution by ablations (each ablation recompiles).
       reproducers: directory to save failing members in, or None.
       piece_steps: steps per streamed piece; None: :func:`piece_steps` of the memory budget.
+      group_size: members MJX steps at once; None: :func:`group_size` of the memory budget.
     """
 
     seed: int = 0
@@ -56,6 +58,7 @@ class SweepConfig:
     diagnose: str = "full"
     reproducers: str | None = None
     piece_steps: int | None = None
+    group_size: int | None = None
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -105,6 +108,8 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
 PIECE_BUDGET_MIB = 64
 #: Shortest piece, steps: shorter ones spend more time in per-call overhead than they save.
 MIN_PIECE_STEPS = 50
+#: Budget for MJX's working set while it steps one group of members, MiB.
+GROUP_BUDGET_MIB = 4096
 
 
 def piece_steps(m, batch: int, steps: int, budget_mib: float = PIECE_BUDGET_MIB) -> int:
@@ -119,6 +124,21 @@ def piece_steps(m, batch: int, steps: int, budget_mib: float = PIECE_BUDGET_MIB)
     most = max(MIN_PIECE_STEPS, int(budget_mib * 2**20 // (width * batch)))
     pieces = -(-steps // most)
     return -(-steps // pieces)
+
+
+def group_size(m, batch: int, budget_mib: float = GROUP_BUDGET_MIB) -> int:
+    """Members MJX steps at once: all of them, unless their working set exceeds ``budget_mib``
+    (:func:`mjxdiff.engines.member_bytes` per member)."""
+    return max(1, min(batch, int(budget_mib * 2**20 // engines.member_bytes(m))))
+
+
+def member_groups(batch: int, most: int) -> list[np.ndarray]:
+    """Member indices in equal groups of at most ``most``, in order; the last group is padded
+    with repeats of the last member, so that every group runs the same compiled function."""
+    n = -(-batch // most)
+    size = -(-batch // n)
+    idx = np.minimum(np.arange(n * size), batch - 1)
+    return [idx[i * size:(i + 1) * size] for i in range(n)]
 
 
 class _EngineFailed(Exception):
@@ -146,27 +166,46 @@ def _timed(pieces: Iterable[Trajectory], engine: str, seconds: dict[str, float])
         yield piece
 
 
+def _rows(x, n: int):
+    """The first ``n`` members of a piece (a Trajectory or a dict of (b, ...) arrays)."""
+    return jax.tree.map(lambda a: a[:n], x)
+
+
 def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig, mjx_engine: MJXEngine,
              c_engine: CEngine, seconds: dict[str, float]) -> ScenarioResult:
     """Streams both engines (and C's perturbed rerun) piece by piece into a :class:`Judge`.
 
+    Members run in groups of :func:`group_size`, steps in pieces of
+    :func:`piece_steps`; ``seconds`` gains wall time per engine and for the
+    verdict, plus the counts of groups and pieces.
+
     Raises:
       UnsupportedError, _EngineFailed: from the engines.
     """
-    chunk = config.piece_steps or piece_steps(m, inputs.batch, inputs.steps)
-    mjx = _timed(mjx_engine.stream(inputs, chunk), "mjx", seconds)
-    c = _timed(c_engine.stream(inputs, chunk), "c", seconds)
-    floor = NoiseFloor(m, rangefinder_mask(m)) if config.envelope else None
-    perturbed = _timed(c_engine.stream(perturb(inputs, config.precision), chunk), "c", seconds) if floor else None
-    judge = Judge(m, tol, inputs.batch)
-    for piece_mjx in mjx:  # MJX first: its next piece is computed while C and the verdict run
-        piece_c = next(c)
-        t = time.perf_counter()
-        judge.update(piece_c, piece_mjx, floor.update(next(perturbed), piece_c) if floor else None)
-        seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
+    B, T = inputs.batch, inputs.steps
+    groups = member_groups(B, config.group_size or group_size(m, B))
+    chunk = config.piece_steps or piece_steps(m, len(groups[0]), T)
+    judge = Judge(m, tol, B, T)
+    floor = NoiseFloor(m, rangefinder_mask(m), B, T) if config.envelope else None
+    for idx in groups:
+        members = idx[:len(np.unique(idx))]  # the padding repeats come last
+        group = inputs.take(idx) if len(groups) > 1 else inputs
+        mjx = _timed(mjx_engine.stream(group, chunk), "mjx", seconds)
+        c = _timed(c_engine.stream(group, chunk), "c", seconds)
+        perturbed = _timed(c_engine.stream(perturb(group, config.precision), chunk), "c", seconds) if floor else None
+        start = 0
+        for piece_mjx in mjx:  # MJX first: its next piece is computed while C and the verdict run
+            piece_c, n = next(c), len(members)
+            piece_p = next(perturbed) if floor else None
+            t = time.perf_counter()
+            envelope = floor.update(_rows(piece_p, n), _rows(piece_c, n), start, members) if floor else None
+            judge.update(_rows(piece_c, n), _rows(piece_mjx, n), envelope, start, members)
+            seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
+            start += piece_c.time.shape[1]
     t = time.perf_counter()
     result = judge.result(name, config.threshold, floor)
     seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
+    seconds.update(groups=len(groups), pieces=len(groups) * -(-T // chunk))
     return result
 
 
@@ -198,7 +237,7 @@ def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Swe
     seconds.update(c=clock.get("c", 0.0), mjx=clock.get("mjx", 0.0), verdict=clock.get("verdict", 0.0),
                    diagnosis=time.perf_counter() - t, compile=engines.compile_seconds() - compile_s)
     info.update(mjx_compiles=engines.compile_count() - compiles, nq=m.nq, nv=m.nv, nu=m.nu,
-                nsensordata=m.nsensordata)
+                nsensordata=m.nsensordata, groups=clock["groups"], pieces=clock["pieces"])
     return dataclasses.replace(result, info=info)
 
 

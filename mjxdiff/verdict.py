@@ -149,15 +149,16 @@ def error_series(a: Trajectory, b: Trajectory, layout: metrics.QposLayout, rf_ma
 
 
 class _FieldTrack:
-    """Running per-member reduction of one field's (B, K, n) errors against (B, K) bounds.
+    """Running per-member reduction of one field's (b, K, n) errors against (b, K) bounds.
 
     Keeps (B,) values: worst error, first step out of bound (with its
-    component and C time), worst ratio error/bound (with its step and
-    component), the last bound; and the (T,) batch-max error series.
+    component and C time), worst ratio error/bound (with its component), the
+    last bound; and the (T,) batch-max error series. Each update covers the
+    rows ``members`` of the batch and the steps from ``start``.
     """
 
-    def __init__(self, batch: int, tol: float):
-        self.tol, self.above_tol = tol, False
+    def __init__(self, batch: int, steps: int, tol: float):
+        self.tol, self.above_tol, self.width = tol, False, 0
         self.max_error = np.zeros(batch)
         self.first_step = np.full(batch, -1)
         self.first_comp = np.zeros(batch, int)
@@ -165,31 +166,34 @@ class _FieldTrack:
         self.max_ratio = np.zeros(batch)
         self.ratio_comp = np.zeros(batch, int)
         self.last_bound = np.full(batch, tol)
-        self.batch_max: list[np.ndarray] = []
-        self.width = 0
+        self.batch_max = np.zeros(steps)
 
-    def update(self, err: np.ndarray, bound: np.ndarray, time: np.ndarray, start: int, healthy: np.ndarray) -> None:
+    def update(self, err: np.ndarray, bound: np.ndarray, time: np.ndarray, start: int, members: np.ndarray,
+               healthy: np.ndarray) -> None:
         self.width = err.shape[-1]
         if self.width == 0:
             return
-        rows = np.arange(err.shape[0])
+        rows, K = np.arange(err.shape[0]), err.shape[1]
         per_step = err.max(axis=2)
         with np.errstate(invalid="ignore"):  # inf / inf where a blown-up member's envelope is infinite
             ratio = per_step / bound
         exceeded = ~(ratio <= 1.0)  # NaN exceeds
         k = exceeded.argmax(axis=1)
-        new = exceeded.any(axis=1) & (self.first_step < 0)
-        self.first_step = np.where(new, start + k, self.first_step)
-        self.first_comp = np.where(new, err[rows, k].argmax(axis=-1), self.first_comp)
-        self.first_time = np.where(new, time[rows, k], self.first_time)
+        new = exceeded.any(axis=1) & (self.first_step[members] < 0)
+        self.first_step[members] = np.where(new, start + k, self.first_step[members])
+        self.first_comp[members] = np.where(new, err[rows, k].argmax(axis=-1), self.first_comp[members])
+        self.first_time[members] = np.where(new, time[rows, k], self.first_time[members])
         at = np.nan_to_num(ratio, nan=np.inf).argmax(axis=1)
-        better = ratio[rows, at] > self.max_ratio
-        self.ratio_comp = np.where(better, err[rows, at].argmax(axis=-1), self.ratio_comp)
-        self.max_ratio = np.fmax(self.max_ratio, np.nanmax(ratio, axis=1, initial=0.0))
-        self.max_error = np.maximum(self.max_error, per_step.max(axis=1))  # NaN propagates
-        self.last_bound = bound[:, -1]
+        better = ratio[rows, at] > self.max_ratio[members]
+        self.ratio_comp[members] = np.where(better, err[rows, at].argmax(axis=-1), self.ratio_comp[members])
+        self.max_ratio[members] = np.fmax(self.max_ratio[members], np.nanmax(ratio, axis=1, initial=0.0))
+        self.max_error[members] = np.maximum(self.max_error[members], per_step.max(axis=1))  # NaN propagates
+        if start + K == len(self.batch_max):
+            self.last_bound[members] = bound[:, -1]
         self.above_tol |= bool(np.any(bound > self.tol))
-        self.batch_max.append(np.where(healthy[:, None], per_step, 0.0).max(axis=0))
+        window = slice(start, start + K)
+        self.batch_max[window] = np.maximum(self.batch_max[window],
+                                            np.where(healthy[:, None], per_step, 0.0).max(axis=0))
 
     def result(self, field: str, healthy: np.ndarray, objects: list[str], dt: float) -> FieldResult:
         if self.width == 0 or not healthy.any():
@@ -203,7 +207,7 @@ class _FieldTrack:
             step = -1
             member = int(np.where(healthy, self.max_ratio, 0.0).argmax())
             comp = int(self.ratio_comp[member])
-        growth = metrics.error_growth(jnp.asarray(np.concatenate(self.batch_max)), dt)
+        growth = metrics.error_growth(jnp.asarray(self.batch_max), dt)
         envelope = float(np.where(healthy, self.last_bound, 0.0).max()) if self.above_tol else 0.0
         return FieldResult(field, float(np.where(healthy, self.max_error, 0.0).max()), self.tol, step, member,
                            objects[comp] if objects else "", float(growth.rate), envelope,
@@ -211,26 +215,24 @@ class _FieldTrack:
 
 
 class _FractionTrack:
-    """Running per-member sum and first non-zero step of a (B, K) mismatch series."""
+    """Running per-member sum and first non-zero step of a (b, K) mismatch series."""
 
-    def __init__(self, batch: int, tol: float):
-        self.tol = tol
+    def __init__(self, batch: int, steps: int, tol: float):
+        self.tol, self.steps = tol, steps
         self.total = np.zeros(batch)
         self.first_step = np.full(batch, -1)
         self.first_time = np.zeros(batch)
-        self.steps = 0
 
-    def update(self, mismatch: np.ndarray, time: np.ndarray, start: int) -> None:
+    def update(self, mismatch: np.ndarray, time: np.ndarray, start: int, members: np.ndarray) -> None:
         k = (mismatch > 0).argmax(axis=1)
-        new = (mismatch > 0).any(axis=1) & (self.first_step < 0)
-        self.first_step = np.where(new, start + k, self.first_step)
-        self.first_time = np.where(new, time[np.arange(len(k)), k], self.first_time)
-        self.total = self.total + mismatch.sum(axis=1)
-        self.steps += mismatch.shape[1]
+        new = (mismatch > 0).any(axis=1) & (self.first_step[members] < 0)
+        self.first_step[members] = np.where(new, start + k, self.first_step[members])
+        self.first_time[members] = np.where(new, time[np.arange(len(k)), k], self.first_time[members])
+        self.total[members] += mismatch.sum(axis=1)
 
     @property
     def fraction(self) -> np.ndarray:
-        """(B,) mean mismatch over the steps so far."""
+        """(B,) mean mismatch over the horizon."""
         return self.total / max(self.steps, 1)
 
     def result(self, field: str, allowed: np.ndarray, healthy: np.ndarray) -> FieldResult:
@@ -260,47 +262,46 @@ def _track(m: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
 class _BehaviourTrack:
     """One engine's running track statistics per member (see :func:`metrics.behaviour_stats`).
 
-    Per member: first and last tracked position, path length, largest step,
-    steps seen; with energy, the first and last total energy and sum |total|.
+    Per member: first and last tracked position, path length, largest step;
+    with energy, the first and last total energy and the sum of |total|.
     """
 
-    def __init__(self):
-        self.first = self.last = None
-        self.distance = self.max_step = 0.0
-        self.steps = 0
-        self.energy_first = self.energy_last = None
-        self.energy_abs = 0.0
-        self.energy_records = 0
+    def __init__(self, batch: int, steps: int, width: int):
+        self.steps = steps
+        self.first, self.last = np.zeros((batch, width)), np.zeros((batch, width))
+        self.distance, self.max_step = np.zeros(batch), np.zeros(batch)
+        self.energy = np.zeros((batch, 3))  # first total, last total, sum |total|
+        self.has_energy = False
 
-    def update(self, pos: np.ndarray, energy: np.ndarray) -> None:
-        if self.first is None:
-            self.first = pos[:, 0]
+    def update(self, pos: np.ndarray, energy: np.ndarray, start: int, members: np.ndarray) -> None:
+        if start == 0:
+            self.first[members] = pos[:, 0]
         else:
-            pos = np.concatenate([self.last[:, None], pos], axis=1)
+            pos = np.concatenate([self.last[members][:, None], pos], axis=1)
         step = np.linalg.norm(np.diff(pos, axis=1), axis=-1)
-        self.distance = self.distance + step.sum(axis=1)
-        self.max_step = np.maximum(self.max_step, step.max(axis=1, initial=0.0))
-        self.last = pos[:, -1]
-        self.steps += step.shape[1]
+        self.distance[members] += step.sum(axis=1)
+        self.max_step[members] = np.maximum(self.max_step[members], step.max(axis=1, initial=0.0))
+        self.last[members] = pos[:, -1]
         if energy.shape[-1]:
+            self.has_energy = True
             total = energy.sum(axis=-1)
-            self.energy_first = total[:, 0] if self.energy_first is None else self.energy_first
-            self.energy_last = total[:, -1]
-            self.energy_abs = self.energy_abs + np.abs(total).sum(axis=1)
-            self.energy_records += total.shape[1]
+            if start == 0:
+                self.energy[members, 0] = total[:, 0]
+            self.energy[members, 1] = total[:, -1]
+            self.energy[members, 2] += np.abs(total).sum(axis=1)
 
     def stats(self, dt: float, healthy: np.ndarray) -> dict[str, float]:
         """Batch means over healthy members: speeds (units/s), distance, displacement,
         path efficiency, and with energy the relative drift (E_end - E_0) / max(|E_0|, mean |E|)."""
         displacement = np.linalg.norm(self.last - self.first, axis=-1)
         moved = self.distance > 0
-        out = dict(mean_speed=self.distance / max(self.steps, 1) / dt, max_speed=self.max_step / dt,
+        out = dict(mean_speed=self.distance / max(self.steps - 1, 1) / dt, max_speed=self.max_step / dt,
                    distance=self.distance, displacement=displacement,
                    path_efficiency=np.where(moved, displacement / np.where(moved, self.distance, 1), 1.0))
-        if self.energy_first is not None:
-            scale = np.maximum(np.maximum(np.abs(self.energy_first), self.energy_abs / self.energy_records),
-                               np.finfo(float).tiny)
-            out["energy_drift"] = (self.energy_last - self.energy_first) / scale
+        if self.has_energy:
+            first, last, total_abs = self.energy.T
+            scale = np.maximum(np.maximum(np.abs(first), total_abs / self.steps), np.finfo(float).tiny)
+            out["energy_drift"] = (last - first) / scale
         return {k: float(np.mean(np.asarray(v)[healthy])) for k, v in out.items()}
 
 
@@ -310,48 +311,54 @@ _SERIES = ("qpos", "qvel", "act", "sensordata")
 class Judge:
     """Compares MJX against C (the reference) piece by piece and decides the scenario's status.
 
-    Feed consecutive pieces of both rollouts, with the noise floor's envelope
-    of each piece when judging against the chaos envelope (:meth:`update`),
-    then ask for the verdict (:meth:`result`). Only per-member running values
-    and (T,) batch-max series are kept, so memory depends on the batch size,
-    not on the horizon.
+    Feed pieces of both rollouts, with the noise floor's envelope of each
+    piece when judging against the chaos envelope (:meth:`update`), then ask
+    for the verdict (:meth:`result`). A piece covers some members (all, or
+    one group of a batch run in groups) and consecutive steps. Only
+    per-member running values and (T,) batch-max series are kept, so memory
+    depends on the batch size, not on the horizon.
 
     A member passes when every field stays within its bound at every step: the
     fixed tolerance, or with a noise floor, max(tolerance, chaos envelope).
     The scenario passes when the fraction of healthy members that pass is at
     least ``threshold`` (the pass-rate criterion of cross-platform validation).
+
+    Args:
+      batch, steps: B members and T steps in all.
     """
 
-    def __init__(self, m: mujoco.MjModel, tol: Tolerances, batch: int):
+    def __init__(self, m: mujoco.MjModel, tol: Tolerances, batch: int, steps: int):
         self.m, self.tol, self.batch = m, tol, batch
         self.dt = float(m.opt.timestep)
         self.layout = metrics.qpos_layout(m)
         self.rf_mask = rangefinder_mask(m)
-        self.fields = {key: _FieldTrack(batch, getattr(tol, key)) for key in _SERIES}
-        self.contacts = _FractionTrack(batch, tol.contact_mismatch)
-        self.rangefinder = _FractionTrack(batch, tol.rangefinder_mismatch)
-        self.behaviour = {"c": _BehaviourTrack(), "mjx": _BehaviourTrack()}
+        self.fields = {key: _FieldTrack(batch, steps, getattr(tol, key)) for key in _SERIES}
+        self.contacts = _FractionTrack(batch, steps, tol.contact_mismatch)
+        self.rangefinder = _FractionTrack(batch, steps, tol.rangefinder_mismatch)
+        width = _track(m, np.zeros((1, m.nq))).shape[-1]
+        self.behaviour = {"c": _BehaviourTrack(batch, steps, width), "mjx": _BehaviourTrack(batch, steps, width)}
         self.diverged_at = {"c": np.full(batch, -1), "mjx": np.full(batch, -1)}
-        self.steps = 0
 
-    def update(self, traj_c: Trajectory, traj_mjx: Trajectory, envelope: dict[str, np.ndarray] | None = None) -> None:
-        """Adds the next piece: (B, K, ...) trajectories and optionally field -> (B, K) envelopes."""
-        start = self.steps
+    def update(self, traj_c: Trajectory, traj_mjx: Trajectory, envelope: dict[str, np.ndarray] | None = None,
+               start: int = 0, members: np.ndarray | slice = slice(None)) -> None:
+        """Adds a piece: (b, K, ...) trajectories of ``members`` from step ``start``, and
+        optionally field -> (b, K) envelopes."""
+        members = np.arange(self.batch)[members]
         for engine, traj in (("c", traj_c), ("mjx", traj_mjx)):
-            self.diverged_at[engine] = first_diverged([self.diverged_at[engine], traj.diverged_at])
+            at = self.diverged_at[engine]
+            at[members] = first_diverged([at[members], traj.diverged_at])
             with np.errstate(invalid="ignore", over="ignore"):  # a blown-up member is not healthy
-                self.behaviour[engine].update(_track(self.m, traj.qpos), traj.energy)
-        healthy = (self.diverged_at["c"] < 0) & (self.diverged_at["mjx"] < 0)
+                self.behaviour[engine].update(_track(self.m, traj.qpos), traj.energy, start, members)
+        healthy = (self.diverged_at["c"][members] < 0) & (self.diverged_at["mjx"][members] < 0)
         series = jax.tree.map(np.asarray, error_series(traj_mjx, traj_c, self.layout, jnp.asarray(self.rf_mask)))
         for key, track in self.fields.items():
             bound = np.full(series["ncon"].shape, getattr(self.tol, key))
             if envelope is not None:
                 bound = np.maximum(bound, envelope[key])
-            track.update(series[key], bound, traj_c.time, start, healthy)
-        self.contacts.update(series["ncon"] > 0, traj_c.time, start)
+            track.update(series[key], bound, traj_c.time, start, members, healthy)
+        self.contacts.update(series["ncon"] > 0, traj_c.time, start, members)
         if self.rf_mask.any():
-            self.rangefinder.update(series["rangefinder"] / self.rf_mask.sum(), traj_c.time, start)
-        self.steps += traj_c.time.shape[1]
+            self.rangefinder.update(series["rangefinder"] / self.rf_mask.sum(), traj_c.time, start, members)
 
     def result(self, name: str, threshold: float = 0.95, noise: NoiseFloor | None = None) -> ScenarioResult:
         """The verdict on everything fed so far; ``noise`` is the floor whose envelopes were fed."""
@@ -416,8 +423,7 @@ class Judge:
 
     def _behaviour(self, healthy: np.ndarray) -> dict[str, Any]:
         """Batch-mean behaviour statistics of both engines and their relative difference."""
-        c = self.behaviour["c"]
-        if not healthy.any() or c.first is None or c.first.shape[-1] == 0 or c.steps == 0:
+        if not healthy.any() or self.behaviour["c"].first.shape[-1] == 0 or self.behaviour["c"].steps < 2:
             return {}
         out = {engine: track.stats(self.dt, healthy) for engine, track in self.behaviour.items()}
         out["relative_difference"] = {
@@ -433,7 +439,7 @@ def judge(name: str, m: mujoco.MjModel, traj_c: Trajectory, traj_mjx: Trajectory
       perturbed: C rerun from perturbed initial states (:func:`mjxdiff.noise.perturb`);
         when given, errors are judged against the chaos envelope it implies.
     """
-    j = Judge(m, tol, traj_c.time.shape[0])
+    j = Judge(m, tol, *traj_c.time.shape)
     noise = None
     if perturbed is not None:
         noise, envelope = noise_floor(m, perturbed, traj_c, j.rf_mask)

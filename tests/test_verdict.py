@@ -9,6 +9,7 @@ verdict is known exactly; the last test runs both engines for real.
 
 import dataclasses
 
+import jax
 import numpy as np
 import pytest
 
@@ -57,12 +58,15 @@ def _pieces(traj: Trajectory, k: int) -> list[Trajectory]:
     return out
 
 
-def _streamed(m, tol, traj_c, traj_mjx, perturbed, k, threshold=0.95):
-    j = Judge(m, tol, traj_c.time.shape[0])
-    floor = NoiseFloor(m, rangefinder_mask(m)) if perturbed is not None else None
-    for c, x, p in zip(_pieces(traj_c, k), _pieces(traj_mjx, k),
-                       _pieces(perturbed, k) if perturbed is not None else [None] * T):
-        j.update(c, x, floor.update(p, c) if floor else None)
+def _streamed(m, tol, traj_c, traj_mjx, perturbed, k, threshold=0.95, groups=(slice(None),)):
+    """The verdict from pieces of k steps, member group by member group."""
+    j = Judge(m, tol, *traj_c.time.shape)
+    floor = NoiseFloor(m, rangefinder_mask(m), *traj_c.time.shape) if perturbed is not None else None
+    for members in groups:
+        rows = lambda traj: None if traj is None else jax.tree.map(lambda x: x[members], traj)
+        pieces = [_pieces(rows(t), k) if t is not None else [None] * T for t in (traj_c, traj_mjx, perturbed)]
+        for i, (c, x, p) in enumerate(zip(*pieces)):
+            j.update(c, x, floor.update(p, c, i * k, members) if floor else None, i * k, members)
     return j.result("lidar", threshold, floor)
 
 
@@ -89,6 +93,15 @@ def test_streamed_verdict_equals_whole(lidar, envelope, k):
     _assert_same(_streamed(m, scenario.tolerance, traj_c, bugged, perturbed if envelope else None, k), whole)
 
 
+@pytest.mark.parametrize("groups", [[slice(0, 3), slice(3, 6)], [np.array([4, 0]), np.array([5, 1, 2, 3])]],
+                         ids=["halves", "shuffled"])
+def test_member_groups_give_the_whole_verdict(lidar, groups):
+    scenario, m, _, traj_c, perturbed = lidar
+    bugged = _with_bugs(traj_c)
+    whole = judge("lidar", m, traj_c, bugged, scenario.tolerance, perturbed=perturbed)
+    _assert_same(_streamed(m, scenario.tolerance, traj_c, bugged, perturbed, 7, groups=groups), whole)
+
+
 def test_verdict_names_the_injected_errors(lidar):
     scenario, m, _, traj_c, _ = lidar
     tol = scenario.tolerance
@@ -110,7 +123,8 @@ def test_unbugged_passes_in_pieces(lidar):
 
 
 def test_piece_boundaries_do_not_change_a_real_comparison(monkeypatch, fresh_mjx):
-    """Both engines for real, a 0.1% damping bug in MJX: the same verdict from 1 piece and from 13-step pieces."""
+    """Both engines for real, a 0.1% damping bug in MJX: the same verdict from one piece of the
+    whole batch and from 13-step pieces of two member groups (3 members and 1 padded to 3)."""
     from tests.test_detection import extra_damping
 
     extra_damping(monkeypatch)
@@ -118,8 +132,9 @@ def test_piece_boundaries_do_not_change_a_real_comparison(monkeypatch, fresh_mjx
     m = load_model(scenario)
     inputs = make_inputs(scenario, m, 0, 4, 100)
     results = [run_inputs("pendulum", m, inputs, scenario.tolerance,
-                          SweepConfig(diagnose="none", piece_steps=k)) for k in (100, 13)]
+                          SweepConfig(diagnose="none", piece_steps=k, group_size=g)) for k, g in ((100, 4), (13, 3))]
     assert results[0].status == "fail"
+    assert (results[1].info["groups"], results[1].info["pieces"]) == (2, 16)
     _assert_same(*results)
 
 
