@@ -115,3 +115,32 @@ def test_unsupported_feature_named(tmp_path):
     m = load_model(load_scenario(path))
     with pytest.raises(UnsupportedError, match="(?i)energy"):
         put_models((m,))
+
+
+def _per_member_leaves(models):
+    import jax
+    from mujoco import mjx
+
+    return [[np.asarray(x) for x in jax.tree.leaves(mjx.put_model(mi))] for mi in models]
+
+
+@pytest.mark.parametrize("change", ["randomized", "derived"])
+def test_put_models_equals_put_model_per_member(change):
+    """Stacked leaves read from the C models (one put_model, not B) are put_model's, member by member;
+    a field MJX turns into a derived leaf (opt.o_margin -> opt._impl.o_margin) takes the slow path."""
+    import jax
+    from mujoco import mjx
+
+    from mjxdiff.engines import _patched_columns
+
+    scenario = load_scenario("ant")
+    models = list(make_inputs(scenario, load_model(scenario), 3, 5, 2).models)
+    if change == "derived":
+        for i, mi in enumerate(models):
+            mi.opt.o_margin = 1e-3 * i
+    assert (_patched_columns(models, mjx.put_model(models[0])) is None) == (change == "derived")
+    mx, varying = put_models(tuple(models))
+    leaves = [np.asarray(x) for x in jax.tree.leaves(mx)]
+    for i, expected in enumerate(_per_member_leaves(models)):
+        for k, (leaf, want) in enumerate(zip(leaves, expected, strict=True)):
+            np.testing.assert_array_equal(leaf[i] if varying[k] else leaf, want)
