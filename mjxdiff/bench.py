@@ -25,7 +25,7 @@ import threading
 import time
 from typing import Any, Callable, Sequence
 
-from mjxdiff.engines import CEngine, MJXEngine, device_count
+from mjxdiff.engines import SPLIT_MIN_MEMBERS, CEngine, MJXEngine, device_count
 from mjxdiff.inputs import BatchedInputs, make_inputs
 from mjxdiff.scenario import Scenario, load_model
 from mjxdiff.sweep import SweepConfig, run_inputs
@@ -107,7 +107,7 @@ def bench_scenario(scenario: Scenario, batches: Sequence[int] = DEFAULT_BATCHES,
     Returns:
       A JSON-ready dict: ``curve`` (one entry per batch size), ``best`` (the
       entry with the highest MJX steps/s), ``split`` (MJX steps/s at the best
-      batch on one device and on :func:`device_count` devices),
+      batch on one device and on the devices MJXEngine splits it over),
       ``tester`` (seconds of the engines alone and of a warm verification,
       and their ratio), and ``recommendations``.
     """
@@ -120,8 +120,8 @@ def bench_scenario(scenario: Scenario, batches: Sequence[int] = DEFAULT_BATCHES,
         curve.append(_point(full.take(slice(b)), repeats))
     best = max(curve, key=lambda p: p["mjx_steps_per_s"])
     inputs = full.take(slice(best["batch"]))
-    split = dict(devices=device_count(), steps_per_s=best["mjx_steps_per_s"])
-    if device_count() > 1:
+    split = dict(devices=MJXEngine().split(inputs.batch), steps_per_s=best["mjx_steps_per_s"])
+    if split["devices"] > 1:
         say(f"{scenario.name}: batch {best['batch']} on one device")
         single = MJXEngine(devices=1)
         single.rollout(inputs)
@@ -165,9 +165,11 @@ def recommendations(r: dict[str, Any]) -> list[str]:
     if "speedup" in split:
         verdict = "keep it" if split["speedup"] >= 1.1 else "it does not pay for this model; try MJXDIFF_DEVICES=1"
         out.append(f"device split over {split['devices']} host devices: {split['speedup']:.2f}x one device ({verdict})")
+    elif device_count() > 1:
+        out.append(f"batch {best['batch']} is not split over the {device_count()} host devices (fewer than "
+                   f"{SPLIT_MIN_MEMBERS} members each); larger batches are")
     else:
-        out.append("one host device: MJXDIFF_DEVICES=<cores> in the environment splits MJX's batch over host "
-                   "devices (opt-in; rerun bench with it to measure the speedup)")
+        out.append("one host device (one core, or MJXDIFF_DEVICES=1): MJX's batch is not split")
     ratio = r["tester"]["throughput_ratio"]
     out.append(f"verification runs at {ratio:.2f}x the engines' own throughput "
                f"({'metrics and verdict are cheap' if ratio >= 0.85 else 'metrics and verdict are a noticeable cost'})")

@@ -50,8 +50,9 @@ examples:
   python -m mjxdiff bench ant --out bench-results --format json
 
 steps/s counts member-steps (batch x steps) per wall second, best of --repeats
-warm runs. MJXDIFF_DEVICES=N (in the environment) splits MJX's batch over N host
-devices and adds a one-device comparison: MJXDIFF_DEVICES=2 python -m mjxdiff bench ant"""
+warm runs. MJX splits a batch over the host CPU devices (one per core) when each
+gets at least 16 members; bench then adds a one-device comparison at the best
+batch. MJXDIFF_DEVICES=N (in the environment) sets the number of devices."""
 
 
 class _Parser(argparse.ArgumentParser):

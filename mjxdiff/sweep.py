@@ -45,7 +45,8 @@ class SweepConfig:
         cause attribution by ablations (each ablation recompiles).
       reproducers: directory to save failing members in, or None.
       piece_steps: steps per streamed piece; None: :func:`piece_steps` of the memory budget.
-      group_size: members MJX steps at once; None: :func:`group_size` of the memory budget.
+      group_size: members MJX steps at once; None: the smaller of :func:`group_size` (memory
+        budget) and the MJX engine's ``batch_cap()`` (32 members per device).
     """
 
     seed: int = 0
@@ -129,7 +130,8 @@ def piece_steps(m, batch: int, steps: int, budget_mib: float = PIECE_BUDGET_MIB)
 def group_size(m, batch: int, budget_mib: float = GROUP_BUDGET_MIB) -> int:
     """Members MJX steps at once: all of them, unless their working set exceeds ``budget_mib``
     (:func:`mjxdiff.engines.member_bytes` per member)."""
-    return max(1, min(batch, int(budget_mib * 2**20 // engines.member_bytes(m))))
+    per_member = engines.member_bytes(m)
+    return max(1, min(batch, int(budget_mib * 2**20 // per_member))) if per_member else batch
 
 
 def member_groups(batch: int, most: int) -> list[np.ndarray]:
@@ -175,7 +177,8 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
              c_engine: CEngine, seconds: dict[str, float]) -> ScenarioResult:
     """Streams both engines (and C's perturbed rerun) piece by piece into a :class:`Judge`.
 
-    Members run in groups of :func:`group_size`, steps in pieces of
+    Members run in groups of at most :func:`group_size` (memory) and the MJX
+    engine's :meth:`~mjxdiff.engines.MJXEngine.batch_cap` (speed), steps in pieces of
     :func:`piece_steps`; ``seconds`` gains wall time per engine and for the
     verdict, plus the counts of groups and pieces.
 
@@ -183,7 +186,7 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
       UnsupportedError, _EngineFailed: from the engines.
     """
     B, T = inputs.batch, inputs.steps
-    groups = member_groups(B, config.group_size or group_size(m, B))
+    groups = member_groups(B, config.group_size or min(group_size(m, B), mjx_engine.batch_cap()))
     chunk = config.piece_steps or piece_steps(m, len(groups[0]), T)
     judge = Judge(m, tol, B, T)
     floor = NoiseFloor(m, rangefinder_mask(m), B, T) if config.envelope else None
