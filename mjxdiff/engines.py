@@ -37,8 +37,9 @@ from typing import Iterator, Protocol
 # deadlock a 2-core machine: two devices of a split batch (humanoid, 64 members per device,
 # 3/3 hangs), or two kernels one device runs side by side (the concurrency-optimised
 # scheduler; 56-dof primitive_pairs). PJRT_NPROC sizes the pool: with more threads than
-# kernels that can block at once (devices + cores) it cannot deadlock (3/3 passes). The
-# scheduler and the multithreaded Eigen pool (PyAutoFit #1528) stay off as well.
+# kernels that can block at once (one per device; pool = cores + devices) it cannot
+# deadlock (3/3 passes). The scheduler and the multithreaded Eigen pool (PyAutoFit #1528)
+# stay off as well.
 # All of this is read once, before JAX's backend starts.
 #
 # Host devices to split MJX's batch over: MJXDIFF_DEVICES, default one per core. A single
@@ -46,7 +47,7 @@ from typing import Iterator, Protocol
 # its share on its own thread. MJXEngine splits only batches big enough to gain from it.
 CORES = os.cpu_count() or 1
 DEVICES = int(os.environ.get("MJXDIFF_DEVICES") or CORES)
-os.environ.setdefault("PJRT_NPROC", str(CORES + 2 * DEVICES))
+os.environ.setdefault("PJRT_NPROC", str(CORES + DEVICES))
 _XLA_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false", "--xla_cpu_multi_thread_eigen=false",
               f"--xla_force_host_platform_device_count={DEVICES}")
 if os.environ.get("MJXDIFF_DEVICES"):  # an explicit request wins over an inherited flag
