@@ -105,8 +105,9 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
     return result
 
 
-#: Budget for the records of one piece of a rollout (C, C's perturbed rerun, MJX, the errors), MiB.
-PIECE_BUDGET_MIB = 64
+#: Budget for the memory one piece of a rollout holds (records of C, C's perturbed rerun and
+#: MJX, with XLA's scan buffers and the errors and bounds computed from them), MiB.
+PIECE_BUDGET_MIB = 32
 #: Shortest piece, steps: shorter ones spend more time in per-call overhead than they save.
 MIN_PIECE_STEPS = 50
 #: Budget for MJX's working set while it steps one group of members, MiB.
@@ -114,14 +115,16 @@ GROUP_BUDGET_MIB = 4096
 
 
 def piece_steps(m, batch: int, steps: int, budget_mib: float = PIECE_BUDGET_MIB) -> int:
-    """Steps per piece of a streamed comparison: equal pieces whose records fit ``budget_mib``.
+    """Steps per piece of a streamed comparison: equal pieces that fit ``budget_mib``.
 
-    A member-step records ``nq + nv + na + nsensordata + 4`` float64 numbers
-    in each of about six arrays alive at once (C, C perturbed, MJX, their
-    errors and the bounds), so a piece of K steps holds about
-    ``48 (nq + nv + na + nsensordata + 4) B K`` bytes.
+    A member-step records ``nq + nv + na + nsensordata + 4`` numbers; measured
+    on the ant (batch 64, 625-step pieces), a piece holds about 24 float64
+    copies of them at its peak (both C rollouts, MJX's records on the device
+    and on the host, the next MJX piece already running, the error and bound
+    arrays), so K steps of B members take about
+    ``192 (nq + nv + na + nsensordata + 4) B K`` bytes.
     """
-    width = 48 * (m.nq + m.nv + m.na + m.nsensordata + 4)
+    width = 192 * (m.nq + m.nv + m.na + m.nsensordata + 4)
     most = max(MIN_PIECE_STEPS, int(budget_mib * 2**20 // (width * batch)))
     pieces = -(-steps // most)
     return -(-steps // pieces)
