@@ -575,10 +575,17 @@ class MJXEngine:
         mx, varying = put_models(inputs.models + (inputs.models[-1],) * pad)
         dx0 = _canonical_ints(mjx.make_data(inputs.models[0]))
         if mesh is None:
-            return mx, varying, dx0, lambda x: jnp.asarray(_pad(np.asarray(x), pad)), None
+            # committed, as _rollout's outputs are: the next piece's call then hits the same compiled function
+            device = jax.devices("cpu")[0]
+            return mx, varying, dx0, lambda x: jax.device_put(_pad(np.asarray(x), pad), device), None
         split, shared = NamedSharding(mesh, PartitionSpec("batch")), NamedSharding(mesh, PartitionSpec())
         mx = jax.device_put(mx, _per_leaf(mx, varying, split, shared))
-        return mx, varying, jax.device_put(dx0, shared), lambda x: jax.device_put(_pad(np.asarray(x), pad), split), mesh
+
+        def place(x):  # empty arrays come back from shard_map replicated: give them that sharding from the start,
+            x = _pad(np.asarray(x), pad)  # or the next piece's call would lower and compile _rollout again
+            return jax.device_put(x, split if x.size else shared)
+
+        return mx, varying, jax.device_put(dx0, shared), place, mesh
 
     def rollout(self, inputs: BatchedInputs) -> Trajectory:
         return concat(list(self.stream(inputs, inputs.steps)))

@@ -92,11 +92,12 @@ configure_jax("float64")
 assert device_count() == 2, device_count()
 scenario = load_scenario("cartpole")
 inputs = make_inputs(scenario, load_model(scenario), seed=0, batch=3, steps=60)  # 3 members: padded to 4
-one, split = MJXEngine(devices=1).rollout(inputs), MJXEngine().rollout(inputs)
+assert MJXEngine(devices=2).split(3) == 2 and MJXEngine().split(3) == 1  # too small to split by itself
+one, split = MJXEngine(devices=1).rollout(inputs), MJXEngine(devices=2).rollout(inputs)
 for field in ("qpos", "qvel", "sensordata"):
     np.testing.assert_array_equal(getattr(split, field), getattr(one, field), err_msg=field)
 c = CEngine().rollout(inputs)
-np.testing.assert_array_equal(MJXEngine().resync(inputs, c, 10).qpos, MJXEngine(devices=1).resync(inputs, c, 10).qpos)
+np.testing.assert_array_equal(MJXEngine(devices=2).resync(inputs, c, 10).qpos, MJXEngine(devices=1).resync(inputs, c, 10).qpos)
 print("identical")
 """
 
@@ -144,3 +145,25 @@ def test_put_models_equals_put_model_per_member(change):
     for i, expected in enumerate(_per_member_leaves(models)):
         for k, (leaf, want) in enumerate(zip(leaves, expected, strict=True)):
             np.testing.assert_array_equal(leaf[i] if varying[k] else leaf, want)
+
+
+def test_pieces_of_a_stream_share_one_compiled_function():
+    """Every piece runs the same executable: the carried MJX data keeps the shardings and commitment
+    the first piece was given (an empty leaf once came back replicated and cost a second compile)."""
+    from mjxdiff import engines
+
+    scenario = load_scenario("cartpole")
+    inputs = make_inputs(scenario, load_model(scenario), seed=5, batch=2, steps=21)
+    before = engines._rollout._cache_size()
+    pieces = list(MJXEngine().stream(inputs, 7))
+    assert len(pieces) == 3 and engines._rollout._cache_size() == before + 1
+
+
+def test_automatic_split_needs_enough_members_per_device():
+    from mjxdiff.engines import MEMBERS_PER_DEVICE, SPLIT_MIN_MEMBERS, device_count
+
+    n = device_count()
+    assert MJXEngine().split(n * SPLIT_MIN_MEMBERS) == n
+    assert MJXEngine().split(n * SPLIT_MIN_MEMBERS - 1) == (1 if n > 1 else n)
+    assert MJXEngine(devices=1).split(1000) == 1
+    assert MJXEngine().batch_cap() == n * MEMBERS_PER_DEVICE and MJXEngine(devices=1).batch_cap() == MEMBERS_PER_DEVICE
