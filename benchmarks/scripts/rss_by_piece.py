@@ -1,5 +1,5 @@
 """Resident memory piece by piece of a long ant sweep (batch 64). python benchmarks/scripts/rss_by_piece.py CACHE_DIR STEPS EVERY [PIECE_BUDGET_MIB]."""
-import sys, resource, time, os
+import sys, resource
 from mjxdiff import engines, sweep, verdict
 from mjxdiff.scenario import load_scenario
 from mjxdiff.sweep import SweepConfig, run_scenario

@@ -1,5 +1,5 @@
 """Compile seconds of one ant sweep (batch 64, 100 steps) by JAX event: trace, lowering, XLA compile or cache load. python benchmarks/scripts/warm_breakdown.py CACHE_DIR (run after compile_once.py has warmed CACHE_DIR)."""
-import sys, logging, time, jax
+import sys, time, jax
 from mjxdiff import engines
 from mjxdiff.scenario import load_scenario
 from mjxdiff.sweep import SweepConfig, run_scenario
