@@ -238,7 +238,7 @@ class CEngine:
             yield Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"],
                              sensordata=out["sensordata"], time=time, ncon=out["ncon"].astype(np.int64),
                              energy=out.get("energy", np.zeros((B, k, 0))),
-                             diverged_at=np.where(diverged >= 0, diverged + start, -1))
+                             diverged_at=_shifted(diverged, start))
 
 
 def concat(pieces: list[Trajectory]) -> Trajectory:
@@ -248,6 +248,11 @@ def concat(pieces: list[Trajectory]) -> Trajectory:
     fields = {f.name: np.concatenate([getattr(p, f.name) for p in pieces], axis=1)
               for f in dataclasses.fields(Trajectory) if f.name != "diverged_at"}
     return Trajectory(**fields, diverged_at=first_diverged([p.diverged_at for p in pieces]))
+
+
+def _shifted(diverged_at: np.ndarray, start: int) -> np.ndarray:
+    """A piece's ``diverged_at`` (steps within the piece, -1 if none) counted from the rollout's start."""
+    return np.where(diverged_at >= 0, diverged_at + start, -1)
 
 
 def first_diverged(diverged_at: list[np.ndarray]) -> np.ndarray:
@@ -548,17 +553,19 @@ class MJXEngine:
     def __init__(self, devices: int | None = None):
         self.devices = devices
 
+    def _usable_devices(self) -> int:
+        return device_count() if self.devices is None else max(1, min(self.devices, device_count()))
+
     def split(self, batch: int) -> int:
         """How many devices a batch of ``batch`` members is split over."""
+        n = self._usable_devices()
         if self.devices is None:
-            n = device_count()
             return n if batch >= n * SPLIT_MIN_MEMBERS else 1
-        return max(1, min(self.devices, device_count(), batch))
+        return min(n, batch)
 
     def batch_cap(self) -> int:
         """Members a sweep should give this engine at once: :data:`MEMBERS_PER_DEVICE` per device it can use."""
-        return MEMBERS_PER_DEVICE * (device_count() if self.devices is None else max(1, min(self.devices,
-                                                                                            device_count())))
+        return MEMBERS_PER_DEVICE * self._usable_devices()
 
     def _mesh(self, batch: int) -> Mesh | None:
         n = self.split(batch)
@@ -614,7 +621,7 @@ class MJXEngine:
             k = min(chunk, T - start)
             rec = jax.tree.map(lambda x: np.asarray(x)[:B, :k], jax.block_until_ready(rec))
             p = _trajectory(rec, B, k)
-            return dataclasses.replace(p, diverged_at=np.where(p.diverged_at >= 0, p.diverged_at + start, -1))
+            return dataclasses.replace(p, diverged_at=_shifted(p.diverged_at, start))
 
         pending = None
         for start in range(0, T, chunk):
