@@ -112,8 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     sw.add_argument("--quick", action="store_true", help="smoke run: batch <= 4, steps <= 50")
     sw.add_argument("--cache-dir", metavar="DIR",
-                    help="JAX persistent compilation cache (default $MJXDIFF_CACHE or ~/.cache/mjxdiff/jax; "
-                         "'' disables)")
+                    help="JAX persistent compilation cache, plus traced MJX rollouts in DIR/mjxdiff-exports "
+                         "so a second run skips tracing mjx.step (default $MJXDIFF_CACHE or "
+                         "~/.cache/mjxdiff/jax; '' disables both)")
     sw.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                     help="progress lines on stderr (default: when stderr is a terminal)")
     rp = sub.add_parser("replay", help="re-run a saved reproducer of a failing scenario member",

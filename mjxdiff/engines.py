@@ -12,7 +12,8 @@ integration).
   ``mjx.put_model`` of its own C model; model leaves that differ between
   members are batched inputs (``vmap`` axis 0), the rest are shared. One
   compiled function therefore serves every randomized variant of a model
-  structure: it is cached by JAX on (structure, which leaves vary, B, T).
+  structure: it is cached by JAX on (structure, which leaves vary, B, T), and
+  across processes as a ``jax.export`` artifact (:mod:`mjxdiff.export_cache`).
   Large batches are split across the host CPU devices (``shard_map``; XLA CPU
   runs one device per thread): one per core, or ``MJXDIFF_DEVICES=N`` set
   before mjxdiff is imported (see :data:`DEVICES`, :class:`MJXEngine`).
@@ -67,6 +68,7 @@ with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import 
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from mujoco.batch import Batch, SimulationError
 
+from mjxdiff import export_cache
 from mjxdiff.inputs import BatchedInputs
 
 __all__ = [
@@ -358,7 +360,11 @@ jax.monitoring.register_event_duration_secs_listener(_on_duration)
 
 
 def compile_count() -> int:
-    """How many times the MJX rollout has been traced (compiled) in this process."""
+    """How many times the MJX rollout has been traced (compiled) in this process.
+
+    A rollout loaded from a saved artifact (:mod:`mjxdiff.export_cache`) is not
+    traced and not counted here: see :func:`export_cache.loaded_count`.
+    """
     return _COMPILES["count"]
 
 
@@ -369,6 +375,7 @@ def compile_seconds() -> float:
 
 def clear_compiled() -> None:
     """Forgets compiled MJX rollouts, so the next rollout re-traces MJX's (possibly patched) Python code."""
+    export_cache.clear()
     _rollout.clear_cache()
     _resync_rollout.clear_cache()
     forward.clear_cache()
@@ -626,7 +633,8 @@ class MJXEngine:
         pending = None
         for start in range(0, T, chunk):
             with _unsupported():  # dispatched, not awaited: it runs while the caller handles the last piece
-                dx, rec = _rollout(mx, dx, place(ctrl[:, start:start + chunk]), varying, inputs.energy, mesh)
+                dx, rec = export_cache.call(_rollout, (mx, dx, place(ctrl[:, start:start + chunk])),
+                                            dict(varying=varying, with_energy=inputs.energy, mesh=mesh))
             if pending is not None:
                 yield piece(*pending)
             pending = rec, start
@@ -654,7 +662,7 @@ class MJXEngine:
         with _unsupported():
             mx, varying, dx0, place, mesh = self._prepare(inputs)
             arrays = tuple(place(np.asarray(x, dx0.qpos.dtype)) for x in batched)
-            rec = _resync_rollout(mx, dx0, *arrays, varying, mesh)
+            rec = export_cache.call(_resync_rollout, (mx, dx0, *arrays), dict(varying=varying, mesh=mesh))
         rec = {key: np.asarray(v)[:B].reshape(B, S * k, *v.shape[3:])[:, :T] for key, v in rec.items()}
         return _trajectory(rec, B, T)
 

@@ -51,10 +51,11 @@ def summary(results: Sequence[ScenarioResult], threshold: float) -> dict[str, An
     ran = len(results) - counts["unsupported"]
     rate = counts["pass"] / ran if ran else 1.0
     compiles = sum(r.info.get("mjx_compiles", 0) for r in results)
+    loaded = sum(r.info.get("mjx_loaded", 0) for r in results)
     compile_s = sum(r.info.get("seconds", {}).get("compile", 0.0) for r in results)
     return dict(total=len(results), **counts, pass_rate=rate, member_pass_threshold=threshold,
                 consistent=counts["fail"] == 0 and counts["error"] == 0, mjx_compiles=compiles,
-                compile_seconds=compile_s)
+                mjx_loaded=loaded, compile_seconds=compile_s)
 
 
 def _clean(x: Any) -> Any:

@@ -17,7 +17,7 @@ from typing import Callable, Iterable, Iterator, Sequence
 import jax
 import numpy as np
 
-from mjxdiff import diagnose, engines, report, reproducer
+from mjxdiff import diagnose, engines, export_cache, report, reproducer
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
 from mjxdiff.inputs import BatchedInputs, make_inputs
 from mjxdiff.scenario import Scenario, ScenarioError, Tolerances, load_model
@@ -227,7 +227,7 @@ def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Swe
     info = dict(info or {}, batch=inputs.batch, steps=inputs.steps)
     seconds = info.setdefault("seconds", {})
     base = dict(name=name, tolerances=tol.as_dict(), info=info)
-    compile_s, compiles = engines.compile_seconds(), engines.compile_count()
+    compile_s, compiles, loaded = engines.compile_seconds(), engines.compile_count(), export_cache.loaded_count()
     mjx_engine, c_engine = mjx_engine or MJXEngine(), c_engine or CEngine()
     clock: dict[str, float] = {}
     try:
@@ -242,7 +242,8 @@ def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Swe
         result = _diagnose(result, m, inputs, tol, config, mjx_engine, c_engine)
     seconds.update(c=clock.get("c", 0.0), mjx=clock.get("mjx", 0.0), verdict=clock.get("verdict", 0.0),
                    diagnosis=time.perf_counter() - t, compile=engines.compile_seconds() - compile_s)
-    info.update(mjx_compiles=engines.compile_count() - compiles, nq=m.nq, nv=m.nv, nu=m.nu,
+    info.update(mjx_compiles=engines.compile_count() - compiles, mjx_loaded=export_cache.loaded_count() - loaded,
+                nq=m.nq, nv=m.nv, nu=m.nu,
                 nsensordata=m.nsensordata, groups=clock["groups"], pieces=clock["pieces"])
     return dataclasses.replace(result, info=info)
 

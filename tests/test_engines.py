@@ -147,16 +147,24 @@ def test_put_models_equals_put_model_per_member(change):
             np.testing.assert_array_equal(leaf[i] if varying[k] else leaf, want)
 
 
-def test_pieces_of_a_stream_share_one_compiled_function():
+@pytest.mark.parametrize("saved", [False, True], ids=["jit", "export_cache"])
+def test_pieces_of_a_stream_share_one_compiled_function(saved, monkeypatch):
     """Every piece runs the same executable: the carried MJX data keeps the shardings and commitment
     the first piece was given (an empty leaf once came back replicated and cost a second compile)."""
-    from mjxdiff import engines
+    from mjxdiff import engines, export_cache
 
+    if not saved:
+        monkeypatch.setattr(export_cache, "export_dir", lambda: None)
+    engines.clear_compiled()
     scenario = load_scenario("cartpole")
     inputs = make_inputs(scenario, load_model(scenario), seed=5, batch=2, steps=21)
-    before = engines._rollout._cache_size()
     pieces = list(MJXEngine().stream(inputs, 7))
-    assert len(pieces) == 3 and engines._rollout._cache_size() == before + 1
+    assert len(pieces) == 3
+    if saved:
+        [(_, run)] = export_cache._FUNCTIONS.values()
+        assert run._cache_size() == 1
+    else:
+        assert engines._rollout._cache_size() == 1
 
 
 def test_automatic_split_needs_enough_members_per_device():

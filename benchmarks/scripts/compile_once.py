@@ -10,6 +10,6 @@ for precision in ("float64", "float32"):
     engines.configure_jax(precision, cache)
     c0, s0, t0 = engines.compile_count(), engines.compile_seconds(), time.perf_counter()
     r = run_scenario(load_scenario(name), SweepConfig(batch=64, steps=100, precision=precision))
-    out[precision] = dict(status=r.status, mjx_compiles=r.info["mjx_compiles"], compile_s=engines.compile_seconds() - s0,
+    out[precision] = dict(status=r.status, mjx_compiles=r.info["mjx_compiles"], mjx_loaded=r.info["mjx_loaded"], compile_s=engines.compile_seconds() - s0,
                           wall_s=time.perf_counter() - t0)
 print(json.dumps(out))

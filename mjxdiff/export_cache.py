@@ -1,0 +1,158 @@
+"""Compiled MJX rollouts kept across processes: ``jax.export`` artifacts beside JAX's cache.
+
+JAX's persistent compilation cache keeps XLA's output, but every new process
+still traces ``mjx.step`` in Python to find the cache key (2.5-3 s for an ant
+rollout, most of a warm sweep's compile time). :func:`call` traces a jitted
+function once, saves it as a serialized :mod:`jax.export` artifact (StableHLO
+plus its input and output structure), and in later processes loads that
+instead of tracing; XLA's compile of the loaded module is a persistent-cache
+hit. Numbers are unchanged: the cold run already executes the exported module.
+
+An artifact is keyed on everything the trace depended on: the tree structure
+of the arguments (which holds an ``mjx.Model``'s static fields), each leaf's
+shape, dtype and sharding, the static arguments, x64, and the versions of
+jax, jaxlib, mujoco, mujoco-mjx and the source of the module that defines the
+function. Code is not in the key, so artifacts are used only while MJX's
+modules hold the functions they were imported with (:func:`mjx_pristine`):
+a test that monkeypatches MJX to inject a bug always traces its patched code.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import importlib.metadata
+import inspect
+import os
+import pickle
+import sys
+import types
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+from jax import export
+
+__all__ = ["call", "clear", "export_dir", "loaded_count", "mjx_pristine"]
+
+_FUNCTIONS: dict[str, Callable] = {}  # key -> jitted call of an Exported
+_LOADED = {"count": 0}
+
+
+def _mjx_functions() -> dict[tuple[str, str], Any]:
+    return {(name, attr): value for name, module in list(sys.modules.items())
+            if module is not None and (name == "mujoco.mjx" or name.startswith("mujoco.mjx."))
+            for attr, value in list(vars(module).items()) if isinstance(value, types.FunctionType)}
+
+
+_PRISTINE = _mjx_functions()  # mjxdiff.engines imports mujoco.mjx (all of _src) before this module
+
+
+def mjx_pristine() -> bool:
+    """True while every function in MJX's modules is the one imported at start-up (nothing patched)."""
+    return all(_PRISTINE.get(k, v) is v for k, v in _mjx_functions().items())
+
+
+def export_dir() -> Path | None:
+    """Where artifacts live: ``mjxdiff-exports`` in JAX's compilation cache dir; None when that is off."""
+    cache = jax.config.jax_compilation_cache_dir
+    if not cache or "://" in str(cache):
+        return None
+    return Path(cache) / "mjxdiff-exports"
+
+
+def loaded_count() -> int:
+    """Compiled functions this process loaded from an artifact instead of tracing."""
+    return _LOADED["count"]
+
+
+def clear() -> None:
+    """Forgets the functions loaded or exported in this process (the files stay)."""
+    _FUNCTIONS.clear()
+
+
+def _versions() -> tuple[str, ...]:
+    return tuple(importlib.metadata.version(p) for p in ("jax", "jaxlib", "mujoco", "mujoco-mjx"))
+
+
+def _structure(treedef, h) -> None:
+    # node by node: pickle.dumps of the whole treedef depends on which equal aux objects
+    # happen to be shared (pickle's memo), so equal structures could hash differently
+    h.update(pickle.dumps((treedef.node_data(), len(treedef.children()))))
+    for child in treedef.children():
+        _structure(child, h)
+
+
+def _key(fn: Callable, treedef, leaves: list, static: dict[str, Any]) -> str:
+    h = hashlib.sha256()
+    _structure(treedef, h)
+    source = Path(inspect.getsourcefile(inspect.unwrap(fn)) or "").read_bytes()
+    for part in (_versions(), jax.config.jax_enable_x64, hashlib.sha256(source).digest(), fn.__qualname__,
+                 sorted((k, repr(v)) for k, v in static.items()),
+                 [(x.shape, str(x.dtype), str(getattr(x, "sharding", None))) for x in leaves]):
+        h.update(repr(part).encode() if not isinstance(part, bytes) else part)
+    return h.hexdigest()
+
+
+def _load(path: Path):
+    try:
+        out_tree, blob = pickle.loads(path.read_bytes())
+        return out_tree, export.deserialize(bytearray(blob))
+    except Exception:  # noqa: BLE001 - unreadable or from another format: trace again and overwrite
+        return None
+
+
+def _save(path: Path, out_tree, exported) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(f".{os.getpid()}.tmp")
+    tmp.write_bytes(pickle.dumps((out_tree, bytes(exported.serialize()))))
+    os.replace(tmp, path)  # atomic: a concurrent reader sees the old file or the whole new one
+
+
+def call(fn: Callable, args: tuple, static: dict[str, Any]):
+    """``fn(*args, **static)`` for a ``jax.jit`` function ``fn``, through a saved artifact when possible.
+
+    Falls back to calling ``fn`` directly when caching is off, MJX is patched,
+    or the function cannot be exported (the direct call then raises MJX's own
+    error, e.g. ``NotImplementedError`` for an unsupported feature).
+    """
+    directory = export_dir()
+    if directory is None or not mjx_pristine():
+        return fn(*args, **static)
+    leaves, treedef = jax.tree.flatten(args)
+    try:
+        key = _key(fn, treedef, leaves, static)
+    except (pickle.PicklingError, TypeError, AttributeError):  # static data that cannot be pickled
+        return fn(*args, **static)
+    if key not in _FUNCTIONS:
+        path = directory / f"{key}.jaxexport"
+        found = _load(path) if path.exists() else None
+        if found is None:
+            found = _export(fn, treedef, leaves, static)
+            if found is None:
+                return fn(*args, **static)
+            with contextlib.suppress(Exception):  # unwritable cache dir, no flatbuffers: use it unsaved
+                _save(path, *found)
+        else:
+            _LOADED["count"] += 1
+        out_tree, exported = found
+        _FUNCTIONS[key] = out_tree, jax.jit(exported.call)
+    out_tree, run = _FUNCTIONS[key]
+    return jax.tree.unflatten(out_tree, run(*leaves))
+
+
+def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
+    """(output tree structure, Exported) of ``fn`` over flat leaves, or None if it cannot be exported."""
+    out_tree = []
+
+    def flat(*leaves):
+        out, tree = jax.tree.flatten(fn(*jax.tree.unflatten(treedef, leaves), **static))
+        out_tree.append(tree)
+        return out
+
+    shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None)) for x in leaves]
+    try:
+        exported = export.export(jax.jit(flat), platforms=["cpu"])(*shapes)
+    except Exception:  # noqa: BLE001 - the direct call that follows raises MJX's own error, if any
+        return None
+    return out_tree[0], exported

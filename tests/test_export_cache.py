@@ -1,0 +1,72 @@
+"""Saved rollouts: loaded without tracing, bit-identical, never used for patched MJX or another structure."""
+
+import jax
+import mujoco
+import numpy as np
+import pytest
+from mujoco.mjx._src import passive as mjx_passive
+
+from mjxdiff import engines, export_cache
+from mjxdiff.engines import MJXEngine, put_models
+from mjxdiff.inputs import make_inputs
+from mjxdiff.scenario import load_model, load_scenario
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    scenario = load_scenario("pendulum")
+    m = load_model(scenario)
+    return m, make_inputs(scenario, m, seed=3, batch=4, steps=60)
+
+
+def _rollout(inputs):
+    engines.clear_compiled()  # forget this process's functions: the next call loads or traces
+    return MJXEngine(devices=1).rollout(inputs)
+
+
+def test_a_saved_rollout_is_loaded_without_tracing_and_matches_the_traced_one(pendulum, monkeypatch):
+    _, inputs = pendulum
+    assert export_cache.export_dir() is not None  # tests run with the persistent cache on
+    _rollout(inputs)  # saves the artifact if an earlier run has not
+    compiles, loaded = engines.compile_count(), export_cache.loaded_count()
+    saved = _rollout(inputs)
+    assert engines.compile_count() == compiles, "a saved rollout was traced again"
+    assert export_cache.loaded_count() == loaded + 1
+    monkeypatch.setattr(export_cache, "export_dir", lambda: None)  # the plain jit path
+    traced = _rollout(inputs)
+    for field in ("qpos", "qvel", "act", "sensordata", "time", "ncon"):
+        np.testing.assert_array_equal(getattr(saved, field), getattr(traced, field), err_msg=field)
+
+
+def test_patched_mjx_is_traced_not_loaded(pendulum, monkeypatch):
+    _, inputs = pendulum
+    clean = _rollout(inputs)
+    assert export_cache.mjx_pristine()
+    orig = mjx_passive._spring_damper
+    monkeypatch.setattr(mjx_passive, "_spring_damper", lambda m, d: orig(m, d) - 1e-3 * m.dof_damping * d.qvel)
+    assert not export_cache.mjx_pristine()
+    compiles, loaded = engines.compile_count(), export_cache.loaded_count()
+    patched = _rollout(inputs)
+    assert engines.compile_count() == compiles + 1 and export_cache.loaded_count() == loaded
+    assert np.abs(patched.qvel - clean.qvel).max() > 1e-9, "the patched damping did not reach the rollout"
+    monkeypatch.undo()
+    engines.clear_compiled()
+    assert export_cache.mjx_pristine()
+
+
+def _key(*models: mujoco.MjModel) -> str:
+    mx, varying = put_models(models if len(models) > 1 else models * 2)
+    leaves, treedef = jax.tree.flatten(mx)
+    return export_cache._key(engines._rollout, treedef, leaves, dict(varying=varying, with_energy=False, mesh=None))
+
+
+def test_the_key_follows_static_structure_not_parameter_values(pendulum):
+    m, _ = pendulum
+    heavier = load_model(load_scenario("pendulum"))
+    heavier.body_mass[:] *= 2
+    heavier.dof_damping[:] += 0.5
+    assert _key(heavier) == _key(m), "parameter values are inputs, not part of the compiled function"
+    other = load_model(load_scenario("pendulum"))
+    other.opt.integrator = int(mujoco.mjtIntegrator.mjINT_RK4)  # static in mjx.Model: another function
+    assert _key(other) != _key(m)
+    assert _key(m, heavier) != _key(m), "which leaves vary between members is part of the function"
