@@ -631,11 +631,13 @@ class MJXEngine:
             p = _trajectory(rec, B, k)
             return dataclasses.replace(p, diverged_at=_shifted(p.diverged_at, start))
 
-        pending = None
+        pending, run = None, None
         for start in range(0, T, chunk):
             with _unsupported():  # dispatched, not awaited: it runs while the caller handles the last piece
-                dx, rec = export_cache.call(_rollout, (mx, dx, place(ctrl[:, start:start + chunk])),
-                                            dict(varying=varying, with_energy=inputs.energy, mesh=mesh))
+                args = (mx, dx, place(ctrl[:, start:start + chunk]))
+                run = run or export_cache.bind(_rollout, args, dict(varying=varying, with_energy=inputs.energy,
+                                                                    mesh=mesh))
+                dx, rec = run(*args)
             if pending is not None:
                 yield piece(*pending)
             pending = rec, start

@@ -34,7 +34,7 @@ from typing import Any, Callable
 import jax
 from jax import export
 
-__all__ = ["call", "clear", "export_dir", "loaded_count", "mjx_pristine"]
+__all__ = ["bind", "call", "clear", "export_dir", "loaded_count", "mjx_pristine"]
 
 _FUNCTIONS: dict[str, Callable] = {}  # key -> jitted call of an Exported
 _LOADED = {"count": 0}
@@ -128,27 +128,35 @@ def _save(path: Path, out_tree, exported) -> None:
 
 
 def call(fn: Callable, args: tuple, static: dict[str, Any]):
-    """``fn(*args, **static)`` for a ``jax.jit`` function ``fn``, through a saved artifact when possible.
+    """``fn(*args, **static)`` for a ``jax.jit`` function ``fn``, through a saved artifact when possible."""
+    return bind(fn, args, static)(*args)
 
-    Falls back to calling ``fn`` directly when caching is off, MJX is patched,
-    or the function cannot be exported (the direct call then raises MJX's own
-    error, e.g. ``NotImplementedError`` for an unsupported feature).
+
+def bind(fn: Callable, args: tuple, static: dict[str, Any]) -> Callable:
+    """``fn`` with ``static`` bound, for calls whose arguments are shaped, typed and sharded like ``args``:
+    a loaded or freshly exported artifact when possible (exported on first use, from ``args``' shapes).
+
+    Binding once and calling many times (the pieces of a stream) spares each call the
+    structure's key. Falls back to ``fn`` itself when caching is off, MJX is patched,
+    or the function cannot be exported (calling it then raises MJX's own error, e.g.
+    ``NotImplementedError`` for an unsupported feature).
     """
+    direct = functools.partial(fn, **static)
     directory = export_dir()
     if directory is None or not mjx_pristine():
-        return fn(*args, **static)
+        return direct
     leaves, treedef = jax.tree.flatten(args)
     try:
         key = _key_of(fn, treedef, leaves, static)
     except (pickle.PicklingError, TypeError, AttributeError):  # static data that cannot be pickled
-        return fn(*args, **static)
+        return direct
     if key not in _FUNCTIONS:
         path = directory / f"{key}.jaxexport"
         found = _load(path) if path.exists() else None
         if found is None:
             found = _export(fn, treedef, leaves, static)
             if found is None:
-                return fn(*args, **static)
+                return direct
             with contextlib.suppress(Exception):  # unwritable cache dir, no flatbuffers: use it unsaved
                 _save(path, *found)
         else:
@@ -156,7 +164,7 @@ def call(fn: Callable, args: tuple, static: dict[str, Any]):
         out_tree, exported = found
         _FUNCTIONS[key] = out_tree, jax.jit(exported.call)
     out_tree, run = _FUNCTIONS[key]
-    return jax.tree.unflatten(out_tree, run(*leaves))
+    return lambda *args: jax.tree.unflatten(out_tree, run(*jax.tree.leaves(args)))
 
 
 def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
