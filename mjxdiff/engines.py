@@ -265,14 +265,25 @@ def first_diverged(diverged_at: list[np.ndarray]) -> np.ndarray:
     return out
 
 
+_NUMERIC_NAMES: dict[type, tuple[str, ...]] = {}
+
+
+def _numeric_names(example, kinds: tuple[type, ...]) -> tuple[str, ...]:
+    """The public attributes of ``example``'s type holding ``kinds`` (the same for every instance)."""
+    cls = type(example)
+    if cls not in _NUMERIC_NAMES:
+        _NUMERIC_NAMES[cls] = tuple(name for name in dir(example) if not name.startswith("_")
+                                    and isinstance(getattr(example, name), kinds))
+    return _NUMERIC_NAMES[cls]
+
+
 def _c_fields(m: mujoco.MjModel) -> dict[str, np.ndarray]:
     """Every numeric field of a C model, keyed like the MJX leaf it becomes (``body_mass``, ``opt.gravity``)."""
-    out = {name: value for name in dir(m) if not name.startswith("_")
-           and isinstance(value := getattr(m, name), np.ndarray)}
+    out = {name: getattr(m, name) for name in _numeric_names(m, (np.ndarray,))}
     for struct in ("opt", "stat"):
         sub = getattr(m, struct)
-        out.update({f"{struct}.{name}": np.asarray(value) for name in dir(sub) if not name.startswith("_")
-                    and isinstance(value := getattr(sub, name), (np.ndarray, float, int))})
+        out.update({f"{struct}.{name}": np.asarray(getattr(sub, name))
+                    for name in _numeric_names(sub, (np.ndarray, float, int))})
     return out
 
 
@@ -582,8 +593,9 @@ class MJXEngine:
     def _prepare(self, inputs: BatchedInputs):
         """Model, initial data and a placer for batched arrays: (mx, varying, dx0, place, mesh).
 
-        ``place(x)`` pads ``x`` along its batch axis to the split and puts it
-        on the devices; ``mx`` and ``dx0`` are already placed.
+        ``place(tree)`` pads every array of ``tree`` along its batch axis to the
+        split and puts it on the devices (one transfer for the whole tree);
+        ``mx`` and ``dx0`` are already placed.
         """
         mesh = self._mesh(inputs.batch)
         pad = -inputs.batch % mesh.size if mesh else 0
@@ -592,13 +604,16 @@ class MJXEngine:
         if mesh is None:
             # committed, as _rollout's outputs are: the next piece's call then hits the same compiled function
             device = jax.devices("cpu")[0]
-            return mx, varying, dx0, lambda x: jax.device_put(_pad(np.asarray(x), pad), device), None
+            return mx, varying, dx0, lambda tree: jax.device_put(jax.tree.map(np.asarray, tree), device), None
         split, shared = NamedSharding(mesh, PartitionSpec("batch")), NamedSharding(mesh, PartitionSpec())
         mx = jax.device_put(mx, _per_leaf(mx, varying, split, shared))
 
-        def place(x):  # empty arrays come back from shard_map replicated: give them that sharding from the start,
-            x = _pad(np.asarray(x), pad)  # or the next piece's call would lower and compile _rollout again
-            return jax.device_put(x, split if x.size else shared)
+        def place(tree):
+            leaves, treedef = jax.tree.flatten(jax.tree.map(lambda x: _pad(np.asarray(x), pad), tree))
+            # empty arrays come back from shard_map replicated: give them that sharding from the start,
+            # or the next piece's call would lower and compile _rollout again
+            placed = jax.device_put(leaves, [split if x.size else shared for x in leaves])
+            return jax.tree.unflatten(treedef, placed)
 
         return mx, varying, jax.device_put(dx0, shared), place, mesh
 
@@ -612,9 +627,12 @@ class MJXEngine:
         (solver warm start included), so the pieces concatenate to
         :meth:`rollout`'s result bit for bit; only one piece of records is
         held at a time. Every piece runs the same compiled function: the last
-        one is padded with zero controls and its extra records dropped. The
-        next piece is dispatched before this one is handed over, so it runs
-        while the caller works on this one.
+        one is padded with zero controls and its extra records dropped.
+
+        This call prepares the model and data and dispatches the first piece
+        (so errors of preparation, e.g. :class:`UnsupportedError`, are raised
+        here); the iterator it returns dispatches piece k+1 before handing
+        piece k over, so MJX keeps stepping while the caller works.
         """
         B, T = inputs.batch, inputs.steps
         with _unsupported():  # make_data and tracing mjx.step raise it for some features too
@@ -622,26 +640,28 @@ class MJXEngine:
             dtype = dx0.qpos.dtype
             state = dict(qpos=inputs.qpos, qvel=inputs.qvel, act=inputs.act)
             dx = jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (B, *x.shape)), jax.device_get(dx0))
-            dx = jax.tree.map(place, dx.replace(**{k: np.asarray(v, dtype) for k, v in state.items()}))
-        ctrl = np.zeros((B, -(-T // chunk) * chunk, inputs.ctrl.shape[2]), dtype)
-        ctrl[:, :T] = inputs.ctrl
+            dx = place(dx.replace(**{k: np.asarray(v, dtype) for k, v in state.items()}))
+            ctrl = np.zeros((B, -(-T // chunk) * chunk, inputs.ctrl.shape[2]), dtype)
+            ctrl[:, :T] = inputs.ctrl
+            args = (mx, dx, place(ctrl[:, :chunk]))
+            run = export_cache.bind(_rollout, args, dict(varying=varying, with_energy=inputs.energy, mesh=mesh))
+            first = run(*args)
+
         def piece(rec, start):
             k = min(chunk, T - start)
             rec = jax.tree.map(lambda x: np.asarray(x)[:B, :k], jax.block_until_ready(rec))
             p = _trajectory(rec, B, k)
             return dataclasses.replace(p, diverged_at=_shifted(p.diverged_at, start))
 
-        pending, run = None, None
-        for start in range(0, T, chunk):
-            with _unsupported():  # dispatched, not awaited: it runs while the caller handles the last piece
-                args = (mx, dx, place(ctrl[:, start:start + chunk]))
-                run = run or export_cache.bind(_rollout, args, dict(varying=varying, with_energy=inputs.energy,
-                                                                    mesh=mesh))
-                dx, rec = run(*args)
-            if pending is not None:
-                yield piece(*pending)
-            pending = rec, start
-        yield piece(*pending)
+        def pieces(dx, rec):
+            for start in range(chunk, T, chunk):
+                with _unsupported():  # dispatched, not awaited: it runs while the caller handles the last piece
+                    dx, following = run(mx, dx, place(ctrl[:, start:start + chunk]))
+                yield piece(rec, start - chunk)
+                rec = following
+            yield piece(rec, (T - 1) // chunk * chunk)
+
+        return pieces(*first)
 
     def resync(self, inputs: BatchedInputs, reference: Trajectory, every: int = 1) -> Trajectory:
         """MJX re-synchronised to ``reference`` (C) every ``every`` steps.
@@ -664,7 +684,7 @@ class MJXEngine:
                    state("time", np.zeros(B)), ctrl.reshape(B, S, k, -1))
         with _unsupported():
             mx, varying, dx0, place, mesh = self._prepare(inputs)
-            arrays = tuple(place(np.asarray(x, dx0.qpos.dtype)) for x in batched)
+            arrays = place(tuple(np.asarray(x, dx0.qpos.dtype) for x in batched))
             rec = export_cache.call(_resync_rollout, (mx, dx0, *arrays), dict(varying=varying, mesh=mesh))
         rec = {key: np.asarray(v)[:B].reshape(B, S * k, *v.shape[3:])[:, :T] for key, v in rec.items()}
         return _trajectory(rec, B, T)

@@ -154,23 +154,37 @@ class _EngineFailed(Exception):
         self.engine = engine
 
 
-def _timed(pieces: Iterable[Trajectory], engine: str, seconds: dict[str, float]) -> Iterator[Trajectory]:
-    """The pieces of one engine's stream, wall time added to ``seconds[engine]``; a crash
-    becomes :class:`_EngineFailed` (MJX's :class:`UnsupportedError` passes through)."""
-    it = iter(pieces)
-    while True:
-        t = time.perf_counter()
-        try:
-            piece = next(it, None)
-        except UnsupportedError:
-            raise
-        except Exception as e:  # noqa: BLE001 - reported as this scenario's error, the sweep goes on
-            raise _EngineFailed(engine, e) from e
-        finally:
-            seconds[engine] = seconds.get(engine, 0.0) + time.perf_counter() - t
-        if piece is None:
-            return
-        yield piece
+@contextlib.contextmanager
+def _engine_call(engine: str, seconds: dict[str, float]):
+    """Wall time added to ``seconds[engine]``; a crash becomes :class:`_EngineFailed`
+    (MJX's :class:`UnsupportedError` passes through)."""
+    t = time.perf_counter()
+    try:
+        yield
+    except UnsupportedError:
+        raise
+    except Exception as e:  # noqa: BLE001 - reported as this scenario's error, the sweep goes on
+        raise _EngineFailed(engine, e) from e
+    finally:
+        seconds[engine] = seconds.get(engine, 0.0) + time.perf_counter() - t
+
+
+def _timed(stream: Callable[[], Iterable[Trajectory]], engine: str,
+           seconds: dict[str, float]) -> Iterator[Trajectory]:
+    """The pieces of ``stream()`` (called now: MJX prepares and dispatches its first piece
+    in that call), each call timed and guarded by :func:`_engine_call`."""
+    with _engine_call(engine, seconds):
+        it = iter(stream())
+
+    def pieces():
+        while True:
+            with _engine_call(engine, seconds):
+                piece = next(it, None)
+            if piece is None:
+                return
+            yield piece
+
+    return pieces()
 
 
 def _rows(x, n: int):
@@ -243,10 +257,11 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
     for idx in groups:
         members = idx[:len(np.unique(idx))]  # the padding repeats come last
         group = inputs.take(idx) if len(groups) > 1 else inputs
-        mjx = _timed(mjx_engine.stream(group, chunk), "mjx", seconds)
-        c = _timed(c_engine.stream(group, chunk), "c", seconds)
+        # MJX first: its first piece is stepping before C's thread starts
+        mjx = _timed(lambda: mjx_engine.stream(group, chunk), "mjx", seconds)
+        c = _timed(lambda: c_engine.stream(group, chunk), "c", seconds)
         if floor:  # each C piece with its perturbed rerun
-            c = zip(c, _timed(c_engine.stream(perturb(group, config.precision), chunk), "c", seconds))
+            c = zip(c, _timed(lambda: c_engine.stream(perturb(group, config.precision), chunk), "c", seconds))
         start, n = 0, len(members)
         # C in a thread, MJX dispatching its next piece before handing this one over: both engines
         # keep stepping while the verdict of a piece is computed
