@@ -74,6 +74,15 @@ class BatchedInputs:
             models=tuple(self.models[int(i)] for i in np.arange(self.batch)[members]),
             factors={k: pick(v) for k, v in self.factors.items()}, member_ids=ids)
 
+    def concat(self, other: "BatchedInputs") -> "BatchedInputs":
+        """These members followed by ``other``'s (same model structure, steps and ``energy``)."""
+        join = lambda a, b: np.concatenate([np.asarray(a), np.asarray(b)])
+        return dataclasses.replace(
+            self, qpos=join(self.qpos, other.qpos), qvel=join(self.qvel, other.qvel), act=join(self.act, other.act),
+            ctrl=join(self.ctrl, other.ctrl), models=self.models + other.models,
+            factors={k: join(v, other.factors[k]) for k, v in self.factors.items() if k in other.factors},
+            member_ids=join(self.ids, other.ids))
+
 
 def _rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng([seed, zlib.crc32(name.encode())])
@@ -153,8 +162,9 @@ def make_controls(m: mujoco.MjModel, randomize: Randomization, batch: int, steps
     return np.clip(ctrl, lo, hi)
 
 
-def _scaled_model(m: mujoco.MjModel, factors: dict[str, np.ndarray], i: int) -> mujoco.MjModel:
-    """A copy of ``m`` with member ``i``'s factors applied and constants recomputed."""
+def _scaled_model(m: mujoco.MjModel, factors: dict[str, np.ndarray], i: int, d: mujoco.MjData) -> mujoco.MjModel:
+    """A copy of ``m`` with member ``i``'s factors applied and constants recomputed (``d``: scratch
+    data of ``m``'s sizes; allocating one per member cost more than the copy itself)."""
     mi = copy.copy(m)
     f = {k: v[i] for k, v in factors.items()}
     if "body_mass" in f:
@@ -174,7 +184,7 @@ def _scaled_model(m: mujoco.MjModel, factors: dict[str, np.ndarray], i: int) -> 
         mi.opt.timestep = m.opt.timestep * f["timestep"]
     # C reads derived constants (subtree masses, invweights) that MJX's
     # put_model copies; recompute them so both engines see one consistent model.
-    mujoco.mj_setConst(mi, mujoco.MjData(mi))
+    mujoco.mj_setConst(mi, d)
     return mi
 
 
@@ -217,6 +227,7 @@ def make_inputs(scenario: Scenario, m: mujoco.MjModel, seed: int,
             continue
         factors[name] = rng.uniform(lo, hi, (batch, *FACTOR_SHAPES[name](m)))
     ctrl = make_controls(m, rz, batch, steps, m.opt.timestep, rng)
-    models = tuple(_scaled_model(m, factors, i) for i in range(batch)) if factors else (m,) * batch
+    scratch = mujoco.MjData(m)
+    models = tuple(_scaled_model(m, factors, i, scratch) for i in range(batch)) if factors else (m,) * batch
     return BatchedInputs(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl, models=models, factors=factors, seed=seed,
                         energy=scenario.energy)

@@ -187,9 +187,10 @@ def _timed(stream: Callable[[], Iterable[Trajectory]], engine: str,
     return pieces()
 
 
-def _rows(x, n: int):
-    """The first ``n`` members of a piece (a Trajectory or a dict of (b, ...) arrays)."""
-    return jax.tree.map(lambda a: a[:n], x)
+def _rows(x, rows: int | slice):
+    """Members of a piece (a Trajectory or a dict of (b, ...) arrays): the first ``rows``, or a slice."""
+    rows = rows if isinstance(rows, slice) else slice(0, rows)
+    return jax.tree.map(lambda a: a[rows], x)
 
 
 def _ahead(items: Iterable, depth: int = 1) -> Iterator:
@@ -259,9 +260,11 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
         group = inputs.take(idx) if len(groups) > 1 else inputs
         # MJX first: its first piece is stepping before C's thread starts
         mjx = _timed(lambda: mjx_engine.stream(group, chunk), "mjx", seconds)
-        c = _timed(lambda: c_engine.stream(group, chunk), "c", seconds)
-        if floor:  # each C piece with its perturbed rerun
-            c = zip(c, _timed(lambda: c_engine.stream(perturb(group, config.precision), chunk), "c", seconds))
+        if floor:  # C's reference and its perturbed rerun as one batch: half the thread-pool rounds of two
+            both = _timed(lambda: c_engine.stream(group.concat(perturb(group, config.precision)), chunk), "c", seconds)
+            c = ((_rows(p, slice(0, group.batch)), _rows(p, slice(group.batch, None))) for p in both)
+        else:
+            c = _timed(lambda: c_engine.stream(group, chunk), "c", seconds)
         start, n = 0, len(members)
         # C in a thread, MJX dispatching its next piece before handing this one over: both engines
         # keep stepping while the verdict of a piece is computed

@@ -23,6 +23,7 @@ def test_bench_measures_both_engines(tmp_path, capsys):
         assert 0 < p["c_cpu"] <= 1.05 and 0 < p["mjx_cpu"] <= 1.05
     assert r["best"] in r["curve"]
     assert r["tester"]["engines_s"] > 0 and r["tester"]["verify_s"] > 0
+    assert r["tester"]["engines_cpu_s"] > 0 and r["tester"]["cpu_ratio"] > 0
     assert any("bottleneck" in text for text in r["recommendations"])
 
 
@@ -44,7 +45,7 @@ def _result(mjx, c, compile_s=0.1, speedup=2.0, ratio=0.9):
              for b, s in mjx]
     best = max(curve, key=lambda p: p["mjx_steps_per_s"])
     return dict(curve=curve, best=best, split=dict(devices=2, speedup=speedup),
-                tester=dict(throughput_ratio=ratio))
+                tester=dict(throughput_ratio=ratio, cpu_ratio=ratio))
 
 
 def test_recommendations_follow_the_numbers():

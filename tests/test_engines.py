@@ -175,3 +175,17 @@ def test_automatic_split_needs_enough_members_per_device():
     assert MJXEngine().split(n * SPLIT_MIN_MEMBERS - 1) == (1 if n > 1 else n)
     assert MJXEngine(devices=1).split(1000) == 1
     assert MJXEngine().batch_cap() == n * MEMBERS_PER_DEVICE and MJXEngine(devices=1).batch_cap() == MEMBERS_PER_DEVICE
+
+
+def test_c_members_do_not_depend_on_their_batch_neighbours():
+    """The sweep steps C's reference and perturbed rerun as one batch: each member's records must be
+    those it has alone."""
+    from mjxdiff.noise import perturb
+
+    scenario = load_scenario("cartpole")
+    inputs = make_inputs(scenario, load_model(scenario), seed=4, batch=3, steps=40)
+    moved = perturb(inputs, "float64")
+    both = CEngine().rollout(inputs.concat(moved))
+    for part, rows in ((CEngine().rollout(inputs), slice(0, 3)), (CEngine().rollout(moved), slice(3, 6))):
+        for field in ("qpos", "qvel", "act", "sensordata", "time", "ncon", "diverged_at"):
+            np.testing.assert_array_equal(getattr(both, field)[rows], getattr(part, field), err_msg=field)

@@ -66,3 +66,16 @@ def test_scaled_parameters_recompute_constants(model):
     # mj_setConst ran: the subtree mass follows the new masses
     assert m1.body_subtreemass[0] == pytest.approx(m1.body_mass.sum())
     np.testing.assert_allclose(m1.opt.gravity, model.opt.gravity * inp.factors["gravity"][1])
+
+
+def test_concat_then_take_gives_back_both_batches(model):
+    scenario = _scenario(scale={"body_mass": (0.8, 1.2)})
+    a, b = make_inputs(scenario, model, seed=1, batch=3, steps=5), make_inputs(scenario, model, seed=2, batch=2, steps=5)
+    both = a.concat(b)
+    assert both.batch == 5 and both.models == a.models + b.models
+    for part, rows in ((a, slice(0, 3)), (b, slice(3, 5))):
+        back = both.take(rows)
+        for field in ("qpos", "qvel", "act", "ctrl"):
+            np.testing.assert_array_equal(getattr(back, field), getattr(part, field), err_msg=field)
+        np.testing.assert_array_equal(back.ids, part.ids)
+        np.testing.assert_array_equal(back.factors["body_mass"], part.factors["body_mass"])
