@@ -13,8 +13,9 @@ of the arguments (which holds an ``mjx.Model``'s static fields), each leaf's
 shape, dtype and sharding, the static arguments, x64, and the versions of
 jax, jaxlib, mujoco, mujoco-mjx and the source of the module that defines the
 function. Code is not in the key, so artifacts are used only while MJX's
-modules hold the functions they were imported with (:func:`mjx_pristine`):
-a test that monkeypatches MJX to inject a bug always traces its patched code.
+modules (and mjxdiff.engines) hold the functions they were imported with
+(:func:`mjx_pristine`): a test that monkeypatches MJX to inject a bug always
+traces its patched code.
 """
 
 from __future__ import annotations
@@ -36,22 +37,27 @@ from jax import export
 
 __all__ = ["bind", "call", "clear", "export_dir", "loaded_count", "mjx_pristine"]
 
-_FUNCTIONS: dict[str, Callable] = {}  # key -> jitted call of an Exported
+_FUNCTIONS: dict[str, tuple[Any, Callable]] = {}  # key -> (output tree structure, jitted call of an Exported)
 _LOADED = {"count": 0}
 
 
-def _mjx_functions() -> dict[tuple[str, str], Any]:
+def _traced_functions() -> dict[tuple[str, str], Any]:
+    """Module-level functions of MJX and of mjxdiff.engines (the code a rollout traces)."""
     return {(name, attr): value for name, module in list(sys.modules.items())
-            if module is not None and (name == "mujoco.mjx" or name.startswith("mujoco.mjx."))
+            if module is not None and (name in ("mujoco.mjx", "mjxdiff.engines") or name.startswith("mujoco.mjx."))
             for attr, value in list(vars(module).items()) if isinstance(value, types.FunctionType)}
 
 
-_PRISTINE = _mjx_functions()  # mjxdiff.engines imports mujoco.mjx (all of _src) before this module
+_PRISTINE = _traced_functions()  # mjxdiff.engines imports mujoco.mjx (all of _src) before this module
 
 
 def mjx_pristine() -> bool:
-    """True while every function in MJX's modules is the one imported at start-up (nothing patched)."""
-    return all(_PRISTINE.get(k, v) is v for k, v in _mjx_functions().items())
+    """True while every function of MJX's modules and of mjxdiff.engines is the one first seen
+    (imported at start-up, or at the first check for functions defined later): nothing patched."""
+    current = _traced_functions()
+    for k, v in current.items():
+        _PRISTINE.setdefault(k, v)
+    return all(_PRISTINE[k] is v for k, v in current.items())
 
 
 def export_dir() -> Path | None:

@@ -70,3 +70,9 @@ def test_the_key_follows_static_structure_not_parameter_values(pendulum):
     other.opt.integrator = int(mujoco.mjtIntegrator.mjINT_RK4)  # static in mjx.Model: another function
     assert _key(other) != _key(m)
     assert _key(m, heavier) != _key(m), "which leaves vary between members is part of the function"
+
+
+def test_patching_mjxdiffs_own_traced_code_is_noticed(monkeypatch):
+    assert export_cache.mjx_pristine()
+    monkeypatch.setattr(engines, "_contact_count", lambda dx: 0)  # would count no contacts
+    assert not export_cache.mjx_pristine()
