@@ -146,7 +146,7 @@ def _tester_overhead(scenario: Scenario, m, inputs: BatchedInputs, repeats: int)
     engines = lambda: (c_engine.rollout(inputs), mjx_engine.rollout(inputs))
     engines()
     times: dict[str, list[tuple[float, float]]] = {"engines": [], "verify": []}
-    for _ in range(max(repeats, 3)):  # interleaved, so that a slow spell of the machine hits both
+    for _ in range(max(repeats, 5)):  # interleaved, so that a slow spell of the machine hits both
         for key, fn in (("engines", engines), ("verify", verify)):
             wall, cpu = time.perf_counter(), time.process_time()
             fn()
