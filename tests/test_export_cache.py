@@ -76,3 +76,19 @@ def test_patching_mjxdiffs_own_traced_code_is_noticed(monkeypatch):
     assert export_cache.mjx_pristine()
     monkeypatch.setattr(engines, "_contact_count", lambda dx: 0)  # would count no contacts
     assert not export_cache.mjx_pristine()
+
+
+def test_a_damaged_artifact_is_traced_again_and_rewritten(pendulum):
+    _, inputs = pendulum
+    reference = _rollout(inputs)
+    [(key, _)] = export_cache._FUNCTIONS.items()  # this rollout's artifact, just loaded or saved
+    path = export_cache.export_dir() / f"{key}.jaxexport"
+    for damaged in (b"", b"not a pickle", path.read_bytes()[:100]):
+        path.write_bytes(damaged)
+        loaded = export_cache.loaded_count()
+        again = _rollout(inputs)
+        np.testing.assert_array_equal(again.qpos, reference.qpos)
+        assert export_cache.loaded_count() == loaded, "a damaged artifact cannot have been loaded"
+        assert path.read_bytes() != damaged, "it is replaced by a good one..."
+        _rollout(inputs)
+        assert export_cache.loaded_count() == loaded + 1, "...which the next process loads"
