@@ -265,16 +265,16 @@ def first_diverged(diverged_at: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-_NUMERIC_NAMES: dict[type, tuple[str, ...]] = {}
+_NUMERIC_NAMES: dict[tuple[type, tuple[type, ...]], tuple[str, ...]] = {}
 
 
 def _numeric_names(example, kinds: tuple[type, ...]) -> tuple[str, ...]:
     """The public attributes of ``example``'s type holding ``kinds`` (the same for every instance)."""
-    cls = type(example)
-    if cls not in _NUMERIC_NAMES:
-        _NUMERIC_NAMES[cls] = tuple(name for name in dir(example) if not name.startswith("_")
+    key = (type(example), kinds)
+    if key not in _NUMERIC_NAMES:
+        _NUMERIC_NAMES[key] = tuple(name for name in dir(example) if not name.startswith("_")
                                     and isinstance(getattr(example, name), kinds))
-    return _NUMERIC_NAMES[cls]
+    return _NUMERIC_NAMES[key]
 
 
 def _c_fields(m: mujoco.MjModel) -> dict[str, np.ndarray]:
