@@ -595,7 +595,8 @@ class MJXEngine:
 
         ``place(tree)`` pads every array of ``tree`` along its batch axis to the
         split and puts it on the devices (one transfer for the whole tree);
-        ``mx`` and ``dx0`` are already placed.
+        ``mx`` is already placed, ``dx0`` (one member's data) is not: the
+        stream batches it on the host, only resync needs it on the devices.
         """
         mesh = self._mesh(inputs.batch)
         pad = -inputs.batch % mesh.size if mesh else 0
@@ -615,7 +616,7 @@ class MJXEngine:
             placed = jax.device_put(leaves, [split if x.size else shared for x in leaves])
             return jax.tree.unflatten(treedef, placed)
 
-        return mx, varying, jax.device_put(dx0, shared), place, mesh
+        return mx, varying, dx0, place, mesh
 
     def rollout(self, inputs: BatchedInputs) -> Trajectory:
         return concat(list(self.stream(inputs, inputs.steps)))
@@ -685,6 +686,8 @@ class MJXEngine:
         with _unsupported():
             mx, varying, dx0, place, mesh = self._prepare(inputs)
             arrays = place(tuple(np.asarray(x, dx0.qpos.dtype) for x in batched))
+            if mesh is not None:
+                dx0 = jax.device_put(dx0, NamedSharding(mesh, PartitionSpec()))
             rec = export_cache.call(_resync_rollout, (mx, dx0, *arrays), dict(varying=varying, mesh=mesh))
         rec = {key: np.asarray(v)[:B].reshape(B, S * k, *v.shape[3:])[:, :T] for key, v in rec.items()}
         return _trajectory(rec, B, T)
