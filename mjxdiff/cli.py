@@ -104,6 +104,10 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--envelope", action=argparse.BooleanOptionalAction, default=True,
                     help="judge errors against the chaos envelope measured from C's own divergence under "
                          "rounding-level perturbations (default); --no-envelope uses fixed tolerances only")
+    sw.add_argument("--noise-floor", choices=("on-demand", "always"), default="on-demand",
+                    help="when C's perturbed rerun (the envelope's source) runs: on-demand (default) only for "
+                         "members whose errors exceed the fixed tolerances, the only ones the envelope can "
+                         "change; always: for every member, so that every report gives the envelope and noise_rate")
     sw.add_argument("--diagnose", choices=("none", "basic", "full"), default="full",
                     help="for failing scenarios: basic = re-synchronised one-step error and the first "
                          "pipeline stage that differs; full (default) = also the likely cause, from reruns "
@@ -185,7 +189,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     config = SweepConfig(seed=args.seed, batch=args.batch, steps=args.steps, precision=args.precision,
                          reproducers=reproducers,
                          quick=args.quick, threshold=args.threshold, envelope=args.envelope,
-                         diagnose=args.diagnose)
+                         noise_floor=args.noise_floor, diagnose=args.diagnose)
     scenarios, bad = [], []
     try:
         refs = args.scenarios or [s.name for s in bundled_scenarios()]

@@ -43,7 +43,10 @@ class NoiseFloor:
     Feed it pieces of the perturbed and the reference C rollout
     (:meth:`update`, the same pieces the :class:`~mjxdiff.verdict.Judge`
     gets); each call returns that piece's envelope. Only (B,) running values
-    and a (T,) batch-max series per field are kept.
+    and a (T,) batch-max series per field are kept. Each member's pieces
+    must come in order from step 0; members never fed (the sweep computes the
+    floor only where errors exceed the fixed tolerances) count as never
+    diverging from themselves and are left out of :attr:`rate`.
 
     Args:
       batch, steps: B members and T steps in all.
@@ -58,6 +61,7 @@ class NoiseFloor:
         self._batch_max: dict[str, np.ndarray] = {}  # field -> (T,)
         self._blown = np.zeros(batch, bool)  # the perturbed rerun has blown up
         self._contact_changes = np.zeros(batch)
+        self.fed = np.zeros(batch, bool)  # members whose perturbed rerun was fed
 
     def update(self, perturbed: Trajectory, reference: Trajectory, start: int = 0,
                members: np.ndarray | slice = slice(None)) -> dict[str, np.ndarray]:
@@ -79,6 +83,7 @@ class NoiseFloor:
             running[members] = piece[:, -1]
             envelope[key] = self.margin * piece
         self._contact_changes[members] += (perturbed.ncon != reference.ncon).sum(axis=1)
+        self.fed[members] = True
         return envelope
 
     @property
@@ -88,7 +93,10 @@ class NoiseFloor:
 
     @property
     def rate(self) -> dict[str, float]:
-        """Field -> finite-time Lyapunov-style growth rate of the batch-max self-divergence, 1/s."""
+        """Field -> finite-time Lyapunov-style growth rate of the batch-max self-divergence, 1/s
+        (over the members fed; an empty dict when none was)."""
+        if not self.fed.any():
+            return {}
         return {k: float(metrics.error_growth(jnp.asarray(v), self.dt).rate) for k, v in self._batch_max.items()}
 
 

@@ -42,6 +42,11 @@ class SweepConfig:
       threshold: least fraction of batch members within tolerance for a scenario to pass.
       envelope: judge against the chaos envelope from C's self-divergence
         (:mod:`mjxdiff.noise`); False holds errors to the fixed tolerances only.
+      noise_floor: when C's perturbed rerun (the envelope's source) runs: ``on-demand``
+        only for groups of members whose errors exceed the fixed tolerances (or whose
+        contact counts mismatch too often), the only ones whose verdict it can change;
+        ``always`` for every member, so that every report carries the envelope and
+        ``noise_rate``.
       diagnose: for failing scenarios, ``none``; ``basic``: local
         (re-synchronised) error and the stage drill-down; ``full``: also the
         cause attribution by ablations (each ablation recompiles).
@@ -58,6 +63,7 @@ class SweepConfig:
     quick: bool = False
     threshold: float = 0.95
     envelope: bool = True
+    noise_floor: str = "on-demand"
     diagnose: str = "full"
     reproducers: str | None = None
     piece_steps: int | None = None
@@ -238,14 +244,61 @@ def _ahead(items: Iterable, depth: int = 1) -> Iterator:
         worker.join()
 
 
+class _CPieces:
+    """C's pieces of one group of members, (reference, perturbed rerun or None), computed in a
+    background thread (:func:`_ahead`).
+
+    Without the noise floor C steps the reference alone. :meth:`start_floor`
+    restarts it from step 0 with the reference and its perturbed rerun as one
+    batch (half the thread-pool rounds of two batches; each member's rows are
+    bit-identical to a run of its own) and feeds the noise floor the pieces it
+    missed, so that the floor's running maxima are those of a rerun that ran
+    from the start. C steps ~8x faster than MJX, so catching up costs little.
+    """
+
+    def __init__(self, c_engine: CEngine, group: BatchedInputs, chunk: int, precision: str,
+                 seconds: dict[str, float], floor: bool):
+        self._open = lambda floor: self._stream(c_engine, group, chunk, precision, seconds, floor)
+        self._pieces, self.floor = self._open(floor), floor
+
+    @staticmethod
+    def _stream(c_engine, group, chunk, precision, seconds, floor: bool) -> Iterator:
+        if not floor:
+            return _ahead((p, None) for p in _timed(lambda: c_engine.stream(group, chunk), "c", seconds))
+        both = _timed(lambda: c_engine.stream(group.concat(perturb(group, precision)), chunk), "c", seconds)
+        return _ahead((_rows(p, slice(0, group.batch)), _rows(p, slice(group.batch, None))) for p in both)
+
+    def __next__(self) -> tuple[Trajectory, Trajectory | None]:
+        return next(self._pieces)
+
+    def start_floor(self, until: int, feed: Callable[[Trajectory, Trajectory, int], object]) -> None:
+        """Restarts with the perturbed rerun; ``feed(perturbed, reference, start)`` gets the
+        pieces before step ``until``, and the next piece is the one starting there."""
+        self.close()
+        self._pieces, self.floor, start = self._open(True), True, 0
+        while start < until:
+            reference, perturbed = next(self)
+            feed(perturbed, reference, start)
+            start += reference.time.shape[1]
+
+    def close(self) -> None:
+        self._pieces.close()
+
+
 def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig, mjx_engine: MJXEngine,
-             c_engine: CEngine, seconds: dict[str, float]) -> ScenarioResult:
+             c_engine: CEngine, seconds: dict[str, float]) -> tuple[ScenarioResult, dict[str, int]]:
     """Streams both engines (and C's perturbed rerun) piece by piece into a :class:`Judge`.
 
     Members run in groups of at most :func:`group_size` (memory) and the MJX
     engine's :meth:`~mjxdiff.engines.MJXEngine.batch_cap` (speed), steps in pieces of
-    :func:`piece_steps`; ``seconds`` gains wall time per engine and for the
-    verdict, plus the counts of groups and pieces.
+    :func:`piece_steps`; ``seconds`` gains wall time per engine and for the verdict.
+    With ``config.noise_floor == 'on-demand'`` a group's perturbed rerun starts (from step
+    0) at its first piece with an error above the fixed tolerances: before that, no
+    envelope could have changed the verdict.
+
+    Returns:
+      The verdict, and the counts of ``groups``, ``pieces`` and ``noise_floor_members``
+      (members whose perturbed rerun ran).
 
     Raises:
       UnsupportedError, _EngineFailed: from the engines.
@@ -257,30 +310,41 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
     floor = NoiseFloor(m, rangefinder_mask(m), B, T) if config.envelope else None
     for idx in groups:
         members = idx[:len(np.unique(idx))]  # the padding repeats come last
+        n = len(members)
         group = inputs.take(idx) if len(groups) > 1 else inputs
+        feed = lambda perturbed, reference, at: floor.update(_rows(perturbed, n), _rows(reference, n), at, members)
         # MJX first: its first piece is stepping before C's thread starts
         mjx = _timed(lambda: mjx_engine.stream(group, chunk), "mjx", seconds)
-        if floor:  # C's reference and its perturbed rerun as one batch: half the thread-pool rounds of two
-            both = _timed(lambda: c_engine.stream(group.concat(perturb(group, config.precision)), chunk), "c", seconds)
-            c = ((_rows(p, slice(0, group.batch)), _rows(p, slice(group.batch, None))) for p in both)
-        else:
-            c = _timed(lambda: c_engine.stream(group, chunk), "c", seconds)
-        start, n = 0, len(members)
+        start = 0
         # C in a thread, MJX dispatching its next piece before handing this one over: both engines
         # keep stepping while the verdict of a piece is computed
-        with contextlib.closing(_ahead(c)) as c:
+        with contextlib.closing(_CPieces(c_engine, group, chunk, config.precision, seconds,
+                                         floor is not None and config.noise_floor == "always")) as c:
             for piece_mjx in mjx:
-                piece_c, piece_p = next(c) if floor else (next(c), None)
+                piece_c, piece_p = next(c)
                 t = time.perf_counter()
-                envelope = floor.update(_rows(piece_p, n), _rows(piece_c, n), start, members) if floor else None
-                judge.update(_rows(piece_c, n), _rows(piece_mjx, n), envelope, start, members)
-                seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
+                reference, simulated = _rows(piece_c, n), _rows(piece_mjx, n)
+                series = judge.errors(reference, simulated)
+                if floor and not c.floor and judge.exceeds_tolerance(series):
+                    caught_up = time.perf_counter()
+                    c.start_floor(start, feed)
+                    piece_c, piece_p = next(c)
+                    t += time.perf_counter() - caught_up  # waiting for C is C's time
+                envelope = feed(piece_p, piece_c, start) if piece_p is not None else None
+                judge.update(reference, simulated, envelope, start, members, series)
                 start += piece_c.time.shape[1]
+                if floor and not c.floor and judge.contacts_exceed_tolerance(members):
+                    caught_up = time.perf_counter()
+                    c.start_floor(start, feed)
+                    t += time.perf_counter() - caught_up
+                seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
     t = time.perf_counter()
-    result = judge.result(name, config.threshold, floor)
+    noise = floor if floor is not None and floor.fed.any() else None
+    result = judge.result(name, config.threshold, noise)
     seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
-    seconds.update(groups=len(groups), pieces=len(groups) * -(-T // chunk))
-    return result
+    counts = dict(groups=len(groups), pieces=len(groups) * -(-T // chunk),
+                  noise_floor_members=int(floor.fed.sum()) if floor is not None else 0)
+    return result, counts
 
 
 def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig = SweepConfig(),
@@ -299,7 +363,7 @@ def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Swe
     mjx_engine, c_engine = mjx_engine or MJXEngine(), c_engine or CEngine()
     clock: dict[str, float] = {}
     try:
-        result = _verdict(name, m, inputs, tol, config, mjx_engine, c_engine, clock)
+        result, counts = _verdict(name, m, inputs, tol, config, mjx_engine, c_engine, clock)
     except UnsupportedError as e:
         return ScenarioResult(status="unsupported", message=f"MJX does not support: {e.feature}", **base)
     except _EngineFailed as e:
@@ -312,7 +376,7 @@ def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Swe
                    diagnosis=time.perf_counter() - t, compile=engines.compile_seconds() - compile_s)
     info.update(mjx_compiles=engines.compile_count() - compiles, mjx_loaded=export_cache.loaded_count() - loaded,
                 nq=m.nq, nv=m.nv, nu=m.nu,
-                nsensordata=m.nsensordata, groups=clock["groups"], pieces=clock["pieces"])
+                nsensordata=m.nsensordata, **counts)
     return dataclasses.replace(result, info=info)
 
 
@@ -340,7 +404,7 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
         def passes(ablated: BatchedInputs, precision: str) -> bool:
             with _precision(precision):
                 return _verdict(result.name, ablated.models[0], ablated, tol, config, mjx_engine, c_engine,
-                                {}).status == "pass"
+                                {})[0].status == "pass"
 
         cause = diagnose.attribute_cause(passes, inputs, config.precision)
         diagnosis["cause"] = cause

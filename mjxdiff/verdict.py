@@ -339,10 +339,30 @@ class Judge:
         self.behaviour = {"c": _BehaviourTrack(batch, steps, width), "mjx": _BehaviourTrack(batch, steps, width)}
         self.diverged_at = {"c": np.full(batch, -1), "mjx": np.full(batch, -1)}
 
+    def errors(self, traj_c: Trajectory, traj_mjx: Trajectory) -> dict[str, np.ndarray]:
+        """A piece's :func:`error_series` of MJX against C, on the host."""
+        return jax.tree.map(np.asarray, error_series(traj_mjx, traj_c, self.layout, jnp.asarray(self.rf_mask)))
+
+    def exceeds_tolerance(self, series: dict[str, np.ndarray]) -> bool:
+        """Whether some error of a piece (:meth:`errors`) is above its fixed tolerance or not finite.
+
+        Only then can the chaos envelope change the verdict: the bound is
+        max(tolerance, envelope), so an error within the tolerance is within
+        every bound.
+        """
+        return not all(np.all(series[key] <= getattr(self.tol, key)) for key in _SERIES)
+
+    def contacts_exceed_tolerance(self, members: np.ndarray | slice = slice(None)) -> bool:
+        """Whether some of ``members`` already mismatch their contact count on more than the
+        tolerated fraction of all steps (the sum only grows), so that the noise floor's
+        contact changes decide whether they pass."""
+        return bool(np.any(self.contacts.fraction[members] > self.tol.contact_mismatch))
+
     def update(self, traj_c: Trajectory, traj_mjx: Trajectory, envelope: dict[str, np.ndarray] | None = None,
-               start: int = 0, members: np.ndarray | slice = slice(None)) -> None:
+               start: int = 0, members: np.ndarray | slice = slice(None),
+               series: dict[str, np.ndarray] | None = None) -> None:
         """Adds a piece: (b, K, ...) trajectories of ``members`` from step ``start``, and
-        optionally field -> (b, K) envelopes."""
+        optionally field -> (b, K) envelopes and the piece's :meth:`errors` if already computed."""
         members = np.arange(self.batch)[members]
         for engine, traj in (("c", traj_c), ("mjx", traj_mjx)):
             at = self.diverged_at[engine]
@@ -350,7 +370,7 @@ class Judge:
             with np.errstate(invalid="ignore", over="ignore"):  # a blown-up member is not healthy
                 self.behaviour[engine].update(_track(self.m, traj.qpos), traj.energy, start, members)
         healthy = (self.diverged_at["c"][members] < 0) & (self.diverged_at["mjx"][members] < 0)
-        series = jax.tree.map(np.asarray, error_series(traj_mjx, traj_c, self.layout, jnp.asarray(self.rf_mask)))
+        series = self.errors(traj_c, traj_mjx) if series is None else series
         for key, track in self.fields.items():
             bound = np.full(series["ncon"].shape, getattr(self.tol, key))
             if envelope is not None:

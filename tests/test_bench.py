@@ -24,6 +24,8 @@ def test_bench_measures_both_engines(tmp_path, capsys):
     assert r["best"] in r["curve"]
     assert r["tester"]["engines_s"] > 0 and r["tester"]["verify_s"] > 0
     assert r["tester"]["engines_cpu_s"] > 0 and r["tester"]["cpu_ratio"] > 0
+    assert r["tester"]["always_ratio"] > 0
+    assert (r["tester"]["noise_floor_members"], r["tester"]["members"]) == (0, r["best"]["batch"]), "calm: no rerun"
     assert any("bottleneck" in text for text in r["recommendations"])
 
 

@@ -1,5 +1,6 @@
 """The sweep's plumbing: C streamed from a background thread, an engine crash contained to its scenario."""
 
+import dataclasses
 import threading
 import time
 
@@ -7,7 +8,7 @@ import pytest
 
 from mjxdiff.engines import CEngine
 from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.scenario import Randomization, Scenario, load_model, load_scenario
 from mjxdiff.sweep import SweepConfig, _ahead, run_inputs
 
 
@@ -61,3 +62,101 @@ def test_a_c_crash_mid_stream_is_that_scenarios_engine_error(monkeypatch):
     result = run_inputs("pendulum", m, inputs, scenario.tolerance, SweepConfig(diagnose="none", piece_steps=50))
     assert (result.status, result.error_kind) == ("error", "engine")
     assert result.message == "MuJoCo C failed: RuntimeError: mj_step: simulated crash"
+
+
+# ---------------------------------------------------------------------------------------------
+# the noise floor on demand: C's perturbed rerun only where an error exceeds the fixed tolerance
+
+TOUCHING_XML = """<mujoco><option timestep="0.002"/><worldbody><geom type="plane" size="1 1 0.1"/>
+<body pos="0 0 0.1"><joint name="drop" type="slide" axis="0 0 1"/><geom type="sphere" size="0.1"/></body>
+</worldbody></mujoco>"""
+
+
+def _c_batches(monkeypatch) -> list[int]:
+    """The batch size of every C stream the sweep opens, in order."""
+    sizes, real = [], CEngine.stream
+
+    def recording(self, inputs, chunk):
+        sizes.append(inputs.batch)
+        return real(self, inputs, chunk)
+
+    monkeypatch.setattr(CEngine, "stream", recording)
+    return sizes
+
+
+def _both_modes(m, inputs, tol, **config):
+    return {mode: run_inputs("x", m, inputs, tol, SweepConfig(diagnose="none", noise_floor=mode, **config))
+            for mode in ("on-demand", "always")}
+
+
+def _same_verdict(a, b):
+    assert (a.status, a.pass_rate, a.first_divergence, a.diverged_members) == (
+        b.status, b.pass_rate, b.first_divergence, b.diverged_members)
+    for fa, fb in zip(a.fields, b.fields, strict=True):
+        assert (fa.field, fa.first_step, fa.max_error) == (fb.field, fb.first_step, fb.max_error)
+
+
+def test_a_calm_scenario_never_runs_the_perturbed_rerun(monkeypatch):
+    scenario = load_scenario("pendulum")
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, seed=0, batch=4, steps=300)
+    batches = _c_batches(monkeypatch)
+    runs = _both_modes(m, inputs, scenario.tolerance)
+    assert batches == [4, 8], "on demand: the reference alone; always: reference and rerun as one batch"
+    assert runs["on-demand"].status == "pass" and runs["on-demand"].info["noise_floor_members"] == 0
+    assert runs["on-demand"].noise_rate == {}
+    assert runs["always"].info["noise_floor_members"] == 4 and set(runs["always"].noise_rate) >= {"qpos", "qvel"}
+    _same_verdict(runs["on-demand"], runs["always"])
+
+
+def test_the_rerun_starts_mid_stream_and_catches_up_to_the_envelope_of_always(monkeypatch):
+    """Tolerances of 1e-13 on the double pendulum: rounding exceeds them after some steps and only
+    the envelope lets it pass; the rerun, started late in each group of two, gives the same
+    envelope and growth rate as one that ran from the start."""
+    scenario = load_scenario("double_pendulum")
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, seed=0, batch=4, steps=300)
+    tight = dataclasses.replace(scenario.tolerance, qpos=1e-13, qvel=1e-12, sensordata=1e-12)
+    batches = _c_batches(monkeypatch)
+    runs = _both_modes(m, inputs, tight, group_size=2, piece_steps=25)
+    assert batches[:2] == [2, 4] and batches[-1] == 4 and 2 not in batches[-2:], batches
+    fixed = run_inputs("x", m, inputs, tight, SweepConfig(diagnose="none", envelope=False, group_size=2,
+                                                          piece_steps=25))
+    assert fixed.status == "fail" and fixed.first_divergence["step"] >= 25, "the tolerance must be exceeded late"
+    lazy, eager = runs["on-demand"], runs["always"]
+    assert lazy.status == "pass", lazy.message
+    assert lazy.info["noise_floor_members"] == 4
+    _same_verdict(lazy, eager)
+    assert lazy.noise_rate == pytest.approx(eager.noise_rate, rel=1e-12)
+    assert [f.envelope for f in lazy.fields] == pytest.approx([f.envelope for f in eager.fields], rel=1e-12)
+
+
+def test_an_injected_bug_fails_the_same_with_the_rerun_on_demand(monkeypatch, fresh_mjx):
+    from tests.test_detection import extra_damping
+
+    extra_damping(monkeypatch)
+    scenario = load_scenario("pendulum")
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, seed=0, batch=4, steps=300)
+    runs = _both_modes(m, inputs, scenario.tolerance, group_size=2, piece_steps=50)
+    assert runs["on-demand"].status == "fail" and runs["on-demand"].first_divergence["field"] in ("qpos", "qvel")
+    _same_verdict(runs["on-demand"], runs["always"])
+
+
+def test_contact_count_mismatches_start_the_rerun(tmp_path, monkeypatch):
+    """A sphere resting exactly on a plane: C counts the touching contact at step 0, MJX does not.
+    With no contact mismatch tolerated, that one step starts the rerun, whose own contact changes
+    (4 ulps move the sphere above or into the plane) decide the verdict as they do when it always runs."""
+    (tmp_path / "touching.xml").write_text(TOUCHING_XML)
+    scenario = Scenario(name="touching", model=str(tmp_path / "touching.xml"), randomize=Randomization(
+        qpos_noise=0.0, qvel_noise=0.0, control="zero", scale={"gravity": (0.9, 1.1)}))
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, seed=0, batch=4, steps=100)
+    tol = dataclasses.replace(scenario.tolerance, contact_mismatch=1e-9)
+    batches = _c_batches(monkeypatch)
+    runs = _both_modes(m, inputs, tol, piece_steps=50)
+    assert runs["on-demand"].field("contacts").max_error == pytest.approx(1 / 100)
+    assert batches[0] == 4 and batches[1:] == [8, 8], batches
+    assert runs["on-demand"].info["noise_floor_members"] == 4
+    _same_verdict(runs["on-demand"], runs["always"])
+    assert runs["on-demand"].field("contacts").envelope == runs["always"].field("contacts").envelope
