@@ -63,9 +63,12 @@ def test_mjx_rollout(benchmark, name):
            peak_rss_mib=_peak_rss_mib())
 
 
+@pytest.mark.parametrize("rerun", [True, False], ids=["with-rerun", "without-rerun"])
 @pytest.mark.parametrize("name", SCENARIOS)
-def test_metrics_overhead(benchmark, name):
-    """Noise floor + metrics + verdict on finished trajectories, against the two rollouts' time."""
+def test_metrics_overhead(benchmark, name, rerun):
+    """Metrics + verdict on finished trajectories, with the noise floor's perturbed C rerun (what
+    ``--noise-floor always`` adds) or without it (a calm scenario on demand), against the two
+    rollouts' time."""
     inputs = _inputs(name)
     scenario = load_scenario(name)
     c_engine, mjx_engine = CEngine(), MJXEngine()
@@ -74,15 +77,16 @@ def test_metrics_overhead(benchmark, name):
     traj_c, traj_mjx = c_engine.rollout(inputs), mjx_engine.rollout(inputs)
     rollouts = time.perf_counter() - t0
     verdict = lambda: judge(name, inputs.models[0], traj_c, traj_mjx, scenario.tolerance,
-                            perturbed=c_engine.rollout(perturb(inputs, "float64")))
+                            perturbed=c_engine.rollout(perturb(inputs, "float64")) if rerun else None)
     result = benchmark.pedantic(verdict, rounds=3, iterations=1, warmup_rounds=1)
     assert result.status == "pass", result.message
     _extra(benchmark, rollouts_s=rollouts, metrics_over_rollouts=benchmark.stats.stats.mean / rollouts)
 
 
-def test_sweep_end_to_end(benchmark):
+@pytest.mark.parametrize("noise_floor", ["on-demand", "always"])
+def test_sweep_end_to_end(benchmark, noise_floor):
     """Verified scenario-steps per second for a whole sweep of the three scenarios."""
-    config = SweepConfig(batch=BATCH, steps=STEPS)
+    config = SweepConfig(batch=BATCH, steps=STEPS, noise_floor=noise_floor)
     scenarios = [load_scenario(n) for n in SCENARIOS]
     for s in scenarios:  # warm the compile cache
         run_scenario(s, config)

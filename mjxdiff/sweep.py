@@ -29,6 +29,10 @@ from mjxdiff.verdict import Judge, ScenarioResult, rangefinder_mask
 __all__ = ["SweepConfig", "run_scenario", "sweep"]
 
 
+#: When C's perturbed rerun runs (:attr:`SweepConfig.noise_floor`).
+NOISE_FLOOR_MODES = ("on-demand", "always")
+
+
 @dataclasses.dataclass(frozen=True)
 class SweepConfig:
     """Settings shared by every scenario of a sweep.
@@ -68,6 +72,10 @@ class SweepConfig:
     reproducers: str | None = None
     piece_steps: int | None = None
     group_size: int | None = None
+
+    def __post_init__(self):
+        if self.noise_floor not in NOISE_FLOOR_MODES:
+            raise ValueError(f"noise_floor must be one of {NOISE_FLOOR_MODES}, not {self.noise_floor!r}")
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -258,28 +266,31 @@ class _CPieces:
 
     def __init__(self, c_engine: CEngine, group: BatchedInputs, chunk: int, precision: str,
                  seconds: dict[str, float], floor: bool):
-        self._open = lambda floor: self._stream(c_engine, group, chunk, precision, seconds, floor)
-        self._pieces, self.floor = self._open(floor), floor
+        self.c_engine, self.group, self.chunk, self.precision, self.seconds = c_engine, group, chunk, precision, seconds
+        self.floor, self._pieces = floor, self._open(floor)
 
-    @staticmethod
-    def _stream(c_engine, group, chunk, precision, seconds, floor: bool) -> Iterator:
+    def _open(self, floor: bool) -> Iterator[tuple[Trajectory, Trajectory | None]]:
+        group, stream = self.group, self.c_engine.stream
         if not floor:
-            return _ahead((p, None) for p in _timed(lambda: c_engine.stream(group, chunk), "c", seconds))
-        both = _timed(lambda: c_engine.stream(group.concat(perturb(group, precision)), chunk), "c", seconds)
+            return _ahead((p, None) for p in _timed(lambda: stream(group, self.chunk), "c", self.seconds))
+        both = _timed(lambda: stream(group.concat(perturb(group, self.precision)), self.chunk), "c", self.seconds)
         return _ahead((_rows(p, slice(0, group.batch)), _rows(p, slice(group.batch, None))) for p in both)
 
     def __next__(self) -> tuple[Trajectory, Trajectory | None]:
         return next(self._pieces)
 
-    def start_floor(self, until: int, feed: Callable[[Trajectory, Trajectory, int], object]) -> None:
+    def start_floor(self, until: int, feed: Callable[[Trajectory, Trajectory, int], object]) -> float:
         """Restarts with the perturbed rerun; ``feed(perturbed, reference, start)`` gets the
-        pieces before step ``until``, and the next piece is the one starting there."""
+        pieces before step ``until``, and the next piece is the one starting there.
+        Returns the seconds it took (C's time, mostly)."""
+        t = time.perf_counter()
         self.close()
         self._pieces, self.floor, start = self._open(True), True, 0
         while start < until:
             reference, perturbed = next(self)
             feed(perturbed, reference, start)
             start += reference.time.shape[1]
+        return time.perf_counter() - t
 
     def close(self) -> None:
         self._pieces.close()
@@ -326,17 +337,13 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
                 reference, simulated = _rows(piece_c, n), _rows(piece_mjx, n)
                 series = judge.errors(reference, simulated)
                 if floor and not c.floor and judge.exceeds_tolerance(series):
-                    caught_up = time.perf_counter()
-                    c.start_floor(start, feed)
+                    t += c.start_floor(start, feed)
                     piece_c, piece_p = next(c)
-                    t += time.perf_counter() - caught_up  # waiting for C is C's time
                 envelope = feed(piece_p, piece_c, start) if piece_p is not None else None
                 judge.update(reference, simulated, envelope, start, members, series)
                 start += piece_c.time.shape[1]
                 if floor and not c.floor and judge.contacts_exceed_tolerance(members):
-                    caught_up = time.perf_counter()
-                    c.start_floor(start, feed)
-                    t += time.perf_counter() - caught_up
+                    t += c.start_floor(start, feed)
                 seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
     t = time.perf_counter()
     noise = floor if floor is not None and floor.fed.any() else None

@@ -50,7 +50,9 @@ class FieldResult:
       growth_rate: exponential growth rate of the batch-max error, 1/s.
       envelope: batch-max chaos envelope at the last step (0 without a noise
         floor); the bound at (member, step) is max(tolerance, envelope there).
-      ratio: worst error / bound over members and steps (> 1 means out).
+      ratio: worst error / bound over members and steps (> 1 means out); steps
+        judged before a member's noise floor started (on demand) count against the
+        tolerance alone.
     """
 
     field: str

@@ -23,6 +23,7 @@ def _run(*args):
     (["sweep", "--bogus"], "unrecognized arguments: --bogus"),
     (["sweep", "--batch", "0"], "expected a positive integer"),
     (["sweep", "--precision", "float16"], "invalid choice"),
+    (["sweep", "--noise-floor", "sometimes"], "invalid choice"),
     (["frobnicate"], "invalid choice"),
     ([], "required"),
 ])
@@ -36,7 +37,7 @@ def test_bad_flags_exit_2_with_one_line(args, message):
 def test_help_teaches_statuses_and_exit_codes():
     proc = _run("sweep", "--help")
     assert proc.returncode == 0
-    for word in ("--seed", "--precision", "--out", "exit codes", "UNSUP", "examples"):
+    for word in ("--seed", "--precision", "--out", "--noise-floor", "exit codes", "UNSUP", "examples"):
         assert word in proc.stdout
 
 
