@@ -13,8 +13,9 @@ of the arguments (which holds an ``mjx.Model``'s static fields), each leaf's
 shape, dtype and sharding, the static arguments, x64, and the versions of
 jax, jaxlib, mujoco, mujoco-mjx and the source of the module that defines the
 function. Code is not in the key, so artifacts are used only while MJX's
-modules (and mjxdiff.engines) hold the functions they were imported with
-(:func:`mjx_pristine`): a test that monkeypatches MJX to inject a bug always
+modules (and mjxdiff.engines) hold the functions they were imported with, all
+written in installed packages (:func:`mjx_pristine`): a test that
+monkeypatches MJX to inject a bug, before or after importing mjxdiff, always
 traces its patched code.
 """
 
@@ -28,6 +29,7 @@ import inspect
 import os
 import pickle
 import sys
+import sysconfig
 import types
 from pathlib import Path
 from typing import Any, Callable
@@ -42,22 +44,49 @@ _LOADED = {"count": 0}
 
 
 def _traced_functions() -> dict[tuple[str, str], Any]:
-    """Module-level functions of MJX and of mjxdiff.engines (the code a rollout traces)."""
+    """Module-level callables of MJX and of mjxdiff.engines (the code a rollout traces), classes
+    and modules aside: functions, and what may stand in for one (a partial, a jitted function)."""
     return {(name, attr): value for name, module in list(sys.modules.items())
             if module is not None and (name in ("mujoco.mjx", "mjxdiff.engines") or name.startswith("mujoco.mjx."))
-            for attr, value in list(vars(module).items()) if isinstance(value, types.FunctionType)}
+            for attr, value in list(vars(module).items())
+            if callable(value) and not isinstance(value, (type, types.ModuleType))}
+
+
+#: Where genuine MJX code lives: installed packages, the standard library and mjxdiff itself.
+_GENUINE_ROOTS = tuple(sorted({str(Path(sysconfig.get_paths()[k]).resolve()) for k in ("purelib", "platlib", "stdlib")}
+                              | {str(Path(__file__).resolve().parent)}))
+
+
+@functools.cache
+def _installed(filename: str) -> bool:
+    return str(Path(filename).resolve()).startswith(_GENUINE_ROOTS)
+
+
+def _genuine(value: Any) -> bool:
+    """False for a callable whose code was written outside the installed packages (a test's or
+    a user's patch), seen through partials and ``functools.wraps``/``jax.jit`` wrappers."""
+    while isinstance(value, functools.partial):
+        value = value.func
+    try:
+        value = inspect.unwrap(value)
+    except ValueError:  # a cycle of __wrapped__
+        return False
+    code = getattr(value, "__code__", None)
+    return code is None or _installed(code.co_filename)
 
 
 _PRISTINE = _traced_functions()  # mjxdiff.engines imports mujoco.mjx (all of _src) before this module
 
 
 def mjx_pristine() -> bool:
-    """True while every function of MJX's modules and of mjxdiff.engines is the one first seen
-    (imported at start-up, or at the first check for functions defined later): nothing patched."""
+    """True while every callable of MJX's modules and of mjxdiff.engines is the one first seen
+    (imported at start-up, or at the first check for ones defined later) and was written in an
+    installed package: nothing patched, before or after mjxdiff was imported. (A pre-import
+    patch by a partial of MJX's own function with other arguments is not seen.)"""
     current = _traced_functions()
     for k, v in current.items():
         _PRISTINE.setdefault(k, v)
-    return all(_PRISTINE[k] is v for k, v in current.items())
+    return all(_PRISTINE[k] is v for k, v in current.items()) and all(_genuine(v) for v in current.values())
 
 
 def export_dir() -> Path | None:

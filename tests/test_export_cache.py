@@ -1,5 +1,7 @@
 """Saved rollouts: loaded without tracing, bit-identical, never used for patched MJX or another structure."""
 
+import functools
+
 import jax
 import mujoco
 import numpy as np
@@ -75,6 +77,21 @@ def test_the_key_follows_static_structure_not_parameter_values(pendulum):
 def test_patching_mjxdiffs_own_traced_code_is_noticed(monkeypatch):
     assert export_cache.mjx_pristine()
     monkeypatch.setattr(engines, "_contact_count", lambda dx: 0)  # would count no contacts
+    assert not export_cache.mjx_pristine()
+
+
+def test_a_patch_made_before_mjxdiff_first_saw_mjx_is_noticed(monkeypatch):
+    """As if a conftest patched MJX before importing mjxdiff: the patch is what mjxdiff saw first."""
+    orig = mjx_passive._spring_damper
+    buggy = lambda m, d: orig(m, d) - 1e-3 * m.dof_damping * d.qvel  # noqa: E731
+    monkeypatch.setattr(mjx_passive, "_spring_damper", buggy)
+    monkeypatch.setitem(export_cache._PRISTINE, (mjx_passive.__name__, "_spring_damper"), buggy)
+    assert not export_cache.mjx_pristine(), "code written outside the installed packages"
+
+
+def test_a_patch_that_is_not_a_plain_function_is_noticed(monkeypatch):
+    assert export_cache.mjx_pristine()
+    monkeypatch.setattr(mjx_passive, "_spring_damper", functools.partial(mjx_passive._spring_damper))
     assert not export_cache.mjx_pristine()
 
 
