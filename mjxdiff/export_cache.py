@@ -37,7 +37,7 @@ from typing import Any, Callable
 import jax
 from jax import export
 
-__all__ = ["bind", "call", "clear", "export_dir", "loaded_count", "mjx_pristine"]
+__all__ = ["bind", "call", "clear", "evict", "export_dir", "loaded_count", "mjx_pristine"]
 
 _FUNCTIONS: dict[str, tuple[Any, Callable]] = {}  # key -> (output tree structure, jitted call of an Exported)
 _LOADED = {"count": 0}
@@ -147,12 +147,19 @@ def _key_of(fn: Callable, treedef, leaves: list, static: dict[str, Any]) -> str:
     return _KEYS[memo]
 
 
+#: Most bytes of artifacts kept (~2,500 of 130-230 KB); beyond it the least recently used go.
+MAX_BYTES = 512 * 2**20
+
+
 def _load(path: Path):
     try:
         out_tree, blob = pickle.loads(path.read_bytes())
-        return out_tree, export.deserialize(bytearray(blob))
+        found = out_tree, export.deserialize(bytearray(blob))
     except Exception:  # noqa: BLE001 - unreadable or from another format: trace again and overwrite
         return None
+    with contextlib.suppress(OSError):
+        os.utime(path)  # recently used: evicted last
+    return found
 
 
 def _save(path: Path, out_tree, exported) -> None:
@@ -160,6 +167,29 @@ def _save(path: Path, out_tree, exported) -> None:
     tmp = path.with_suffix(f".{os.getpid()}.tmp")
     tmp.write_bytes(pickle.dumps((out_tree, bytes(exported.serialize()))))
     os.replace(tmp, path)  # atomic: a concurrent reader sees the old file or the whole new one
+    evict(path.parent, keep=path)
+
+
+def evict(directory: Path, keep: Path | None = None, budget: int = MAX_BYTES) -> int:
+    """Deletes the least recently used artifacts in ``directory`` (oldest modification time
+    first; loading one touches it) until the rest fit in ``budget`` bytes, never ``keep``.
+    Returns how many it deleted. JAX's own cache eviction does not see these files, and every
+    new model structure (a fuzz run makes hundreds) adds one."""
+    files = []
+    for path in directory.glob("*.jaxexport"):
+        with contextlib.suppress(OSError):
+            st = path.stat()
+            files.append((st.st_mtime, st.st_size, path))
+    total, deleted = sum(size for _, size, _ in files), 0
+    for _, size, path in sorted(files):
+        if total <= budget:
+            break
+        if path != keep:
+            with contextlib.suppress(OSError):  # another process got there first
+                path.unlink()
+                deleted += 1
+            total -= size
+    return deleted
 
 
 def call(fn: Callable, args: tuple, static: dict[str, Any]):

@@ -1,6 +1,7 @@
 """Saved rollouts: loaded without tracing, bit-identical, never used for patched MJX or another structure."""
 
 import functools
+import os
 
 import jax
 import mujoco
@@ -109,3 +110,25 @@ def test_a_damaged_artifact_is_traced_again_and_rewritten(pendulum):
         assert path.read_bytes() != damaged, "it is replaced by a good one..."
         _rollout(inputs)
         assert export_cache.loaded_count() == loaded + 1, "...which the next process loads"
+
+
+def test_the_least_recently_used_artifacts_are_evicted_beyond_the_budget(tmp_path):
+    for i in range(5):  # a.jaxexport oldest ... e newest, 100 bytes each
+        path = tmp_path / f"{'abcde'[i]}.jaxexport"
+        path.write_bytes(b"x" * 100)
+        os.utime(path, (1000 + i, 1000 + i))
+    (tmp_path / "other.bin").write_bytes(b"y" * 1000)  # not an artifact: never counted or touched
+    keep = tmp_path / "a.jaxexport"
+    assert export_cache.evict(tmp_path, keep=keep, budget=250) == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.jaxexport", "e.jaxexport", "other.bin"]
+    assert export_cache.evict(tmp_path, budget=1000) == 0
+
+
+def test_loading_an_artifact_marks_it_recently_used(pendulum):
+    _, inputs = pendulum
+    _rollout(inputs)
+    [(key, _)] = export_cache._FUNCTIONS.items()
+    path = export_cache.export_dir() / f"{key}.jaxexport"
+    os.utime(path, (1000, 1000))
+    _rollout(inputs)  # loads it
+    assert path.stat().st_mtime > 1000
