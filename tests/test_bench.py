@@ -21,6 +21,7 @@ def test_bench_measures_both_engines(tmp_path, capsys):
         assert p["c_steps_per_s"] > 0 and p["mjx_steps_per_s"] > 0
         assert p["mjx_over_c"] == pytest.approx(p["mjx_steps_per_s"] / p["c_steps_per_s"])
         assert 0 < p["c_cpu"] <= 1.05 and 0 < p["mjx_cpu"] <= 1.05
+        assert p["first_call"] in ("compiled", "loaded", "warm")
     assert r["best"] in r["curve"]
     assert r["tester"]["engines_s"] > 0 and r["tester"]["verify_s"] > 0
     assert r["tester"]["engines_cpu_s"] > 0 and r["tester"]["cpu_ratio"] > 0
@@ -59,3 +60,6 @@ def test_recommendations_follow_the_numbers():
     slow_split = "\n".join(recommendations(_result([(8, 1000)], c=100_000, compile_s=60, speedup=0.8, ratio=0.5)))
     assert "does not pay" in slow_split and "persistent compilation cache" in slow_split
     assert "noticeable cost" in slow_split
+    loaded = _result([(8, 1000)], c=100_000, compile_s=60)
+    loaded["best"]["first_call"] = "loaded"
+    assert "persistent compilation cache" not in "\n".join(recommendations(loaded)), "loading is not compiling"
