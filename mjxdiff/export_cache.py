@@ -53,8 +53,9 @@ def _traced_functions() -> dict[tuple[str, str], Any]:
 
 
 #: Where genuine MJX code lives: installed packages, the standard library and mjxdiff itself.
-_GENUINE_ROOTS = tuple(sorted({str(Path(sysconfig.get_paths()[k]).resolve()) for k in ("purelib", "platlib", "stdlib")}
-                              | {str(Path(__file__).resolve().parent)}))
+_GENUINE_ROOTS = tuple(sorted({os.path.join(Path(sysconfig.get_paths()[k]).resolve(), "")  # trailing separator:
+                               for k in ("purelib", "platlib", "stdlib")}  # .../mjxdiff is not .../mjxdiff_x
+                              | {os.path.join(Path(__file__).resolve().parent, "")}))
 
 
 @functools.cache
