@@ -227,7 +227,10 @@ def make_inputs(scenario: Scenario, m: mujoco.MjModel, seed: int,
             continue
         factors[name] = rng.uniform(lo, hi, (batch, *FACTOR_SHAPES[name](m)))
     ctrl = make_controls(m, rz, batch, steps, m.opt.timestep, rng)
-    scratch = mujoco.MjData(m)
-    models = tuple(_scaled_model(m, factors, i, scratch) for i in range(batch)) if factors else (m,) * batch
+    if factors:
+        scratch = mujoco.MjData(m)
+        models = tuple(_scaled_model(m, factors, i, scratch) for i in range(batch))
+    else:
+        models = (m,) * batch
     return BatchedInputs(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl, models=models, factors=factors, seed=seed,
                         energy=scenario.energy)
