@@ -1,48 +1,50 @@
 """mjxdiff: differential testing of MuJoCo MJX against MuJoCo C.
 
 The public surface, one name per line; everything else is an implementation
-detail of its module.
+detail of its module. Names are imported on first use (PEP 562), so that
+``import mjxdiff`` and ``import mjxdiff.metrics`` import neither MuJoCo nor MJX
+and change nothing in the process: XLA's flags are set by :func:`configure_jax`
+(the CLI calls it), not by an import.
 """
 
-from mjxdiff import engines  # noqa: F401  (first: sets XLA_FLAGS before JAX's backend starts)
-from mjxdiff import metrics
-from mjxdiff.engines import CEngine
-from mjxdiff.engines import MJXEngine
-from mjxdiff.engines import Trajectory
-from mjxdiff.engines import UnsupportedError
-from mjxdiff.engines import configure_jax
-from mjxdiff.inputs import BatchedInputs
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import Scenario
-from mjxdiff.scenario import ScenarioError
-from mjxdiff.scenario import Tolerances
-from mjxdiff.scenario import bundled_scenarios
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig
-from mjxdiff.sweep import run_scenario
-from mjxdiff.sweep import sweep
-from mjxdiff.verdict import ScenarioResult
-from mjxdiff.verdict import judge
+import importlib
 
 __version__ = "0.1.0"
 
-__all__ = [
-    "BatchedInputs",
-    "CEngine",
-    "MJXEngine",
-    "Scenario",
-    "ScenarioError",
-    "ScenarioResult",
-    "SweepConfig",
-    "Tolerances",
-    "Trajectory",
-    "UnsupportedError",
-    "bundled_scenarios",
-    "configure_jax",
-    "judge",
-    "load_scenario",
-    "make_inputs",
-    "metrics",
-    "run_scenario",
-    "sweep",
-]
+#: public name -> module that defines it
+_PUBLIC = {
+    "BatchedInputs": "mjxdiff.inputs",
+    "CEngine": "mjxdiff.engines",
+    "MJXEngine": "mjxdiff.engines",
+    "Scenario": "mjxdiff.scenario",
+    "ScenarioError": "mjxdiff.scenario",
+    "ScenarioResult": "mjxdiff.verdict",
+    "SweepConfig": "mjxdiff.sweep",
+    "Tolerances": "mjxdiff.scenario",
+    "Trajectory": "mjxdiff.engines",
+    "UnsupportedError": "mjxdiff.engines",
+    "bundled_scenarios": "mjxdiff.scenario",
+    "configure_jax": "mjxdiff.engines",
+    "judge": "mjxdiff.verdict",
+    "load_scenario": "mjxdiff.scenario",
+    "make_inputs": "mjxdiff.inputs",
+    "metrics": None,  # the module itself
+    "run_scenario": "mjxdiff.sweep",
+    "sweep": "mjxdiff.sweep",
+}
+
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str):
+    if name not in _PUBLIC:
+        raise AttributeError(f"module 'mjxdiff' has no attribute {name!r}")
+    module = _PUBLIC[name]
+    value = importlib.import_module(f"mjxdiff.{name}") if module is None else getattr(
+        importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_PUBLIC))

@@ -15,8 +15,8 @@ integration).
   structure: it is cached by JAX on (structure, which leaves vary, B, T), and
   across processes as a ``jax.export`` artifact (:mod:`mjxdiff.export_cache`).
   Large batches are split across the host CPU devices (``shard_map``; XLA CPU
-  runs one device per thread): one per core, or ``MJXDIFF_DEVICES=N`` set
-  before mjxdiff is imported (see :data:`DEVICES`, :class:`MJXEngine`).
+  runs one device per thread): one per core after :func:`configure_jax`, which
+  the CLI calls (see :class:`MJXEngine`).
 """
 
 from __future__ import annotations
@@ -41,22 +41,18 @@ from typing import Iterator, Protocol
 # kernels that can block at once (one per device; pool = cores + devices) it cannot
 # deadlock (3/3 passes). The scheduler and the multithreaded Eigen pool (PyAutoFit #1528)
 # stay off as well.
-# All of this is read once, before JAX's backend starts.
+# All of this is read once, when JAX's backend starts, so it is set by configure_jax (the
+# CLI calls it first), never by importing mjxdiff: a research process that imports the
+# metrics keeps its own XLA settings.
 #
-# Host devices to split MJX's batch over: MJXDIFF_DEVICES, default one per core. A single
-# XLA CPU device runs a vmapped MJX rollout on about one core; split over devices, each runs
-# its share on its own thread. MJXEngine splits only batches big enough to gain from it.
+# Host devices to split MJX's batch over: configure_jax(devices=N), MJXDIFF_DEVICES, default
+# one per core. A single XLA CPU device runs a vmapped MJX rollout on about one core; split
+# over devices, each runs its share on its own thread. MJXEngine splits only batches big
+# enough to gain from it.
 CORES = os.cpu_count() or 1
-DEVICES = int(os.environ.get("MJXDIFF_DEVICES") or CORES)
-os.environ.setdefault("PJRT_NPROC", str(CORES + DEVICES))
-_XLA_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false", "--xla_cpu_multi_thread_eigen=false",
-              f"--xla_force_host_platform_device_count={DEVICES}")
-if os.environ.get("MJXDIFF_DEVICES"):  # an explicit request wins over an inherited flag
-    os.environ["XLA_FLAGS"] = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split()
-                                       if not f.startswith("--xla_force_host_platform_device_count"))
-for _flag in _XLA_FLAGS:
-    if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()
+#: XLA flags that keep a blocking LAPACK kernel from starving the pool (see above).
+SAFETY_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false", "--xla_cpu_multi_thread_eigen=false")
+_DEVICE_FLAG = "--xla_force_host_platform_device_count"
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -146,17 +142,66 @@ class Engine(Protocol):
     def rollout(self, inputs: BatchedInputs) -> Trajectory: ...
 
 
-def configure_jax(precision: str = "float64", cache_dir: str | os.PathLike | None = None) -> None:
-    """Sets JAX's precision and persistent compilation cache for this process.
+def _backend_started() -> bool:
+    from jax._src import xla_bridge
+
+    return xla_bridge.backends_are_initialized()
+
+
+def _flag_value(flags: str, name: str) -> str | None:
+    values = [f.split("=", 1)[1] for f in flags.split() if f.startswith(name + "=")]
+    return values[-1] if values else None
+
+
+def _xla_settings(devices: int | None) -> tuple[str, str, int]:
+    """(XLA_FLAGS, PJRT_NPROC, devices) mjxdiff wants: the safety flags, and ``devices`` host
+    devices (None: an inherited device-count flag, else ``MJXDIFF_DEVICES``, else one per core)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if devices is None and os.environ.get("MJXDIFF_DEVICES"):
+        devices = int(os.environ["MJXDIFF_DEVICES"])
+    if devices is None:
+        devices = int(_flag_value(flags, _DEVICE_FLAG) or CORES)
+    kept = [f for f in flags.split() if not f.startswith(_DEVICE_FLAG)]
+    wanted = kept + [f for f in SAFETY_FLAGS if f.split("=")[0] not in flags] + [f"{_DEVICE_FLAG}={devices}"]
+    return " ".join(wanted), os.environ.get("PJRT_NPROC") or str(CORES + devices), devices
+
+
+_CONFIGURED = {"done": False}
+
+
+def configure_jax(precision: str = "float64", cache_dir: str | os.PathLike | None = None,
+                  devices: int | None = None) -> None:
+    """Sets up JAX for mjxdiff in this process: XLA's CPU devices and thread pool, precision,
+    persistent compilation cache. The CLI calls it first; importing mjxdiff changes nothing.
+
+    XLA reads its flags once, when JAX's backend starts (the first computation). Before
+    that, this sets ``XLA_FLAGS`` (``devices`` host devices and :data:`SAFETY_FLAGS`) and
+    ``PJRT_NPROC`` (cores + devices: a pool a blocking kernel per device cannot starve).
+    After that it changes neither and says so in one line on stderr if the running backend
+    differs (MJX then splits its batch over the devices there are).
 
     Args:
       precision: ``float64`` (``jax_enable_x64``, the default: algorithmic
         differences are not drowned by rounding) or ``float32``.
       cache_dir: persistent compilation cache directory; ``None`` uses
         ``$MJXDIFF_CACHE`` or ``~/.cache/mjxdiff/jax``; ``""`` disables it.
+      devices: host CPU devices; None: ``MJXDIFF_DEVICES``, else an inherited
+        ``--xla_force_host_platform_device_count``, else one per core.
     """
     if precision not in ("float32", "float64"):
         raise ValueError(f"precision must be float32 or float64, got {precision!r}")
+    if devices is not None and devices < 1:
+        raise ValueError(f"devices must be positive, got {devices!r}")
+    flags, nproc, want = _xla_settings(devices)
+    if not _backend_started():
+        os.environ["XLA_FLAGS"], os.environ["PJRT_NPROC"] = flags, nproc
+    elif device_count() != want or not all(f in os.environ.get("XLA_FLAGS", "") for f in SAFETY_FLAGS):
+        import sys
+
+        print(f"mjxdiff: JAX's backend had already started ({device_count()} CPU device(s), XLA_FLAGS="
+              f"{os.environ.get('XLA_FLAGS', '')!r}); mjxdiff's settings ({want} device(s), {' '.join(SAFETY_FLAGS)}) "
+              "take effect only if configure_jax runs before the first JAX computation", file=sys.stderr)
+    _CONFIGURED["done"] = True
     jax.config.update("jax_enable_x64", precision == "float64")
     if cache_dir is None:
         cache_dir = os.environ.get("MJXDIFF_CACHE", Path.home() / ".cache" / "mjxdiff" / "jax")
@@ -166,6 +211,18 @@ def configure_jax(precision: str = "float64", cache_dir: str | os.PathLike | Non
         # casts, metrics of each shape) otherwise recompile in every new process
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def _ensure_safe_backend() -> None:
+    """Before MJX's first computation in a process that never called :func:`configure_jax`:
+    the :data:`SAFETY_FLAGS` (nothing else), if JAX has not started yet; without them a
+    vmapped Newton solver can hang XLA's CPU pool. Called when an engine is used, not on import."""
+    if _CONFIGURED["done"]:
+        return
+    _CONFIGURED["done"] = True
+    if not _backend_started():
+        flags = os.environ.get("XLA_FLAGS", "")
+        os.environ["XLA_FLAGS"] = " ".join([flags] + [f for f in SAFETY_FLAGS if f.split("=")[0] not in flags]).strip()
 
 
 def _first_true(mask: np.ndarray) -> np.ndarray:
@@ -536,7 +593,7 @@ def member_bytes(m: mujoco.MjModel) -> int:
 
 
 def device_count() -> int:
-    """Host CPU devices JAX has: :data:`DEVICES` unless JAX started before mjxdiff set the flag."""
+    """Host CPU devices JAX has (see :func:`configure_jax`)."""
     return len(jax.devices("cpu"))
 
 
@@ -570,6 +627,7 @@ class MJXEngine:
     name = "mjx"
 
     def __init__(self, devices: int | None = None):
+        _ensure_safe_backend()
         self.devices = devices
 
     def _usable_devices(self) -> int:

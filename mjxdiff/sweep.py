@@ -361,8 +361,16 @@ def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Swe
 
     The comparison is streamed in pieces of :func:`piece_steps` steps, so its
     memory does not grow with the horizon; a failing scenario's C trajectory
-    is rerun in full for the diagnosis.
+    is rerun in full for the diagnosis. MJX runs in ``config.precision``
+    (``jax_enable_x64`` is set for the call and restored after it).
     """
+    engines._ensure_safe_backend()
+    with _precision(config.precision):  # MJX's dtype follows the config, from the CLI or not
+        return _run_inputs(name, m, inputs, tol, config, mjx_engine, c_engine, info)
+
+
+def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
+                mjx_engine: MJXEngine | None, c_engine: CEngine | None, info: dict | None) -> ScenarioResult:
     info = dict(info or {}, batch=inputs.batch, steps=inputs.steps)
     seconds = info.setdefault("seconds", {})
     base = dict(name=name, tolerances=tol.as_dict(), info=info)
