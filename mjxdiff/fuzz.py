@@ -153,8 +153,8 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
         inputs = BatchedInputs(qpos=found["state"].qpos, qvel=found["state"].qvel, act=found["state"].act,
                                ctrl=found["ctrl"], models=(m,) * batch, factors={}, seed=seed)
         member = max(result.first_divergence["member"], 0) if result.first_divergence else 0
-        path = reproducer.save(Path(out) / "reproducers" / "fuzz.json", "fuzz", member, inputs, mj.xml,
-                               Tolerances(), config.as_dict(), report.result_dict(result), report.versions())
+        path = reproducer.save(report.path_under(Path(out) / "reproducers", "fuzz.json"), "fuzz", member, inputs,
+                               mj.xml, Tolerances(), config.as_dict(), report.result_dict(result), report.versions())
     return FuzzResult(seen["examples"], seconds, dict(
         xml=mj.xml, nbody=mj.nbody, ngeom=mj.ngeom, features=list(mj.features), message=result.message,
         status=result.status, reproducer=str(path) if path else None))

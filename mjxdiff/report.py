@@ -7,17 +7,20 @@ changes meaning or disappears (adding keys is compatible).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import os
 import platform
+import re
 from importlib import metadata
 from pathlib import Path
 from typing import Any, Sequence
 
 from mjxdiff.verdict import ScenarioResult
 
-__all__ = ["SCHEMA_VERSION", "summary", "to_json", "format_text", "write_report", "versions"]
+__all__ = ["SCHEMA_VERSION", "code", "summary", "to_json", "format_text", "write_report", "versions", "safe_filename",
+           "path_under"]
 
 SCHEMA_VERSION = 1
 _SYMBOL = {"pass": "PASS", "fail": "FAIL", "unsupported": "UNSUP", "error": "ERROR"}
@@ -76,11 +79,21 @@ def result_dict(r: ScenarioResult) -> dict[str, Any]:
     return _clean(d)
 
 
+def code() -> dict[str, str]:
+    """What was tested, by content rather than version string: SHA-256 digests of the MJX code
+    loaded in this process and of everything a compiled rollout depends on
+    (:func:`mjxdiff.export_cache.code_digest`, :func:`~mjxdiff.export_cache.rollout_digest`)."""
+    from mjxdiff import export_cache
+
+    return dict(mjx=export_cache.code_digest(), rollout=export_cache.rollout_digest())
+
+
 def to_json(results: Sequence[ScenarioResult], config: dict[str, Any]) -> dict[str, Any]:
     """The whole report as a JSON-ready dict."""
     return _clean(dict(
         schema_version=SCHEMA_VERSION,
         versions=versions(),
+        code=code(),
         machine=machine(),
         config=config,
         summary=summary(results, config.get("threshold", 0.95)),
@@ -88,11 +101,50 @@ def to_json(results: Sequence[ScenarioResult], config: dict[str, Any]) -> dict[s
     ))
 
 
+#: Longest file name :func:`safe_filename` returns (well under the usual 255-byte limit,
+#: leaving room for suffixes such as ``-member12.json``).
+MAX_FILENAME = 100
+_UNSAFE = re.compile(r"[^A-Za-z0-9._-]")
+
+
+def safe_filename(name: str, max_len: int = MAX_FILENAME) -> str:
+    """``name`` as one plain file name: no directories, no escape from the directory it goes in.
+
+    Characters outside ``[A-Za-z0-9._-]`` become ``_`` (so ``/``, ``\\``, spaces and
+    non-ASCII letters do), leading dots are dropped (no hidden files, no ``.``/``..``),
+    an empty result becomes ``_``, and a name longer than ``max_len`` is cut and
+    ended with a short hash of the whole name, so long names stay distinct.
+    """
+    safe = _UNSAFE.sub("_", str(name)).lstrip(".") or "_"
+    if len(safe) > max_len:
+        digest = hashlib.sha256(str(name).encode("utf-8", "surrogatepass")).hexdigest()[:8]
+        safe = f"{safe[:max(max_len - 9, 1)]}-{digest}"
+    return safe
+
+
+def path_under(directory: str | Path, name: str | Path) -> Path:
+    """``directory / name``, or ValueError if that path, resolved, is not inside ``directory`` resolved.
+
+    Symbolic links are followed on both sides, so a link inside ``directory``
+    that points elsewhere is refused too. Nothing is created.
+    """
+    base = Path(directory)
+    path = base / name
+    root, target = base.resolve(), path.resolve()
+    if target == root or root not in target.parents:
+        raise ValueError(f"refusing to write {str(name)!r}: {target} is not inside {root}")
+    return path
+
+
 def write_report(out_dir: str | Path, report: dict[str, Any], name: str = "report.json") -> Path:
-    """Writes ``report`` as JSON to ``out_dir/name``, creating the directory; returns the path."""
-    path = Path(out_dir)
-    path.mkdir(parents=True, exist_ok=True)
-    path = path / name
+    """Writes ``report`` as JSON to ``out_dir/name``, creating the directory; returns the path.
+
+    ``name`` is made a plain file name first (:func:`safe_filename`), so the file
+    always lands directly in ``out_dir``.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = path_under(out, safe_filename(name))
     path.write_text(json.dumps(report, indent=2, sort_keys=False) + "\n")
     return path
 

@@ -97,7 +97,8 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
     """Sweeps one scenario and returns its verdict; never raises for bad input.
 
     With ``config.reproducers`` set, the first divergent member of a failing
-    scenario is saved there as ``<name>-member<i>.json`` (see :mod:`mjxdiff.reproducer`).
+    scenario is saved there as ``<name>-member<i>.json`` (see :mod:`mjxdiff.reproducer`), the
+    name made a plain file name (:func:`mjxdiff.report.safe_filename`) so it stays in that directory.
     """
     batch, steps = config.sizes(scenario)
     tol = scenario.tolerance.for_precision(config.precision)
@@ -114,8 +115,9 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
     result = run_inputs(scenario.name, m, inputs, tol, config, mjx_engine, c_engine, info)
     if result.status == "fail" and config.reproducers is not None:
         member = result.first_divergence["member"]
+        file = f"{report.safe_filename(scenario.name)}-member{member}.json"
         path = reproducer.save(
-            Path(config.reproducers) / f"{scenario.name}-member{member}.json", scenario.name, member, inputs,
+            report.path_under(config.reproducers, file), scenario.name, member, inputs,
             scenario.model_path.read_text(), tol, config.as_dict(), report.result_dict(result), report.versions())
         result = dataclasses.replace(result, info={**result.info, "reproducer": str(path)})
     return result
@@ -390,6 +392,7 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     seconds.update(c=clock.get("c", 0.0), mjx=clock.get("mjx", 0.0), verdict=clock.get("verdict", 0.0),
                    diagnosis=time.perf_counter() - t, compile=engines.compile_seconds() - compile_s)
     info.update(mjx_compiles=engines.compile_count() - compiles, mjx_loaded=export_cache.loaded_count() - loaded,
+                mjx_code=export_cache.code_digest(),
                 nq=m.nq, nv=m.nv, nu=m.nu,
                 nsensordata=m.nsensordata, **counts)
     return dataclasses.replace(result, info=info)
