@@ -166,7 +166,7 @@ def _xla_settings(devices: int | None) -> tuple[str, str, int]:
     return " ".join(wanted), os.environ.get("PJRT_NPROC") or str(CORES + devices), devices
 
 
-_CONFIGURED = {"done": False}
+_CONFIGURED = export_cache.untraced({"done": False})
 
 
 def configure_jax(precision: str = "float64", cache_dir: str | os.PathLike | None = None,
@@ -322,7 +322,7 @@ def first_diverged(diverged_at: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-_NUMERIC_NAMES: dict[tuple[type, tuple[type, ...]], tuple[str, ...]] = {}
+_NUMERIC_NAMES: dict[tuple[type, tuple[type, ...]], tuple[str, ...]] = export_cache.untraced({})
 
 
 def _numeric_names(example, kinds: tuple[type, ...]) -> tuple[str, ...]:
@@ -412,7 +412,7 @@ def put_models(models: tuple[mujoco.MjModel, ...]) -> tuple[mjx.Model, tuple[boo
     return jax.tree.unflatten(treedef, stacked), varying
 
 
-_COMPILES = {"count": 0, "seconds": 0.0}
+_COMPILES = export_cache.untraced({"count": 0, "seconds": 0.0})
 # JAX's own timings of tracing, lowering and XLA compilation (a persistent-cache hit is
 # timed as the load that replaces compilation).
 _COMPILE_EVENTS = frozenset({"/jax/core/compile/jaxpr_trace_duration",

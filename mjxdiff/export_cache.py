@@ -2,21 +2,23 @@
 
 JAX's persistent compilation cache keeps XLA's output, but every new process
 still traces ``mjx.step`` in Python to find the cache key (2.5-3 s for an ant
-rollout, most of a warm sweep's compile time). :func:`call` traces a jitted
+rollout, most of a warm sweep's compile time). :func:`bind` traces a jitted
 function once, saves it as a serialized :mod:`jax.export` artifact (StableHLO
 plus its input and output structure), and in later processes loads that
 instead of tracing; XLA's compile of the loaded module is a persistent-cache
 hit. Numbers are unchanged: the cold run already executes the exported module.
 
-An artifact is keyed on everything the trace depended on: the tree structure
-of the arguments (which holds an ``mjx.Model``'s static fields), each leaf's
-shape, dtype and sharding, the static arguments, x64, and the versions of
-jax, jaxlib, mujoco, mujoco-mjx and the source of the module that defines the
-function. Code is not in the key, so artifacts are used only while MJX's
-modules (and mjxdiff.engines) hold the functions they were imported with, all
-written in installed packages (:func:`mjx_pristine`): a test that
-monkeypatches MJX to inject a bug, before or after importing mjxdiff, always
-traces its patched code.
+A cache is only as good as its key. An artifact is keyed on everything the
+trace depended on: the tree structure of the arguments (which holds an
+``mjx.Model``'s static fields), each leaf's shape, dtype and sharding, the
+static arguments, the versions of jax, jaxlib, mujoco and mujoco-mjx, the JAX
+and XLA settings that change compilation, and the code itself
+(:func:`code_digest`): every function, class and constant of every imported
+``mujoco.mjx`` module and of ``mjxdiff.engines``, by bytecode, constants and
+nested code, default arguments, closure contents, the globals each function
+reads and the arguments of partials. MJX edited in place, patched at run time
+or rebuilt under the same version number is therefore traced again, and may
+reuse only artifacts made for exactly that code.
 """
 
 from __future__ import annotations
@@ -25,69 +27,216 @@ import contextlib
 import functools
 import hashlib
 import importlib.metadata
-import inspect
+import enum
 import os
 import pickle
 import sys
-import sysconfig
 import types
 from pathlib import Path
 from typing import Any, Callable
 
 import jax
+import numpy as np
 from jax import export
 
-__all__ = ["bind", "call", "clear", "evict", "export_dir", "loaded_count", "mjx_pristine"]
+__all__ = ["bind", "call", "clear", "code_digest", "evict", "export_dir", "fresh_digest", "loaded_count",
+           "rollout_digest", "settings_digest", "untraced"]
 
 _FUNCTIONS: dict[str, tuple[Any, Callable]] = {}  # key -> (output tree structure, jitted call of an Exported)
 _LOADED = {"count": 0}
 
 
-def _traced_functions() -> dict[tuple[str, str], Any]:
-    """Module-level callables of MJX and of mjxdiff.engines (the code a rollout traces), classes
-    and modules aside: functions, and what may stand in for one (a partial, a jitted function)."""
-    return {(name, attr): value for name, module in list(sys.modules.items())
-            if module is not None and (name in ("mujoco.mjx", "mjxdiff.engines") or name.startswith("mujoco.mjx."))
-            for attr, value in list(vars(module).items())
-            if callable(value) and not isinstance(value, (type, types.ModuleType))}
+#: Modules whose code a rollout traces: MJX's, and mjxdiff's own traced functions.
+TRACED_MODULES = ("mujoco.mjx", "mjxdiff.engines")
+#: JAX settings that change what a trace or XLA produces.
+_JAX_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion",
+                 "jax_default_prng_impl", "jax_threefry_partitionable", "jax_use_shardy_partitioner")
+
+_UNTRACED: dict[int, Any] = {}  # id -> object: run-time state of traced modules, left out of digests
 
 
-#: Where genuine MJX code lives: installed packages, the standard library and mjxdiff itself.
-_GENUINE_ROOTS = tuple(sorted({os.path.join(Path(sysconfig.get_paths()[k]).resolve(), "")  # trailing separator:
-                               for k in ("purelib", "platlib", "stdlib")}  # .../mjxdiff is not .../mjxdiff_x
-                              | {os.path.join(Path(__file__).resolve().parent, "")}))
+def untraced(value: Any) -> Any:
+    """Marks ``value`` (a counter, a memo dict of a traced module) as run-time state that
+    never changes what a trace produces, so that :func:`code_digest` leaves it out; returns it."""
+    _UNTRACED[id(value)] = value
+    return value
 
 
-@functools.cache
-def _installed(filename: str) -> bool:
-    return str(Path(filename).resolve()).startswith(_GENUINE_ROOTS)
+_CODE_MEMO: dict[int, tuple[types.CodeType, bytes]] = {}  # id -> (code, digest); code objects are immutable
+_SIMPLE = (type(None), bool, int, float, complex, str, bytes, range, slice, type(Ellipsis))
 
 
-def _genuine(value: Any) -> bool:
-    """False for a callable whose code was written outside the installed packages (a test's or
-    a user's patch), seen through partials and ``functools.wraps``/``jax.jit`` wrappers."""
-    while isinstance(value, functools.partial):
-        value = value.func
-    try:
-        value = inspect.unwrap(value)
-    except ValueError:  # a cycle of __wrapped__
-        return False
-    code = getattr(value, "__code__", None)
-    return code is None or _installed(code.co_filename)
+def _code(code: types.CodeType) -> bytes:
+    """Digest of what a code object does: bytecode, constants (nested code included), the
+    names it reads, its signature; not its file name or line numbers."""
+    memo = _CODE_MEMO.get(id(code))
+    if memo is None or memo[0] is not code:
+        h = hashlib.sha256()
+        for part in (code.co_code, code.co_names, code.co_varnames, code.co_freevars, code.co_cellvars,
+                     code.co_argcount, code.co_posonlyargcount, code.co_kwonlyargcount, code.co_flags):
+            h.update(repr(part).encode())
+        for const in code.co_consts:
+            h.update(_code(const) if isinstance(const, types.CodeType) else _const(const).encode())
+        memo = _CODE_MEMO[id(code)] = (code, h.digest())
+    return memo[1]
 
 
-_PRISTINE = _traced_functions()  # mjxdiff.engines imports mujoco.mjx (all of _src) before this module
+def _const(value: Any) -> str:
+    """A constant's repr that is the same in every process (a frozenset's order follows string hashing)."""
+    if isinstance(value, (frozenset, set)):
+        return f"{type(value).__name__}({sorted(_const(v) for v in value)})"
+    if isinstance(value, tuple):
+        return f"({', '.join(_const(v) for v in value)},)"
+    return repr((type(value).__name__, value))
 
 
-def mjx_pristine() -> bool:
-    """True while every callable of MJX's modules and of mjxdiff.engines is the one first seen
-    (imported at start-up, or at the first check for ones defined later) and was written in an
-    installed package: nothing patched, before or after mjxdiff was imported. (A pre-import
-    patch by a partial of MJX's own function with other arguments is not seen.)"""
-    current = _traced_functions()
-    for k, v in current.items():
-        _PRISTINE.setdefault(k, v)
-    return all(_PRISTINE[k] is v for k, v in current.items()) and all(_genuine(v) for v in current.values())
+class _Digest:
+    """One digest of a set of values, functions followed into their closures and globals.
+
+    Each object is fed once (a second visit feeds a back-reference), so
+    mutually recursive functions and shared helpers cost one visit.
+    """
+
+    def __init__(self, modules: tuple[str, ...]):
+        self.h, self.seen, self.modules = hashlib.sha256(), {}, modules
+
+    def _ours(self, module: str | None) -> bool:
+        return bool(module) and any(module == m or module.startswith(m + ".") for m in self.modules)
+
+    def feed(self, value: Any, depth: int = 0) -> None:
+        h = self.h
+        if isinstance(value, _SIMPLE) or isinstance(value, enum.Enum):
+            h.update(repr((type(value).__name__, value)).encode())
+            return
+        if isinstance(value, types.ModuleType):
+            h.update(b"module " + value.__name__.encode())
+            return
+        if _UNTRACED.get(id(value)) is value:
+            h.update(b"untraced")
+            return
+        if id(value) in self.seen:
+            h.update(b"ref %d" % self.seen[id(value)])
+            return
+        self.seen[id(value)] = len(self.seen)
+        self.seen.setdefault(-id(value), value)  # keeps it alive: ids stay unique while hashing
+        if depth > 12:
+            h.update(b"deep " + type(value).__qualname__.encode())
+            return
+        kind = type(value)
+        h.update(kind.__qualname__.encode())
+        if isinstance(value, types.FunctionType):
+            self._function(value, depth)
+        elif isinstance(value, types.CodeType):
+            h.update(_code(value))
+        elif isinstance(value, (types.MethodType, staticmethod, classmethod)):
+            self.feed(value.__func__, depth + 1)
+        elif isinstance(value, functools.partial):
+            for part in (value.func, value.args, value.keywords):
+                self.feed(part, depth + 1)
+        elif isinstance(value, property):
+            for part in (value.fget, value.fset, value.fdel):
+                self.feed(part, depth + 1)
+        elif isinstance(value, (tuple, list)):
+            h.update(b"%d" % len(value))
+            for item in value:
+                self.feed(item, depth + 1)
+        elif isinstance(value, (set, frozenset)):
+            h.update(_const(value).encode())
+        elif isinstance(value, dict):
+            for k in sorted(value, key=repr):
+                h.update(repr(k).encode())
+                self.feed(value[k], depth + 1)
+        elif isinstance(value, np.ndarray) or (isinstance(value, jax.Array) and not isinstance(value, jax.core.Tracer)):
+            a = np.asarray(value)
+            h.update(repr((a.dtype.str, a.shape)).encode() + (a.tobytes() if a.dtype != object else repr(a).encode()))
+        elif isinstance(value, type) and issubclass(value, enum.Enum):  # members, not lazily filled lookup tables
+            h.update(f"{value.__module__}.{value.__qualname__}".encode())
+            h.update(repr([(m.name, m.value) for m in value]).encode())
+        elif isinstance(value, type):
+            h.update(f"{value.__module__}.{value.__qualname__}".encode())
+            if self._ours(value.__module__):  # a class MJX or mjxdiff defines: its methods and attributes
+                for k in sorted(vars(value)):
+                    if not k.startswith("__") or k in ("__init__", "__call__", "__post_init__"):
+                        h.update(k.encode())
+                        self.feed(vars(value)[k], depth + 1)
+        elif hasattr(value, "__wrapped__") or hasattr(value, "__dict__"):
+            # jitted functions, custom_jvp/vjp, other callable objects: what they wrap and their
+            # public attributes (custom_jvp's fun and jvp); private ones are JAX's caches
+            wrapped = getattr(value, "__wrapped__", None)
+            if wrapped is not None:
+                self.feed(wrapped, depth + 1)
+            for k, v in sorted(getattr(value, "__dict__", {}).items()):
+                if not k.startswith("_"):
+                    h.update(k.encode())
+                    self.feed(v, depth + 1)
+        else:  # builtins and other opaque values: their name, or a repr without addresses
+            text = repr(value)
+            h.update((getattr(value, "__qualname__", "") if " at 0x" in text else text).encode())
+
+    def _function(self, fn: types.FunctionType, depth: int) -> None:
+        h = self.h
+        h.update(_code(fn.__code__))
+        self.feed(fn.__defaults__, depth + 1)
+        self.feed(fn.__kwdefaults__, depth + 1)
+        for cell in fn.__closure__ or ():
+            try:
+                self.feed(cell.cell_contents, depth + 1)
+            except ValueError:  # an empty cell
+                h.update(b"empty cell")
+        # the globals it reads: a module-level constant or helper of a user's patch counts too
+        names = set(fn.__code__.co_names)
+        stack = [c for c in fn.__code__.co_consts if isinstance(c, types.CodeType)]
+        while stack:
+            code = stack.pop()
+            names.update(code.co_names)
+            stack.extend(c for c in code.co_consts if isinstance(c, types.CodeType))
+        for name in sorted(names):
+            if name in fn.__globals__:
+                h.update(name.encode())
+                self.feed(fn.__globals__[name], depth + 1)
+
+
+def _is_test(name: str) -> bool:
+    leaf = name.rsplit(".", 1)[-1]
+    return leaf.startswith("test_") or leaf.endswith("_test")
+
+
+def _modules(prefixes: tuple[str, ...]) -> list[tuple[str, types.ModuleType]]:
+    """Imported modules under ``prefixes``, test helpers aside (never traced by a rollout;
+    pytest rewrites them, so their code differs between a test run and the CLI)."""
+    return sorted((name, module) for name, module in list(sys.modules.items())
+                  if module is not None and any(name == p or name.startswith(p + ".") for p in prefixes)
+                  and not _is_test(name))
+
+
+def code_digest(modules: tuple[str, ...] = ("mujoco.mjx",)) -> str:
+    """Hex SHA-256 of the code now loaded in ``modules`` (names, with their submodules):
+    every module-level function, class and value, functions followed into their closures,
+    defaults and the globals they read. Equal for the same code, whichever file it came from;
+    different after any edit or monkeypatch that changes what runs.
+
+    ``report.json`` names the MJX that was tested by ``code_digest()``.
+    """
+    d = _Digest(modules)
+    for name, module in _modules(modules):
+        d.h.update(b"module " + name.encode())
+        for attr in sorted(vars(module)):
+            if not attr.startswith(("__", "@")):  # "@py_builtins": pytest's assertion rewriting
+                d.h.update(attr.encode())
+                d.feed(vars(module)[attr])
+    return d.h.hexdigest()
+
+
+def settings_digest() -> str:
+    """Hex SHA-256 of what else decides a compiled rollout: versions, JAX settings, XLA flags."""
+    config = [(k, str(getattr(jax.config, k, None))) for k in _JAX_SETTINGS]
+    return hashlib.sha256(repr((_versions(), config, os.environ.get("XLA_FLAGS", ""))).encode()).hexdigest()
+
+
+def rollout_digest() -> str:
+    """The code and settings a rollout traced now would depend on (:func:`code_digest` of
+    :data:`TRACED_MODULES` and :func:`settings_digest`); part of every artifact's key."""
+    return hashlib.sha256((code_digest(TRACED_MODULES) + settings_digest()).encode()).hexdigest()
 
 
 def export_dir() -> Path | None:
@@ -114,11 +263,6 @@ def _versions() -> tuple[str, ...]:
     return tuple(importlib.metadata.version(p) for p in ("jax", "jaxlib", "mujoco", "mujoco-mjx"))
 
 
-@functools.cache
-def _source_digest(fn: Callable) -> bytes:
-    return hashlib.sha256(Path(inspect.getsourcefile(inspect.unwrap(fn)) or "").read_bytes()).digest()
-
-
 def _structure(treedef, h) -> None:
     # node by node: pickle.dumps of the whole treedef depends on which equal aux objects
     # happen to be shared (pickle's memo), so equal structures could hash differently
@@ -127,25 +271,38 @@ def _structure(treedef, h) -> None:
         _structure(child, h)
 
 
-def _key(fn: Callable, treedef, leaves: list, static: dict[str, Any]) -> str:
+def _key(fn: Callable, treedef, leaves: list, static: dict[str, Any], code: str) -> str:
     h = hashlib.sha256()
     _structure(treedef, h)
-    for part in (_versions(), jax.config.jax_enable_x64, _source_digest(fn), fn.__qualname__,
-                 sorted((k, repr(v)) for k, v in static.items()),
+    for part in (code, fn.__module__, fn.__qualname__, sorted((k, repr(v)) for k, v in static.items()),
                  [(x.shape, str(x.dtype), str(getattr(x, "sharding", None))) for x in leaves]):
-        h.update(repr(part).encode() if not isinstance(part, bytes) else part)
+        h.update(repr(part).encode())
     return h.hexdigest()
 
 
-_KEYS: dict[tuple, str] = {}  # (fn, treedef, leaf types, static) -> key: hashing a model's structure takes ~30 ms
+_KEYS: dict[tuple, str] = {}  # (fn, treedef, leaf types, static, code) -> key: hashing a model's structure takes ~30 ms
 
 
-def _key_of(fn: Callable, treedef, leaves: list, static: dict[str, Any]) -> str:
+def _key_of(fn: Callable, treedef, leaves: list, static: dict[str, Any], code: str) -> str:
     memo = (fn, treedef, tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves),
-            tuple(sorted(static.items())), jax.config.jax_enable_x64)
+            tuple(sorted(static.items())), code)
     if memo not in _KEYS:
-        _KEYS[memo] = _key(fn, treedef, leaves, static)
+        _KEYS[memo] = _key(fn, treedef, leaves, static, code)
     return _KEYS[memo]
+
+
+_SEEN = {"digest": None}
+
+
+def fresh_digest() -> str:
+    """:func:`rollout_digest` now; when it differs from the last one this process saw, JAX's
+    in-memory caches are cleared first (``jax.clear_caches``), so that no function compiled
+    or traced from the old code (a jitted function, a cached scan body) runs again."""
+    digest = rollout_digest()
+    if _SEEN["digest"] not in (None, digest):
+        jax.clear_caches()
+    _SEEN["digest"] = digest
+    return digest
 
 
 #: Most bytes of artifacts kept (~2,500 of 130-230 KB); beyond it the least recently used go.
@@ -203,17 +360,19 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any]) -> Callable:
     a loaded or freshly exported artifact when possible (exported on first use, from ``args``' shapes).
 
     Binding once and calling many times (the pieces of a stream) spares each call the
-    structure's key. Falls back to ``fn`` itself when caching is off, MJX is patched,
-    or the function cannot be exported (calling it then raises MJX's own error, e.g.
-    ``NotImplementedError`` for an unsupported feature).
+    structure's key. Falls back to ``fn`` itself when caching is off or the function
+    cannot be exported (calling it then raises MJX's own error, e.g.
+    ``NotImplementedError`` for an unsupported feature). Either way the code that runs
+    is the code loaded now (:func:`fresh_digest`).
     """
+    code = fresh_digest()
     direct = functools.partial(fn, **static)
     directory = export_dir()
-    if directory is None or not mjx_pristine():
+    if directory is None:
         return direct
     leaves, treedef = jax.tree.flatten(args)
     try:
-        key = _key_of(fn, treedef, leaves, static)
+        key = _key_of(fn, treedef, leaves, static, code)
     except (pickle.PicklingError, TypeError, AttributeError):  # static data that cannot be pickled
         return direct
     if key not in _FUNCTIONS:
@@ -236,9 +395,10 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any]) -> Callable:
 def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
     """(output tree structure, Exported) of ``fn`` over flat leaves, or None if it cannot be exported."""
     out_tree = []
+    python = getattr(fn, "__wrapped__", fn)  # traced afresh, never a jitted function's cached trace
 
     def flat(*leaves):
-        out, tree = jax.tree.flatten(fn(*jax.tree.unflatten(treedef, leaves), **static))
+        out, tree = jax.tree.flatten(python(*jax.tree.unflatten(treedef, leaves), **static))
         out_tree.append(tree)
         return out
 

@@ -2,6 +2,8 @@
 
 import functools
 import os
+import subprocess
+import sys
 
 import jax
 import mujoco
@@ -41,26 +43,32 @@ def test_a_saved_rollout_is_loaded_without_tracing_and_matches_the_traced_one(pe
         np.testing.assert_array_equal(getattr(saved, field), getattr(traced, field), err_msg=field)
 
 
-def test_patched_mjx_is_traced_not_loaded(pendulum, monkeypatch):
+def test_patched_mjx_is_traced_and_its_own_artifact_reused_for_that_code_only(pendulum, monkeypatch):
     _, inputs = pendulum
     clean = _rollout(inputs)
-    assert export_cache.mjx_pristine()
+    clean_code = export_cache.rollout_digest()
     orig = mjx_passive._spring_damper
     monkeypatch.setattr(mjx_passive, "_spring_damper", lambda m, d: orig(m, d) - 1e-3 * m.dof_damping * d.qvel)
-    assert not export_cache.mjx_pristine()
+    assert export_cache.rollout_digest() != clean_code
     compiles, loaded = engines.compile_count(), export_cache.loaded_count()
-    patched = _rollout(inputs)
-    assert engines.compile_count() == compiles + 1 and export_cache.loaded_count() == loaded
+    patched = _rollout(inputs)  # traced, or loaded from an earlier run of this very patch
+    assert engines.compile_count() + export_cache.loaded_count() == compiles + loaded + 1
     assert np.abs(patched.qvel - clean.qvel).max() > 1e-9, "the patched damping did not reach the rollout"
+    compiles = engines.compile_count()
+    again = _rollout(inputs)  # the same patched code: its own artifact
+    assert engines.compile_count() == compiles
+    np.testing.assert_array_equal(again.qvel, patched.qvel)
     monkeypatch.undo()
-    engines.clear_compiled()
-    assert export_cache.mjx_pristine()
+    assert export_cache.rollout_digest() == clean_code
+    np.testing.assert_array_equal(_rollout(inputs).qvel, clean.qvel)
+    assert engines.compile_count() == compiles, "the clean code's artifact is loaded again"
 
 
 def _key(*models: mujoco.MjModel) -> str:
     mx, varying = put_models(models if len(models) > 1 else models * 2)
     leaves, treedef = jax.tree.flatten(mx)
-    return export_cache._key(engines._rollout, treedef, leaves, dict(varying=varying, with_energy=False, mesh=None))
+    return export_cache._key(engines._rollout, treedef, leaves, dict(varying=varying, with_energy=False, mesh=None),
+                             export_cache.rollout_digest())
 
 
 def test_the_key_follows_static_structure_not_parameter_values(pendulum):
@@ -75,25 +83,61 @@ def test_the_key_follows_static_structure_not_parameter_values(pendulum):
     assert _key(m, heavier) != _key(m), "which leaves vary between members is part of the function"
 
 
-def test_patching_mjxdiffs_own_traced_code_is_noticed(monkeypatch):
-    assert export_cache.mjx_pristine()
-    monkeypatch.setattr(engines, "_contact_count", lambda dx: 0)  # would count no contacts
-    assert not export_cache.mjx_pristine()
+FACTOR = 1e-3
 
 
-def test_a_patch_made_before_mjxdiff_first_saw_mjx_is_noticed(monkeypatch):
-    """As if a conftest patched MJX before importing mjxdiff: the patch is what mjxdiff saw first."""
+def _damping_patch(scale):
     orig = mjx_passive._spring_damper
-    buggy = lambda m, d: orig(m, d) - 1e-3 * m.dof_damping * d.qvel  # noqa: E731
-    monkeypatch.setattr(mjx_passive, "_spring_damper", buggy)
-    monkeypatch.setitem(export_cache._PRISTINE, (mjx_passive.__name__, "_spring_damper"), buggy)
-    assert not export_cache.mjx_pristine(), "code written outside the installed packages"
+    return lambda m, d: orig(m, d) - scale * m.dof_damping * d.qvel
 
 
-def test_a_patch_that_is_not_a_plain_function_is_noticed(monkeypatch):
-    assert export_cache.mjx_pristine()
-    monkeypatch.setattr(mjx_passive, "_spring_damper", functools.partial(mjx_passive._spring_damper))
-    assert not export_cache.mjx_pristine()
+def _global_patch(m, d):  # reads the module-level FACTOR
+    return FACTOR * d.qvel
+
+
+@pytest.mark.parametrize("change", [
+    "mjxdiff's own traced code", "a partial", "a closure's value", "a global the patch reads",
+    "an MJX module constant", "a default argument",
+])
+def test_every_kind_of_code_change_changes_the_digest(change, monkeypatch):
+    before = export_cache.rollout_digest()
+    if change == "mjxdiff's own traced code":
+        monkeypatch.setattr(engines, "_contact_count", lambda dx: 0)  # would count no contacts
+    elif change == "a partial":
+        monkeypatch.setattr(mjx_passive, "_spring_damper", functools.partial(mjx_passive._spring_damper))
+    elif change == "a closure's value":  # same code, another captured number
+        monkeypatch.setattr(mjx_passive, "_spring_damper", _damping_patch(1e-3))
+        first = export_cache.rollout_digest()
+        monkeypatch.setattr(mjx_passive, "_spring_damper", _damping_patch(2e-3))
+        assert export_cache.rollout_digest() != first
+    elif change == "a global the patch reads":
+        monkeypatch.setattr(mjx_passive, "_spring_damper", _global_patch)
+        first = export_cache.rollout_digest()
+        monkeypatch.setitem(globals(), "FACTOR", 2e-3)
+        assert export_cache.rollout_digest() != first
+    elif change == "an MJX module constant":
+        from mujoco.mjx._src import collision_driver
+
+        monkeypatch.setattr(collision_driver, "_MAX_NCON", collision_driver._MAX_NCON + 1)
+    else:
+        from mujoco.mjx._src import forward as mjx_forward
+
+        advance = mjx_forward._advance.__wrapped__  # under MJX's named_scope decorator
+        assert advance.__defaults__ == (None,)  # qvel=None: semi-implicit
+        monkeypatch.setattr(advance, "__defaults__", (0.0,))
+    assert export_cache.rollout_digest() != before, change
+    monkeypatch.undo()
+    assert export_cache.rollout_digest() == before
+
+
+def test_the_digest_is_stable_across_rollouts_and_processes(pendulum):
+    _, inputs = pendulum
+    before = export_cache.code_digest()
+    _rollout(inputs)
+    assert export_cache.code_digest() == before, "run-time state (counters, caches) is not code"
+    code = "from mjxdiff import export_cache, engines; print(export_cache.code_digest())"
+    other = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert other.stdout.split()[-1] == before, other.stderr[-2000:]
 
 
 def test_a_damaged_artifact_is_traced_again_and_rewritten(pendulum):
