@@ -229,10 +229,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from mjxdiff.sweep import SweepConfig, exit_code, run_inputs
 
     try:
-        rep = reproducer.load(args.file)
-    except (ScenarioError, KeyError, ValueError) as e:
-        message = str(e) if isinstance(e, ScenarioError) else f"{args.file}: not a reproducer ({e!r} missing or bad)"
-        print(f"mjxdiff: error: {message}", file=sys.stderr)
+        rep = reproducer.load(args.file)  # checks everything replay reads below
+    except ScenarioError as e:
+        print(f"mjxdiff: error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2
     saved = {k: v for k, v in rep.config.items() if k in SweepConfig.__dataclass_fields__}
     config = SweepConfig(**{**saved, "reproducers": None})

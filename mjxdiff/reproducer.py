@@ -15,7 +15,9 @@ from __future__ import annotations
 import base64
 import dataclasses
 import json
+import math
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -23,12 +25,13 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from mjxdiff.inputs import BatchedInputs
+from mjxdiff.inputs import FACTOR_SHAPES, BatchedInputs
 from mjxdiff.scenario import ScenarioError, Tolerances
 
 __all__ = ["FORMAT", "Reproducer", "save", "load", "member_inputs"]
 
 FORMAT = "mjxdiff-reproducer/1"
+_VERSION = 1  # the format version this mjxdiff reads and writes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,12 +56,21 @@ def _model_to_b64(m: mujoco.MjModel) -> str:
 
 
 def _model_from_b64(text: str) -> mujoco.MjModel:
+    """The model of a base64 MJB; ValueError with MuJoCo's reason (warnings collected, not printed)."""
+    data = base64.b64decode(text, validate=True)  # binascii.Error (a ValueError) on bad base64
     fd, path = tempfile.mkstemp(suffix=".mjb")
+    warnings: list[str] = []
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(warnings.append)  # else MuJoCo prints to stderr and MUJOCO_LOG.TXT
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(base64.b64decode(text))
-        return mujoco.MjModel.from_binary_path(path)
+            f.write(data)
+        try:
+            return mujoco.MjModel.from_binary_path(path)
+        except Exception as e:
+            raise ValueError("; ".join([str(e), *warnings])) from None
     finally:
+        mujoco.set_mju_user_warning(previous)
         os.unlink(path)
 
 
@@ -84,22 +96,174 @@ def save(path: str | Path, scenario: str, member: int, inputs: BatchedInputs, mo
     return path
 
 
-def load(path: str | Path) -> Reproducer:
-    """Reads a reproducer; :class:`ScenarioError` in one line if it is not one."""
+class _Bad(Exception):
+    """What is wrong with a reproducer document (turned into a :class:`ScenarioError` naming the file)."""
+
+
+def _one_line(text: object) -> str:
+    return " ".join(str(text).split())
+
+
+def _get(doc: dict, key: str, types: type | tuple[type, ...], what: str, where: str = "") -> Any:
+    """``doc[key]``, which must be one of ``types`` (bool is never taken for int); ``where``: the
+    enclosing key, for the message."""
+    label = f"{where} {key!r}" if where else repr(key)
+    if key not in doc:
+        raise _Bad(f"{label} is missing")
+    value = doc[key]
+    types = types if isinstance(types, tuple) else (types,)
+    if not isinstance(value, types) or (isinstance(value, bool) and bool not in types):
+        raise _Bad(f"{label} must be {what}, got {type(value).__name__}")
+    return value
+
+
+def _array(doc: dict, key: str, shape: tuple[int, ...], meaning: str, where: str = "") -> np.ndarray:
+    """``doc[key]`` as a finite float64 array of exactly ``shape`` (a plain number when ``shape`` is ())."""
+    label = f"{where} {key!r}" if where else repr(key)
+    value = (_get(doc, key, (int, float), "a number", where) if shape == () else
+             _get(doc, key, list, "a list of numbers", where))
     try:
-        doc = json.loads(Path(path).read_text())
+        a = np.asarray(value)
+    except ValueError:
+        raise _Bad(f"{label} is ragged (expected shape {shape}, {meaning})") from None
+    if a.size and a.dtype.kind not in "iuf":
+        raise _Bad(f"{label} must hold numbers only")
+    a = a.astype(np.float64)
+    if a.shape != shape:
+        raise _Bad(f"{label} has shape {a.shape}, expected {shape} ({meaning})")
+    if not np.all(np.isfinite(a)):
+        raise _Bad(f"{label} holds non-finite values")
+    return a
+
+
+def _tolerances(doc: dict) -> Tolerances:
+    tol = _get(doc, "tolerances", dict, "an object")
+    fields = [f.name for f in dataclasses.fields(Tolerances)]
+    unknown = sorted(set(tol) - set(fields))
+    if unknown:
+        raise _Bad(f"unknown tolerance {unknown[0]!r}")
+    for name in fields:
+        v = _get(tol, name, (int, float), "a number", "tolerances")
+        if not (math.isfinite(v) and v >= 0):
+            raise _Bad(f"tolerance {name!r} must be a finite number >= 0, got {v!r}")
+    return Tolerances(**{k: float(v) for k, v in tol.items()})
+
+
+def _config(doc: dict) -> dict[str, Any]:
+    """The saved sweep configuration; its known settings are checked as ``replay`` will use them."""
+    from mjxdiff.sweep import NOISE_FLOOR_MODES, SweepConfig
+
+    config = _get(doc, "config", dict, "an object")
+    choices = dict(precision=("float64", "float32"), noise_floor=NOISE_FLOOR_MODES,
+                   diagnose=("none", "basic", "full"))
+    for key, allowed in choices.items():
+        if key in config and config[key] not in allowed:
+            raise _Bad(f"config {key!r} must be one of {', '.join(allowed)}, got {config[key]!r}")
+    for key in ("quick", "envelope"):
+        if key in config:
+            _get(config, key, bool, "true or false", "config")
+    if "threshold" in config:
+        t = _get(config, "threshold", (int, float), "a number", "config")
+        if not 0 <= t <= 1:
+            raise _Bad(f"config 'threshold' must be in [0, 1], got {t!r}")
+    for key in ("seed", "batch", "steps", "piece_steps", "group_size"):
+        if config.get(key) is not None:
+            v = _get(config, key, int, "an integer or null", "config")
+            if key != "seed" and v <= 0:
+                raise _Bad(f"config {key!r} must be positive, got {v}")
+    saved = {k: v for k, v in config.items() if k in SweepConfig.__dataclass_fields__}
+    try:
+        SweepConfig(**{**saved, "reproducers": None})
+    except (TypeError, ValueError) as e:
+        raise _Bad(f"bad config: {e}") from None
+    return config
+
+
+def _format_problem(doc: Any) -> str | None:
+    """Why ``doc`` is not a reproducer this mjxdiff reads, or None."""
+    if not isinstance(doc, dict):
+        return f"not a reproducer (a JSON {type(doc).__name__}, expected an object with format {FORMAT!r})"
+    fmt = doc.get("format")
+    version = re.fullmatch(r"mjxdiff-reproducer/(\d+)", fmt) if isinstance(fmt, str) else None
+    if version is None:
+        return f"not a reproducer (format {fmt!r}, expected {FORMAT!r})"
+    if int(version.group(1)) > _VERSION:
+        return (f"reproducer written by a newer mjxdiff (format {fmt!r}); this mjxdiff reads version "
+                f"{_VERSION} ({FORMAT!r}): upgrade mjxdiff to replay it")
+    if fmt != FORMAT:
+        return f"unsupported reproducer format {fmt!r}, expected {FORMAT!r}"
+    return None
+
+
+def _parse(doc: dict) -> Reproducer:
+    scenario = _get(doc, "scenario", str, "a string")
+    member = _get(doc, "member", int, "an integer")
+    member_id = _get(doc, "member_id", int, "an integer")
+    seed = _get(doc, "seed", int, "an integer")
+    for key, v in (("member", member), ("member_id", member_id), ("seed", seed)):
+        if v < 0:
+            raise _Bad(f"{key!r} must be >= 0, got {v}")
+    energy = _get(doc, "energy", bool, "true or false")
+    steps = _get(doc, "steps", int, "an integer")
+    if steps <= 0:
+        raise _Bad(f"'steps' must be positive, got {steps}")
+    model_xml = _get(doc, "model_xml", str, "a string")
+    versions = _get(doc, "versions", dict, "an object")
+    verdict = _get(doc, "verdict", dict, "an object")
+    _get(verdict, "status", str, "a string", "verdict")
+    if not isinstance(verdict.get("first_divergence") or {}, dict):
+        raise _Bad("verdict's 'first_divergence' must be an object or null")
+    tolerances = _tolerances(doc)
+    config = _config(doc)
+    try:
+        m = _model_from_b64(_get(doc, "model_mjb_base64", str, "a string"))
+    except ValueError as e:
+        raise _Bad(f"the model does not decode ({_one_line(e)})") from None
+    qpos = _array(doc, "qpos", (m.nq,), f"the model's nq = {m.nq}")
+    qvel = _array(doc, "qvel", (m.nv,), f"the model's nv = {m.nv}")
+    act = _array(doc, "act", (m.na,), f"the model's na = {m.na}")
+    ctrl = _array(doc, "ctrl", (steps, m.nu), f"'steps' = {steps} by the model's nu = {m.nu}")
+    factors = {}
+    for name, value in _get(doc, "factors", dict, "an object").items():
+        if name not in FACTOR_SHAPES:
+            raise _Bad(f"unknown factor {name!r} (known: {', '.join(FACTOR_SHAPES)})")
+        factors[name] = _array(doc["factors"], name, FACTOR_SHAPES[name](m), "its size in the model", "factors")[None]
+    inputs = BatchedInputs(qpos=qpos[None], qvel=qvel[None], act=act[None], ctrl=ctrl[None], models=(m,),
+                           factors=factors, seed=seed, energy=energy, member_ids=np.array([member_id]))
+    return Reproducer(scenario=scenario, member=member, model=m, model_xml=model_xml, inputs=inputs,
+                      tolerances=tolerances, config=config, verdict=verdict, versions=versions)
+
+
+def load(path: str | Path) -> Reproducer:
+    """Reads and checks a reproducer.
+
+    Raises:
+      ScenarioError: in one line naming the file and what is wrong: unreadable,
+        not JSON or cut short, not a reproducer, written by a newer mjxdiff
+        (format version above 1), a key missing or of the wrong type, a model
+        that does not decode, or arrays whose lengths do not fit the model
+        (``nq``, ``nv``, ``na``, ``nu``) and ``steps``.
+    """
+    try:
+        text = Path(path).read_text()
     except FileNotFoundError:
         raise ScenarioError(f"{path}: reproducer file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ScenarioError(f"{path}: not a reproducer (invalid JSON: {e})") from None
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise ScenarioError(f"{path}: not a reproducer (expected format {FORMAT!r})")
-    m = _model_from_b64(doc["model_mjb_base64"])
-    arr = lambda key: np.asarray(doc[key], dtype=np.float64)[None]
-    ctrl = np.asarray(doc["ctrl"], dtype=np.float64).reshape(1, doc["steps"], m.nu)  # nu may be 0
-    inputs = BatchedInputs(qpos=arr("qpos"), qvel=arr("qvel"), act=arr("act").reshape(1, m.na), ctrl=ctrl,
-                           models=(m,), factors={k: np.asarray(v)[None] for k, v in doc["factors"].items()},
-                           seed=doc["seed"], energy=doc["energy"], member_ids=np.array([doc["member_id"]]))
-    return Reproducer(scenario=doc["scenario"], member=doc["member"], model=m, model_xml=doc["model_xml"],
-                      inputs=inputs, tolerances=Tolerances(**doc["tolerances"]), config=doc["config"],
-                      verdict=doc["verdict"], versions=doc["versions"])
+    except UnicodeDecodeError as e:
+        raise ScenarioError(f"{path}: not a reproducer (not UTF-8 text: {_one_line(e)})") from None
+    except OSError as e:
+        raise ScenarioError(f"{path}: cannot read reproducer ({_one_line(e.strerror or e)})") from None
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as e:
+        cut = e.pos >= len(text.rstrip()) or e.msg.startswith("Unterminated string")  # ran into the end
+        cut = " (the file looks cut short)" if cut and text.strip() else ""
+        raise ScenarioError(f"{path}: not a reproducer (invalid JSON{cut}: {_one_line(e)})") from None
+    except RecursionError:
+        raise ScenarioError(f"{path}: not a reproducer (JSON nested too deeply)") from None
+    problem = _format_problem(doc)
+    if problem is not None:
+        raise ScenarioError(f"{path}: {_one_line(problem)}")
+    try:
+        return _parse(doc)
+    except _Bad as e:
+        raise ScenarioError(f"{path}: bad reproducer: {_one_line(e)}") from None
