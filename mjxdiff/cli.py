@@ -284,7 +284,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_fuzz(args: argparse.Namespace) -> int:
-    from mjxdiff import engines
+    from mjxdiff import engines, report
     from mjxdiff.fuzz import DEFAULT_BUDGET, fuzz
 
     engines.configure_jax("float64", args.cache_dir)
@@ -294,6 +294,26 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
         return 2
     result = fuzz(max_examples=args.max_examples, seed=args.seed, budget=budget, out=args.out,
                   include_known=args.include_known, progress=sys.stderr.isatty())
+    written = None
+    if args.out:
+        doc = dict(versions=report.versions(),
+                   config=dict(max_examples=args.max_examples, seed=args.seed, budget=budget,
+                               include_known=args.include_known),
+                   examples=result.examples, seconds=result.seconds, failure=result.failure,
+                   harness_error=result.harness_error, traceback=result.harness_traceback,
+                   harness_example=result.harness_example)
+        written = report.write_report(args.out, doc, "fuzz-report.json")
+    if result.harness_error is not None:
+        # the run proves nothing: not "no divergence", whatever was tried before
+        print(f"mjxdiff: error: fuzz harness failed: {result.harness_error}", file=sys.stderr)
+        print(result.harness_traceback.rstrip("\n"), file=sys.stderr)
+        if written:
+            print(f"fuzz report written to {written}", file=sys.stderr)
+        if result.failure is not None:
+            print(f"(a divergence was found before the harness failed: {result.failure['message']})")
+        return 2
+    if written:
+        print(f"fuzz report written to {written}", file=sys.stderr)
     rate = result.examples / max(result.seconds, 1e-9) * 60
     if result.failure is None:
         print(f"no divergence in {result.examples} generated models ({result.seconds:.0f} s, {rate:.1f}/min)")

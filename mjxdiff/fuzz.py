@@ -8,6 +8,10 @@ batch), MJX and C rollouts agree under the same verdict as the sweep
 (fewer bodies and geoms, default options, zero velocities, shorter horizons),
 and Hypothesis's example database keeps it so the next run tries it first.
 
+Only the property's own divergence signal counts as a find: any other exception
+raised while generating, simulating or judging an example stops the run and is
+reported (:attr:`FuzzResult.harness_error`), never read as "no divergence".
+
 Features whose C/MJX divergence is already known and documented (see
 :data:`KNOWN_DIVERGENCES` and the scenario notes) are left out unless
 ``include_known`` is set, so that an unmodified MJX gives no alarm.
@@ -18,13 +22,14 @@ from __future__ import annotations
 import dataclasses
 import sys
 import time
+import traceback
 from pathlib import Path
 from typing import Any
 
 from hypothesis import HealthCheck, Phase, assume, given, note, seed as hseed, settings
 from hypothesis import strategies as st
 from hypothesis.database import DirectoryBasedExampleDatabase
-from hypothesis.errors import Flaky
+from hypothesis.errors import Flaky, HypothesisException
 
 from mjxdiff import report, reproducer, strategies
 from mjxdiff.inputs import BatchedInputs
@@ -53,11 +58,44 @@ class FuzzResult:
       seconds: wall time.
       failure: None, or the shrunk failing example: ``xml``, ``nbody``,
         ``ngeom``, ``features``, ``message`` and ``reproducer`` (path or None).
+      harness_error: None, or ``"ExcType: message"`` (one line) of an exception
+        raised by the fuzzing harness itself (generation, the engines, the
+        verdict, Hypothesis), which stopped the run: then nothing can be
+        concluded about divergence from the examples tried.
+      harness_traceback: the full traceback text of ``harness_error``.
+      harness_example: MJCF of the generated model being tried when the harness
+        failed (None if it failed before a model was drawn).
     """
 
     examples: int
     seconds: float
     failure: dict[str, Any] | None
+    harness_error: str | None = None
+    harness_traceback: str | None = None
+    harness_example: str | None = None
+
+
+class _Divergence(AssertionError):
+    """The property's own signal: MJX and C disagree on this example (the only exception that is a find)."""
+
+
+class _HarnessFailure(BaseException):
+    """Carries an exception raised by the harness out of Hypothesis at once.
+
+    Not an :class:`Exception`, so Hypothesis neither shrinks it nor mistakes it
+    for a failing example (as it does with :class:`KeyboardInterrupt`).
+    """
+
+    def __init__(self, error: BaseException):
+        super().__init__(error)
+        self.error = error
+
+
+def _is_find(e: BaseException) -> bool:
+    """Whether ``e``, raised by the Hypothesis run, is only the property's divergence signal."""
+    if isinstance(e, _Divergence):
+        return True
+    return isinstance(e, BaseExceptionGroup) and not isinstance(e, Flaky) and all(map(_is_find, e.exceptions))
 
 
 def model_strategy(include_known: bool = False, max_bodies: int = 3) -> st.SearchStrategy:
@@ -106,7 +144,7 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
                                               Path.home() / ".cache" / "mjxdiff" / "hypothesis")
     t0 = time.perf_counter()
     shrink_budget = max(120.0, 2 * budget) if shrink_budget is None else shrink_budget
-    seen = {"examples": 0, "last_failure": None}
+    seen = {"examples": 0, "last_failure": None, "xml": None}
 
     @hseed(seed)
     @settings(max_examples=max_examples, deadline=None, database=DirectoryBasedExampleDatabase(str(db_dir)),
@@ -114,7 +152,17 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
               derandomize=False, print_blob=False)
     @given(data=st.data())
     def property_(data):
+        seen["xml"] = None
+        try:
+            example(data)
+        except (_Divergence, HypothesisException):  # a find, or Hypothesis's control flow (assume)
+            raise
+        except Exception as e:  # the harness itself failed: stop, and say so
+            raise _HarnessFailure(e) from e
+
+    def example(data):
         mj = data.draw(model_strategy(include_known), label="model")
+        seen["xml"] = mj.xml
         m = mj.model()
         horizon = data.draw(st.integers(10, steps), label="steps")
         state = data.draw(strategies.initial_states(m, batch=batch), label="state")
@@ -136,16 +184,30 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
         if result.status != "pass":
             seen["last_failure"] = dict(mj=mj, state=state, ctrl=ctrl, result=result)
             note(mj.xml)
-            raise AssertionError(result.message)
+            raise _Divergence(result.message)
 
+    harness: BaseException | None = None
+    example_xml = None
     try:
         property_()
-    except (AssertionError, Flaky):  # Flaky: the final replay of a find came after the shrink budget
-        pass
+    except _HarnessFailure as e:
+        harness, example_xml = e.error, seen["xml"]
+    except Flaky as e:
+        # with a find: its final replay came after the shrink budget and passed; without one,
+        # an exception was raised once and not again, by the harness
+        if seen["last_failure"] is None:
+            harness = e
+    except Exception as e:
+        if not _is_find(e):  # e.g. Hypothesis's Unsatisfiable: no conclusion either
+            harness = e
     seconds = time.perf_counter() - t0
+    errors = {}
+    if harness is not None:
+        errors = dict(harness_error=" ".join(f"{type(harness).__name__}: {harness}".split()),
+                      harness_traceback="".join(traceback.format_exception(harness)), harness_example=example_xml)
     found = seen["last_failure"]
     if found is None:
-        return FuzzResult(seen["examples"], seconds, None)
+        return FuzzResult(seen["examples"], seconds, None, **errors)
     mj, result = found["mj"], found["result"]
     path = None
     if out is not None:
@@ -157,4 +219,4 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
                                mj.xml, Tolerances(), config.as_dict(), report.result_dict(result), report.versions())
     return FuzzResult(seen["examples"], seconds, dict(
         xml=mj.xml, nbody=mj.nbody, ngeom=mj.ngeom, features=list(mj.features), message=result.message,
-        status=result.status, reproducer=str(path) if path else None))
+        status=result.status, reproducer=str(path) if path else None), **errors)
