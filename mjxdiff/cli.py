@@ -29,10 +29,11 @@ examples:
   python -m mjxdiff sweep my_robot.xml          # your own MJCF, default randomization
   python -m mjxdiff sweep --out results --format json
 
-statuses: PASS within tolerance; FAIL a field left its tolerance (the line names
-field, object, step and time); UNSUP MJX refused the model (feature named);
-ERROR bad input, or a non-finite state (engine, member and step named).
-exit codes: 0 consistent, 1 divergence found, 2 bad usage or input."""
+statuses: PASS within tolerance; FAIL a field left its tolerance, or MJX went
+non-finite where MuJoCo C did not (the line names field, object, step and time);
+UNSUP MJX refused the model (feature named); ERROR an engine crashed, or MuJoCo C
+itself blew up (an unstable scenario); INPUT the scenario could not be read.
+exit codes: 0 consistent, 1 divergence or engine error, 2 bad usage or input."""
 
 
 _BENCH_DEFAULT = ("pendulum", "cartpole", "ant")

@@ -7,9 +7,14 @@ at ``T`` steps has shape ``(T, n)``. Callers batch over scenarios with
 float64 alike (epsilons come from ``jnp.finfo`` of the input dtype).
 
 Errors are absolute, in the units of the compared quantity (metres or radians
-for qpos components, the qvel units for qvel, sensor units for sensordata).
-NaN is never hidden: a NaN in an input (an engine that blew up) propagates to
-the affected outputs, and the caller decides what it means.
+for qpos components, the qvel units for qvel, sensor units for sensordata),
+except :func:`sensor_relative_error`. NaN is never hidden: a NaN in an input
+(an engine that blew up) propagates to the affected outputs, and a NaN error
+:func:`exceeds` every bound.
+
+These functions are the one source of mjxdiff's numbers: the sweep's verdict,
+its noise floor and its diagnosis all compute errors with
+:func:`trajectory_errors`, so a report says what these functions compute.
 
 This module imports only jax, numpy and the standard library; ``mujoco`` is
 imported lazily by :func:`qpos_layout`, the one function that reads an
@@ -33,7 +38,10 @@ __all__ = [
     "qpos_error_joint_ids",
     "qvel_error",
     "sensor_error",
+    "sensor_relative_error",
     "rangefinder_hit_mismatch",
+    "trajectory_errors",
+    "exceeds",
     "first_exceedance",
     "ErrorGrowth",
     "error_growth",
@@ -41,6 +49,7 @@ __all__ = [
     "BehaviourStats",
     "behaviour_stats",
     "energy_drift",
+    "energy_drift_from",
     "contact_mismatch",
     "tree_max_abs_diff",
 ]
@@ -357,6 +366,33 @@ def sensor_error(sens_a: jax.Array, sens_b: jax.Array,
   return jnp.where(a_nohit | b_nohit, jnp.zeros_like(err), err)
 
 
+def sensor_relative_error(sens_a: jax.Array, sens_b: jax.Array,
+                          rangefinder_mask: jax.Array | np.ndarray | None = None
+                          ) -> jax.Array:
+  """Sensor error relative to the reference above magnitude 1.
+
+  ``err = sensor_error(a, b, mask) / max(1, |b|)``: absolute (sensor units)
+  for readings within [-1, 1] of zero, relative above, so one tolerance suits
+  a touch sensor reading 300 N and an accelerometer reading 0.01 m/s^2.
+  Rangefinder no-hit readings are masked as in :func:`sensor_error`.
+
+  Args:
+    sens_a: (T, nsensordata) sensordata trajectory.
+    sens_b: (T, nsensordata) the reference engine's.
+    rangefinder_mask: bool (nsensordata,), True on rangefinder outputs.
+
+  Returns:
+    (T, nsensordata) errors, dimensionless above |b| = 1.
+
+  Example:
+    >>> sensor_relative_error(jnp.array([[0.5, 150.]]), jnp.array([[0.25, 200.]])).tolist()
+    [[0.25, 0.25]]
+  """
+  sens_b = _as_float(sens_b)
+  return sensor_error(sens_a, sens_b, rangefinder_mask) / jnp.maximum(
+      1.0, jnp.abs(sens_b))
+
+
 def rangefinder_hit_mismatch(sens_a: jax.Array, sens_b: jax.Array,
                              rangefinder_mask: jax.Array | np.ndarray
                              ) -> jax.Array:
@@ -381,6 +417,57 @@ def rangefinder_hit_mismatch(sens_a: jax.Array, sens_b: jax.Array,
   return jnp.sum(a_nohit != b_nohit, axis=-1)
 
 
+def trajectory_errors(a: Any, b: Any, layout: QposLayout,
+                      rangefinder_mask: jax.Array | np.ndarray | None = None
+                      ) -> dict[str, jax.Array]:
+  """Every per-step error of rollout ``a`` against the reference ``b``.
+
+  ``a`` and ``b`` are anything with ``qpos`` (T, nq), ``qvel`` (T, nv),
+  ``act`` (T, na), ``sensordata`` (T, nsensordata) and ``ncon`` (T,)
+  attributes: one member of a :class:`mjxdiff.engines.Trajectory`, say.
+
+  Returns:
+    dict of ``qpos`` (T, ncomp) :func:`qpos_error` [m | rad], ``qvel`` (T, nv)
+    :func:`qvel_error`, ``act`` (T, na) absolute error, ``sensordata``
+    (T, nsensordata) :func:`sensor_relative_error`, ``rangefinder`` (T,)
+    :func:`rangefinder_hit_mismatch` (zeros without a mask) and ``ncon`` (T,)
+    the absolute contact-count difference.
+
+  Example:
+    >>> from types import SimpleNamespace as T
+    >>> lay = QposLayout([0], [0], np.zeros((0, 4), int), [])
+    >>> z = jnp.zeros((1, 0))
+    >>> a = T(qpos=jnp.array([[1.]]), qvel=jnp.array([[2.]]), act=z, sensordata=z, ncon=jnp.array([3]))
+    >>> b = T(qpos=jnp.array([[0.5]]), qvel=jnp.array([[2.]]), act=z, sensordata=z, ncon=jnp.array([1]))
+    >>> e = trajectory_errors(a, b, lay)
+    >>> e["qpos"].tolist(), e["qvel"].tolist(), e["ncon"].tolist()
+    ([[0.5]], [[0.0]], [2])
+  """
+  mask = (np.zeros(np.shape(b.sensordata)[-1], bool)
+          if rangefinder_mask is None else rangefinder_mask)
+  return dict(
+      qpos=qpos_error(a.qpos, b.qpos, layout),
+      qvel=qvel_error(a.qvel, b.qvel),
+      act=jnp.abs(_as_float(a.act) - _as_float(b.act)),
+      sensordata=sensor_relative_error(a.sensordata, b.sensordata, mask),
+      rangefinder=rangefinder_hit_mismatch(a.sensordata, b.sensordata, mask),
+      ncon=jnp.abs(jnp.asarray(a.ncon) - jnp.asarray(b.ncon)),
+  )
+
+
+def exceeds(err: jax.Array, bound: jax.Array | float) -> jax.Array:
+  """Where an error is out of its bound: ``not (err <= bound)``.
+
+  A NaN error exceeds every bound: an engine that blew up is never within
+  tolerance. Works on jax and numpy arrays alike.
+
+  Example:
+    >>> exceeds(jnp.array([0.5, 2., jnp.nan]), 1.0).tolist()
+    [False, True, True]
+  """
+  return ~(err <= bound)
+
+
 # ---------------------------------------------------------------------------
 # Reductions over time
 # ---------------------------------------------------------------------------
@@ -389,12 +476,10 @@ def rangefinder_hit_mismatch(sens_a: jax.Array, sens_b: jax.Array,
 def first_exceedance(err: jax.Array, tol: jax.Array | float) -> jax.Array:
   """First step at which the error exceeds a tolerance.
 
-  ``t* = min{t : max_n err[t, n] > tol}``, or -1 if there is none. ``tol`` may
-  also be an array broadcastable to ``err[t]`` (per-component tolerances);
-  a step counts when any component exceeds its tolerance.
-
-  NaN compares False, so a NaN step is *not* an exceedance; check
-  ``jnp.isnan`` separately when an engine may blow up.
+  ``t* = min{t : any_n exceeds(err[t, n], tol)}``, or -1 if there is none.
+  ``tol`` may also be an array broadcastable to ``err[t]`` (per-component
+  tolerances); a step counts when any component exceeds its tolerance. A NaN
+  error exceeds (:func:`exceeds`), as in the sweep's verdict.
 
   Args:
     err: (T,) or (T, n, ...) errors, time on axis 0.
@@ -411,7 +496,7 @@ def first_exceedance(err: jax.Array, tol: jax.Array | float) -> jax.Array:
     -1
   """
   err = jnp.asarray(err)
-  exceed = err > tol
+  exceed = exceeds(err, tol)
   if exceed.ndim > 1:
     exceed = jnp.any(exceed, axis=tuple(range(1, exceed.ndim)))
   idx = jnp.argmax(exceed)
@@ -587,10 +672,24 @@ def energy_drift(energy: jax.Array) -> jax.Array:
   """
   energy = _as_float(energy)
   total = jnp.sum(energy, axis=-1)
-  tiny = jnp.finfo(energy.dtype).tiny
-  scale = jnp.maximum(jnp.maximum(jnp.abs(total[0]), jnp.mean(jnp.abs(total))),
-                      tiny)
-  return (total[-1] - total[0]) / scale
+  return energy_drift_from(total[0], total[-1], jnp.mean(jnp.abs(total)))
+
+
+def energy_drift_from(first: jax.Array, last: jax.Array,
+                      mean_abs: jax.Array) -> jax.Array:
+  """:func:`energy_drift` from running values, for rollouts seen in pieces.
+
+  ``(last - first) / max(|first|, mean_abs, tiny)`` with ``first``/``last``
+  the first and last total energy (J) and ``mean_abs`` the mean of |total|
+  over the rollout. Shapes broadcast (e.g. (B,) per member).
+
+  Example:
+    >>> float(energy_drift_from(2.0, 2.5, 2.0))
+    0.25
+  """
+  first, last, mean_abs = (_as_float(x) for x in (first, last, mean_abs))
+  tiny = jnp.finfo(first.dtype).tiny
+  return (last - first) / jnp.maximum(jnp.maximum(jnp.abs(first), mean_abs), tiny)
 
 
 def contact_mismatch(ncon_a: jax.Array, ncon_b: jax.Array,
@@ -615,7 +714,7 @@ def contact_mismatch(ncon_a: jax.Array, ncon_b: jax.Array,
     0.25
   """
   diff = jnp.abs(jnp.asarray(ncon_a) - jnp.asarray(ncon_b))
-  return jnp.mean(diff > atol)
+  return jnp.mean(exceeds(diff, atol))
 
 
 def tree_max_abs_diff(tree_a: Any, tree_b: Any) -> Any:

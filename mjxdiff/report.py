@@ -22,7 +22,7 @@ from mjxdiff.verdict import ScenarioResult
 __all__ = ["SCHEMA_VERSION", "code", "summary", "to_json", "format_text", "write_report", "versions", "safe_filename",
            "path_under"]
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: summary.error excludes input errors (summary.input_error), verdict, code
 _SYMBOL = {"pass": "PASS", "fail": "FAIL", "unsupported": "UNSUP", "error": "ERROR"}
 
 
@@ -45,19 +45,28 @@ def machine() -> dict[str, Any]:
 
 
 def summary(results: Sequence[ScenarioResult], threshold: float) -> dict[str, Any]:
-    """Counts per status and the scenario pass rate (unsupported scenarios excluded).
+    """Counts per status and the scenario pass rate.
 
-    ``consistent`` is True when no scenario failed or errored: the pass rate
-    over the scenarios that ran is then 1.
+    ``error`` counts engine crashes and scenarios where MuJoCo C itself blew up;
+    ``input_error`` counts scenarios that could not run (a missing file, an invalid
+    MJCF): neither says anything about MJX. ``pass_rate`` is over the scenarios
+    that ran (unsupported and input errors aside). ``consistent`` is True when every
+    scenario that ran passed and none had an input error; ``verdict`` says in one
+    word what was found: ``consistent``, ``divergent`` (some fail), ``error`` or
+    ``input-error``.
     """
-    counts = {s: sum(r.status == s for r in results) for s in ("pass", "fail", "unsupported", "error")}
-    ran = len(results) - counts["unsupported"]
+    counts = {s: sum(r.status == s for r in results) for s in ("pass", "fail", "unsupported")}
+    counts["error"] = sum(r.status == "error" and r.error_kind != "input" for r in results)
+    counts["input_error"] = sum(r.status == "error" and r.error_kind == "input" for r in results)
+    ran = len(results) - counts["unsupported"] - counts["input_error"]
     rate = counts["pass"] / ran if ran else 1.0
     compiles = sum(r.info.get("mjx_compiles", 0) for r in results)
     loaded = sum(r.info.get("mjx_loaded", 0) for r in results)
     compile_s = sum(r.info.get("seconds", {}).get("compile", 0.0) for r in results)
+    verdict = ("divergent" if counts["fail"] else "error" if counts["error"] else
+               "input-error" if counts["input_error"] else "consistent")
     return dict(total=len(results), **counts, pass_rate=rate, member_pass_threshold=threshold,
-                consistent=counts["fail"] == 0 and counts["error"] == 0, mjx_compiles=compiles,
+                consistent=verdict == "consistent", verdict=verdict, mjx_compiles=compiles,
                 mjx_loaded=loaded, compile_seconds=compile_s)
 
 
@@ -151,15 +160,20 @@ def write_report(out_dir: str | Path, report: dict[str, Any], name: str = "repor
 
 def format_line(r: ScenarioResult) -> str:
     """One line per scenario: status, name, and what happened."""
-    return f"{_SYMBOL[r.status]:<6} {r.name:<28} {r.message}"
+    symbol = "INPUT" if r.status == "error" and r.error_kind == "input" else _SYMBOL[r.status]
+    return f"{symbol:<6} {r.name:<28} {r.message}"
 
 
 def format_text(results: Sequence[ScenarioResult], threshold: float, seconds: float | None = None) -> str:
     s = summary(results, threshold)
     tail = f" in {seconds:.0f} s" if seconds is not None else ""
-    verdict = "consistent" if s["consistent"] else "DIVERGENT"
+    verdict = {"consistent": "consistent",
+               "divergent": "DIVERGENT",
+               "error": "ERROR (an engine crashed or MuJoCo C itself blew up; see above)",
+               "input-error": "INPUT ERROR (fix the input above; nothing diverged in the rest)"}[s["verdict"]]
     lines = [format_line(r) for r in results]
+    inputs = f", {s['input_error']} input error" if s["input_error"] else ""
     lines.append(f"{s['total']} scenarios{tail}: {s['pass']} pass, {s['fail']} fail, "
-                 f"{s['unsupported']} unsupported, {s['error']} error; "
+                 f"{s['unsupported']} unsupported, {s['error']} error{inputs}; "
                  f"pass rate {s['pass_rate']:.0%} -> {verdict}")
     return "\n".join(lines)

@@ -473,7 +473,8 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
 
 
 def exit_code(results: Iterable[ScenarioResult]) -> int:
-    """0 consistent, 1 a divergence (fail or non-finite), 2 bad input."""
+    """0 consistent, 1 a divergence (fail, MJX non-finite) or an engine error (a crash, C
+    itself unstable), 2 bad input."""
     results = list(results)
     if any(r.status == "error" and r.error_kind == "input" for r in results):
         return 2

@@ -7,11 +7,14 @@ where it is exceeded, which member and which named MuJoCo object, and the
 scenario's status.
 
 Statuses:
-  ``pass``         every healthy member within every tolerance.
-  ``fail``         some field exceeds its tolerance (a divergence).
+  ``pass``         every member within every bound (or enough of them: ``threshold``).
+  ``fail``         a divergence: some field leaves its bound in too many members,
+                   or MJX goes non-finite where MuJoCo C stays finite (the step,
+                   and which fields were still finite, named).
   ``unsupported``  MJX refused the model; ``message`` names the feature.
-  ``error``        bad input (``error_kind='input'``) or a non-finite/unstable
-                   rollout (``error_kind='nan'``, naming engine, member, step).
+  ``error``        MuJoCo C itself blows up (``error_kind='unstable'``: the
+                   scenario is unstable, not MJX), bad input (``'input'``) or an
+                   engine crash (``'engine'``).
 """
 
 from __future__ import annotations
@@ -130,24 +133,11 @@ def rangefinder_mask(m: mujoco.MjModel) -> np.ndarray:
 
 @functools.partial(jax.jit, static_argnames=("layout",))
 def error_series(a: Trajectory, b: Trajectory, layout: metrics.QposLayout, rf_mask: jax.Array) -> dict[str, jax.Array]:
-    """Per member, step and component errors of trajectory ``a`` against ``b``.
-
-    Returns:
-      dict of ``qpos`` (B, T, ncomp) [m | rad], ``qvel`` (B, T, nv),
-      ``act`` (B, T, na), ``sensordata`` (B, T, nsensordata) relative for
-      values above 1 (``|a - b| / max(1, |b|)``), ``rangefinder`` (B, T)
-      rays with a hit/no-hit disagreement, ``ncon`` (B, T) contact-count
-      difference.
-    """
-    def one(qa, qb, va, vb, aa, ab, sa, sb):
-        sens = metrics.sensor_error(sa, sb, rf_mask) / jnp.maximum(1.0, jnp.abs(sb))
-        return dict(qpos=metrics.qpos_error(qa, qb, layout), qvel=metrics.qvel_error(va, vb),
-                    act=jnp.abs(aa - ab), sensordata=sens,
-                    rangefinder=metrics.rangefinder_hit_mismatch(sa, sb, rf_mask))
-
-    out = jax.vmap(one)(a.qpos, b.qpos, a.qvel, b.qvel, a.act, b.act, a.sensordata, b.sensordata)
-    out["ncon"] = jnp.abs(a.ncon - b.ncon)
-    return out
+    """:func:`mjxdiff.metrics.trajectory_errors` of every member of ``a`` against ``b``:
+    ``qpos`` (B, T, ncomp) [m | rad], ``qvel`` (B, T, nv), ``act`` (B, T, na),
+    ``sensordata`` (B, T, nsensordata) relative above 1, ``rangefinder`` (B, T) rays
+    with a hit/no-hit disagreement, ``ncon`` (B, T) contact-count difference."""
+    return jax.vmap(metrics.trajectory_errors, in_axes=(0, 0, None, None))(a, b, layout, rf_mask)
 
 
 class _FieldTrack:
@@ -179,7 +169,7 @@ class _FieldTrack:
         per_step = err.max(axis=2)
         with np.errstate(invalid="ignore"):  # inf / inf where a blown-up member's envelope is infinite
             ratio = per_step / bound
-        exceeded = ~(ratio <= 1.0)  # NaN exceeds
+        exceeded = np.asarray(metrics.exceeds(ratio, 1.0))  # NaN exceeds
         k = exceeded.argmax(axis=1)
         new = exceeded.any(axis=1) & (self.first_step[members] < 0)
         self.first_step[members] = np.where(new, start + k, self.first_step[members])
@@ -226,8 +216,10 @@ class _FractionTrack:
         self.first_time = np.zeros(batch)
 
     def update(self, mismatch: np.ndarray, time: np.ndarray, start: int, members: np.ndarray) -> None:
-        k = (mismatch > 0).argmax(axis=1)
-        new = (mismatch > 0).any(axis=1) & (self.first_step[members] < 0)
+        """Adds a piece of (b, K) mismatch per step, in [0, 1]."""
+        out = mismatch > 0
+        k = out.argmax(axis=1)
+        new = out.any(axis=1) & (self.first_step[members] < 0)
         self.first_step[members] = np.where(new, start + k, self.first_step[members])
         self.first_time[members] = np.where(new, time[np.arange(len(k)), k], self.first_time[members])
         self.total[members] += mismatch.sum(axis=1)
@@ -249,6 +241,14 @@ class _FractionTrack:
                            float(allowed.max()) if np.any(allowed > self.tol) else 0.0, float(ratio.max()))
 
 
+def _nonfinite_fields(traj: Trajectory, row: int, k: int) -> list[str]:
+    """The recorded fields of ``traj`` holding a non-finite value at row ``row``, step ``k``
+    of the piece (empty for a stop on a MuJoCo instability warning with a finite state)."""
+    if not 0 <= k < traj.qpos.shape[1]:
+        return []
+    return [f for f in _SERIES if not np.isfinite(np.asarray(getattr(traj, f))[row, k]).all()]
+
+
 def _track(m: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
     """(B, T, k) positions whose behaviour is summarised: the first free joint's
     translation if there is one, else every hinge/slide coordinate."""
@@ -261,28 +261,35 @@ def _track(m: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
     return qpos[..., scalar]
 
 
-class _BehaviourTrack:
-    """One engine's running track statistics per member (see :func:`metrics.behaviour_stats`).
+@jax.jit
+def _piece_behaviour(pos: jax.Array, dt: float) -> metrics.BehaviourStats:
+    return jax.vmap(metrics.behaviour_stats, in_axes=(0, None))(pos, dt)
 
-    Per member: first and last tracked position, path length, largest step;
-    with energy, the first and last total energy and the sum of |total|.
+
+class _BehaviourTrack:
+    """One engine's running :func:`metrics.behaviour_stats` per member, over pieces.
+
+    Per member: first and last tracked position, path length and largest speed
+    (each piece's stats, the previous piece's last position prepended); with
+    energy, the first and last total energy and the sum of |total|.
     """
 
     def __init__(self, batch: int, steps: int, width: int):
         self.steps = steps
         self.first, self.last = np.zeros((batch, width)), np.zeros((batch, width))
-        self.distance, self.max_step = np.zeros(batch), np.zeros(batch)
+        self.distance, self.max_speed = np.zeros(batch), np.zeros(batch)
         self.energy = np.zeros((batch, 3))  # first total, last total, sum |total|
         self.has_energy = False
 
-    def update(self, pos: np.ndarray, energy: np.ndarray, start: int, members: np.ndarray) -> None:
+    def update(self, pos: np.ndarray, energy: np.ndarray, start: int, members: np.ndarray, dt: float) -> None:
         if start == 0:
             self.first[members] = pos[:, 0]
         else:
             pos = np.concatenate([self.last[members][:, None], pos], axis=1)
-        step = np.linalg.norm(np.diff(pos, axis=1), axis=-1)
-        self.distance[members] += step.sum(axis=1)
-        self.max_step[members] = np.maximum(self.max_step[members], step.max(axis=1, initial=0.0))
+        if pos.shape[1] >= 2:
+            piece = _piece_behaviour(pos, dt)
+            self.distance[members] += np.asarray(piece.distance)
+            self.max_speed[members] = np.maximum(self.max_speed[members], np.asarray(piece.max_speed))
         self.last[members] = pos[:, -1]
         if energy.shape[-1]:
             self.has_energy = True
@@ -293,17 +300,17 @@ class _BehaviourTrack:
             self.energy[members, 2] += np.abs(total).sum(axis=1)
 
     def stats(self, dt: float, healthy: np.ndarray) -> dict[str, float]:
-        """Batch means over healthy members: speeds (units/s), distance, displacement,
-        path efficiency, and with energy the relative drift (E_end - E_0) / max(|E_0|, mean |E|)."""
+        """Batch means over healthy members of :class:`metrics.BehaviourStats` of the whole
+        track (speeds in units/s, distance, displacement, path efficiency) and, with energy,
+        :func:`metrics.energy_drift`."""
         displacement = np.linalg.norm(self.last - self.first, axis=-1)
         moved = self.distance > 0
-        out = dict(mean_speed=self.distance / max(self.steps - 1, 1) / dt, max_speed=self.max_step / dt,
+        out = dict(mean_speed=self.distance / max(self.steps - 1, 1) / dt, max_speed=self.max_speed,
                    distance=self.distance, displacement=displacement,
                    path_efficiency=np.where(moved, displacement / np.where(moved, self.distance, 1), 1.0))
         if self.has_energy:
             first, last, total_abs = self.energy.T
-            scale = np.maximum(np.maximum(np.abs(first), total_abs / self.steps), np.finfo(float).tiny)
-            out["energy_drift"] = (last - first) / scale
+            out["energy_drift"] = np.asarray(metrics.energy_drift_from(first, last, total_abs / self.steps))
         return {k: float(np.mean(np.asarray(v)[healthy])) for k, v in out.items()}
 
 
@@ -340,6 +347,7 @@ class Judge:
         width = _track(m, np.zeros((1, m.nq))).shape[-1]
         self.behaviour = {"c": _BehaviourTrack(batch, steps, width), "mjx": _BehaviourTrack(batch, steps, width)}
         self.diverged_at = {"c": np.full(batch, -1), "mjx": np.full(batch, -1)}
+        self.nonfinite: dict[str, dict[int, list[str]]] = {"c": {}, "mjx": {}}  # member -> fields at diverged_at
 
     def errors(self, traj_c: Trajectory, traj_mjx: Trajectory) -> dict[str, np.ndarray]:
         """A piece's :func:`error_series` of MJX against C, on the host."""
@@ -368,9 +376,12 @@ class Judge:
         members = np.arange(self.batch)[members]
         for engine, traj in (("c", traj_c), ("mjx", traj_mjx)):
             at = self.diverged_at[engine]
-            at[members] = first_diverged([at[members], traj.diverged_at])
+            before = at[members].copy()
+            at[members] = first_diverged([before, traj.diverged_at])
+            for row in np.flatnonzero((before < 0) & (at[members] >= 0)):
+                self.nonfinite[engine][int(members[row])] = _nonfinite_fields(traj, row, int(at[members[row]]) - start)
             with np.errstate(invalid="ignore", over="ignore"):  # a blown-up member is not healthy
-                self.behaviour[engine].update(_track(self.m, traj.qpos), traj.energy, start, members)
+                self.behaviour[engine].update(_track(self.m, traj.qpos), traj.energy, start, members, self.dt)
         healthy = (self.diverged_at["c"][members] < 0) & (self.diverged_at["mjx"][members] < 0)
         series = self.errors(traj_c, traj_mjx) if series is None else series
         for key, track in self.fields.items():
@@ -378,33 +389,41 @@ class Judge:
             if envelope is not None:
                 bound = np.maximum(bound, envelope[key])
             track.update(series[key], bound, traj_c.time, start, members, healthy)
-        self.contacts.update(series["ncon"] > 0, traj_c.time, start, members)
+        # a step whose counts differ at all, as metrics.contact_mismatch(atol=0) counts it
+        self.contacts.update(np.asarray(metrics.exceeds(series["ncon"], 0), float), traj_c.time, start, members)
         if self.rf_mask.any():
             self.rangefinder.update(series["rangefinder"] / self.rf_mask.sum(), traj_c.time, start, members)
 
     def result(self, name: str, threshold: float = 0.95, noise: NoiseFloor | None = None) -> ScenarioResult:
-        """The verdict on everything fed so far; ``noise`` is the floor whose envelopes were fed."""
+        """The verdict on everything fed so far; ``noise`` is the floor whose envelopes were fed.
+
+        Members where MuJoCo C blows up are not judged (an unstable scenario: ``error`` if
+        nothing else fails). A member where MJX goes non-finite while C stays finite fails,
+        and the scenario with it, whatever the threshold.
+        """
         m, tol, dt = self.m, self.tol, self.dt
-        diverged = [dict(engine=engine, member=int(i), step=int(at[i]), time=round((int(at[i]) + 1) * dt, 9))
-                    for engine, at in self.diverged_at.items() for i in np.flatnonzero(at >= 0)]
-        healthy = (self.diverged_at["c"] < 0) & (self.diverged_at["mjx"] < 0)
+        c_bad = self.diverged_at["c"] >= 0
+        mjx_bad = (self.diverged_at["mjx"] >= 0) & ~c_bad
+        judged, healthy = ~c_bad, ~c_bad & ~mjx_bad
+        diverged = [self._diverged(engine, int(i)) for engine, bad in (("c", c_bad), ("mjx", mjx_bad))
+                    for i in np.flatnonzero(bad)]
         objects = component_objects(m, self.layout)
-        fields = [track.result(key, healthy, objects[key], dt) for key, track in self.fields.items()]
+        fields = [track.result(key, judged, objects[key], dt) for key, track in self.fields.items()]
         allowed = np.full(self.batch, tol.contact_mismatch)
         if noise is not None:  # a contact-count mismatch may reach twice what C's perturbed rerun shows
             allowed = np.maximum(allowed, np.minimum(1.0, 2 * noise.contact_fraction))
-        fields.append(self.contacts.result("contacts", allowed, healthy))
-        member_fails = np.zeros(self.batch, bool)
+        fields.append(self.contacts.result("contacts", allowed, judged))
+        member_fails = mjx_bad.copy()
         for track in self.fields.values():
             member_fails |= track.first_step >= 0
         member_fails |= self.contacts.fraction > allowed
         if self.rf_mask.any():
             rf_allowed = np.full(self.batch, tol.rangefinder_mismatch)
-            fields.append(self.rangefinder.result("rangefinder", rf_allowed, healthy))
+            fields.append(self.rangefinder.result("rangefinder", rf_allowed, judged))
             member_fails |= self.rangefinder.fraction > rf_allowed
-        member_fails &= healthy
-        pass_rate = 1.0 - member_fails.sum() / max(int(healthy.sum()), 1)
-        failed = [f for f in fields if not f.ok] if pass_rate < threshold else []
+        member_fails &= judged
+        pass_rate = 1.0 - member_fails.sum() / max(int(judged.sum()), 1)
+        failed = [f for f in fields if not f.ok] if pass_rate < threshold or mjx_bad.any() else []
         first = None
         if failed:
             f = min(failed, key=lambda f: (f.first_step if f.first_step >= 0 else 1 << 30))
@@ -416,32 +435,57 @@ class Judge:
                 time = float(track.first_time[f.member]) if exact else round((step + 1) * dt, 9)
             first = dict(field=f.field, step=step, time=time, member=f.member, object=f.object,
                          error=f.max_error, tolerance=f.tolerance)
-        if diverged:
-            d0 = min(diverged, key=lambda d: d["step"])
-            engines = sorted({d["engine"] for d in diverged})
-            status, kind = "error", "nan"
-            message = (f"non-finite or unstable state in {len(diverged)} member(s) ({'/'.join(engines)}); "
-                       f"first: {d0['engine']} member {d0['member']} at step {d0['step']} (t={d0['time']:g} s)")
+        unstable_c = ""
+        if c_bad.any():
+            d0 = min((d for d in diverged if d["engine"] == "c"), key=lambda d: d["step"])
+            unstable_c = (f"MuJoCo C itself goes non-finite or unstable in {int(c_bad.sum())} member(s) (first: "
+                          f"member {d0['member']} at step {d0['step']}, t={d0['time']:g} s)")
+        kind = ""
+        if mjx_bad.any():
+            status = "fail"
+            d0 = min((d for d in diverged if d["engine"] == "mjx"), key=lambda d: d["step"])
+            last = f"last finite step {d0['last_finite_step']}" if d0["step"] else "non-finite from the first step"
+            message = (f"MJX goes non-finite at step {d0['step']} (t={d0['time']:g} s), member {d0['member']}, while "
+                       f"MuJoCo C stays finite ({int(mjx_bad.sum())} member(s)); non-finite: "
+                       f"{', '.join(d0['nonfinite_fields']) or 'state'}; still finite: "
+                       f"{', '.join(d0['finite_fields']) or 'nothing'}; {last}")
+            if first and (first["step"] < d0["step"] or first["member"] != d0["member"]):
+                message += (f"; first out of bound: {first['field']} of {first['object'] or 'member'} "
+                            f"at step {first['step']}, member {first['member']}")
         elif failed:
-            status, kind = "fail", ""
+            status = "fail"
             where = "leaves the envelope" if noise is not None else f"exceeds {first['tolerance']:.1e}"
             message = (f"{first['field']} of {first['object'] or 'member ' + str(first['member'])} {where} "
                        f"at step {first['step']} (t={first['time']:.4g} s), member {first['member']}; "
                        f"worst {first['error']:.3g}")
+        elif c_bad.any():
+            status, kind = "error", "unstable"
+            message = (f"{unstable_c}: an unstable scenario, not an MJX divergence (lower the timestep, "
+                       "the randomization or the stiffness)")
         else:
             worst = max((f for f in fields if f.field in ("qpos", "qvel")), key=lambda f: f.ratio)
-            status, kind = "pass", ""
+            status = "pass"
             message = f"worst {worst.field} {worst.max_error:.2g} (tol {worst.tolerance:.0e}"
             message += f", envelope {worst.envelope:.1e})" if worst.envelope else ")"
             if member_fails.any():
-                message += (f"; {int(member_fails.sum())}/{int(healthy.sum())} members out of tolerance, "
+                message += (f"; {int(member_fails.sum())}/{int(judged.sum())} members out of tolerance, "
                             f"pass rate {pass_rate:.0%}")
+        if status == "fail" and unstable_c:
+            message += f"; not judged: {unstable_c}"
         return ScenarioResult(
             name=name, status=status, message=message, error_kind=kind, fields=tuple(fields),
             first_divergence=first, diverged_members=tuple(diverged),
             behaviour=self._behaviour(healthy), tolerances=tol.as_dict(),
             pass_rate=float(pass_rate), threshold=threshold,
             noise_rate=noise.rate if noise is not None else {})
+
+    def _diverged(self, engine: str, member: int) -> dict[str, Any]:
+        """Where ``engine`` blew up in ``member``: step, time, which fields were non-finite there."""
+        step = int(self.diverged_at[engine][member])
+        bad = self.nonfinite[engine].get(member, [])
+        return dict(engine=engine, member=member, step=step, time=round((step + 1) * self.dt, 9),
+                    last_finite_step=step - 1, nonfinite_fields=bad,
+                    finite_fields=[f for f in _SERIES if f not in bad])
 
     def _behaviour(self, healthy: np.ndarray) -> dict[str, Any]:
         """Batch-mean behaviour statistics of both engines and their relative difference."""

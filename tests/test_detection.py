@@ -4,6 +4,7 @@ scenarios. Each bug is a monkeypatch of one function inside mujoco.mjx._src."""
 
 import re
 
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from mujoco.mjx._src import math as mjx_math
 from mujoco.mjx._src import passive as mjx_passive
 from mujoco.mjx._src import sensor as mjx_sensor
 
+from mjxdiff.inputs import make_inputs
 from mjxdiff.scenario import load_model, load_scenario
 from mjxdiff.sweep import SweepConfig, run_scenario
 
@@ -97,3 +99,25 @@ def test_unmodified_mjx_passes(scenario_name):
     result = run_scenario(load_scenario(scenario_name), CONFIG)
     assert result.status == "pass", result.message
     assert all(f.ok for f in result.fields)
+
+
+def test_mjx_going_non_finite_where_c_does_not_is_a_fail_at_that_step(monkeypatch, fresh_mjx):
+    """The strongest divergence there is: MJX's passive force turns NaN from t > 0.1025 s (step 21
+    of the 5 ms pendulum); C stays finite. A fail (not an error) naming the step, the fields that
+    were still finite, and a diagnosis of the state before it."""
+    orig = mjx_passive._spring_damper
+    monkeypatch.setattr(mjx_passive, "_spring_damper",
+                        lambda m, d: orig(m, d) + jnp.where(d.time > 0.1025, jnp.nan, 0.0))
+    scenario = load_scenario("pendulum")
+    result = run_scenario(scenario, SweepConfig(seed=0, batch=2, steps=60, diagnose="basic"))
+    assert result.status == "fail", result.message
+    # members have randomized timesteps: the first step that starts after t = 0.1025 s
+    models = make_inputs(scenario, load_model(scenario), 0, 2, 60).models
+    expected = [int(np.floor(0.1025 / mi.opt.timestep)) + 1 for mi in models]
+    assert [(d["engine"], d["step"], d["last_finite_step"]) for d in result.diverged_members] == [
+        ("mjx", k, k - 1) for k in expected]
+    first = min(expected)
+    assert f"MJX goes non-finite at step {first}" in result.message and "still finite:" in result.message
+    assert result.first_divergence["step"] == first
+    drill = result.diagnosis["drill_down"]
+    assert drill["step"] == first and drill["first_field"] == "qfrc_passive", drill

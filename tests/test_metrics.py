@@ -422,9 +422,11 @@ def test_first_exceedance_under_jit():
   assert jnp.issubdtype(f(err, 2.0).dtype, jnp.integer)
 
 
-def test_first_exceedance_nan_is_not_an_exceedance():
+def test_first_exceedance_nan_is_an_exceedance():
+  """A blown-up engine is never within tolerance: the same rule as the verdict's."""
   err = jnp.array([0.0, jnp.nan, 2.0])
-  assert int(first_exceedance(err, 1.0)) == 2
+  assert int(first_exceedance(err, 1.0)) == 1
+  assert int(first_exceedance(jnp.array([[0.0, 0.0], [0.0, jnp.inf]]), 1e300)) == 1
 
 
 def test_max_over_time_plain_max_and_nan():

@@ -78,7 +78,7 @@ def _assert_same(a, b):
     for fa, fb in zip(a.fields, b.fields, strict=True):
         assert (fa.field, fa.first_step, fa.member, fa.object) == (fb.field, fb.first_step, fb.member, fb.object)
         numbers = lambda f: (f.max_error, f.tolerance, f.growth_rate, f.envelope, f.ratio)
-        assert numbers(fa) == pytest.approx(numbers(fb), rel=1e-12, abs=0), fa.field
+        assert numbers(fa) == pytest.approx(numbers(fb), rel=1e-12, abs=0, nan_ok=True), fa.field
     assert a.noise_rate == pytest.approx(b.noise_rate, rel=1e-12)
     for engine in ("c", "mjx"):
         assert a.behaviour[engine] == pytest.approx(b.behaviour[engine], rel=1e-9, abs=1e-15)
@@ -106,13 +106,39 @@ def test_verdict_names_the_injected_errors(lidar):
     scenario, m, _, traj_c, _ = lidar
     tol = scenario.tolerance
     result = _streamed(m, tol, traj_c, _with_bugs(traj_c), None, 7, threshold=1.0)
-    assert result.status == "error" and result.diverged_members == (
-        dict(engine="mjx", member=5, step=17, time=round(18 * float(m.opt.timestep), 9)),)
-    qvel, sens, contacts = (result.field(f) for f in ("qvel", "sensordata", "contacts"))
+    # MJX non-finite where C is finite: the strongest divergence, a fail naming step and fields
+    assert result.status == "fail" and result.diverged_members == (
+        dict(engine="mjx", member=5, step=17, time=round(18 * float(m.opt.timestep), 9), last_finite_step=16,
+             nonfinite_fields=["qpos"], finite_fields=["qvel", "act", "sensordata"]),)
+    assert "MJX goes non-finite at step 17" in result.message and "last finite step 16" in result.message
+    assert "non-finite: qpos" in result.message
+    qpos, qvel, sens, contacts = (result.field(f) for f in ("qpos", "qvel", "sensordata", "contacts"))
+    assert (qpos.first_step, qpos.member) == (17, 5) and np.isnan(qpos.max_error)
     assert (qvel.first_step, qvel.member, qvel.max_error) == (23, 2, pytest.approx(1e-3))
     assert (sens.first_step, sens.member) == (9, 4)
     assert contacts.member == 1 and contacts.max_error == pytest.approx(1 / T)
-    assert result.pass_rate == pytest.approx(1 - 2 / 5)  # members 2 and 4 of the 5 healthy ones
+    assert result.pass_rate == pytest.approx(1 - 3 / 6)  # members 2, 4 and the non-finite 5
+    assert result.first_divergence["step"] == 9 and result.first_divergence["field"] == "sensordata"
+
+
+def test_mjx_non_finite_fails_whatever_the_threshold(lidar):
+    scenario, m, _, traj_c, _ = lidar
+    qvel = traj_c.qvel.copy()
+    qvel[3, 30:] = np.inf
+    blown = dataclasses.replace(traj_c, qvel=qvel, diverged_at=np.where(np.arange(B) == 3, 30, -1))
+    result = judge("lidar", m, traj_c, blown, scenario.tolerance, threshold=0.0)
+    assert result.status == "fail" and result.first_divergence["step"] == 30
+    assert result.first_divergence["member"] == 3 and result.first_divergence["field"] == "qvel"
+
+
+def test_c_blowing_up_is_an_unstable_scenario_not_a_divergence(lidar):
+    scenario, m, _, traj_c, _ = lidar
+    qpos = traj_c.qpos.copy()
+    qpos[1, 12:] = np.nan
+    c_blown = dataclasses.replace(traj_c, qpos=qpos, diverged_at=np.where(np.arange(B) == 1, 12, -1))
+    result = judge("lidar", m, c_blown, c_blown, scenario.tolerance)
+    assert (result.status, result.error_kind) == ("error", "unstable"), result.message
+    assert "MuJoCo C itself" in result.message and "step 12" in result.message
 
 
 def test_unbugged_passes_in_pieces(lidar):
@@ -145,3 +171,36 @@ def test_streams_concatenate_to_the_rollout(lidar):
     whole = concat(pieces)
     for f in dataclasses.fields(Trajectory):
         np.testing.assert_array_equal(getattr(whole, f.name), getattr(traj_c, f.name))
+
+
+def test_the_reports_numbers_are_what_mjxdiff_metrics_computes(lidar):
+    """One error core: every number of a real sweep's report (both engines, streamed in pieces) is
+    what the public metrics give on the same trajectories, computed member by member here."""
+    from mjxdiff import metrics, report
+    from mjxdiff.engines import MJXEngine
+
+    scenario, m, inputs, traj_c, _ = lidar
+    tol = scenario.tolerance
+    config = SweepConfig(envelope=False, diagnose="none", piece_steps=15)
+    doc = report.result_dict(run_inputs("lidar", m, inputs, tol, config))
+    traj_mjx = MJXEngine().rollout(inputs)  # the same inputs: the same rollout, bit for bit
+    layout, mask = metrics.qpos_layout(m), rangefinder_mask(m)
+    per_member = {
+        "qpos": [metrics.qpos_error(traj_mjx.qpos[i], traj_c.qpos[i], layout) for i in range(B)],
+        "qvel": [metrics.qvel_error(traj_mjx.qvel[i], traj_c.qvel[i]) for i in range(B)],
+        "act": [jax.numpy.abs(traj_mjx.act[i] - traj_c.act[i]) for i in range(B)],
+        "sensordata": [metrics.sensor_relative_error(traj_mjx.sensordata[i], traj_c.sensordata[i], mask)
+                       for i in range(B)],
+    }
+    for field, errors in per_member.items():
+        got = doc["fields"][field]
+        worst = max(float(metrics.max_over_time(e)) if e.size else 0.0 for e in errors)
+        assert got["max_error"] == pytest.approx(worst, rel=1e-12), field
+        steps = [int(metrics.first_exceedance(e, getattr(tol, field))) for e in errors]
+        assert got["first_step"] == min([s for s in steps if s >= 0], default=-1), field
+    contacts = [float(metrics.contact_mismatch(traj_mjx.ncon[i], traj_c.ncon[i])) for i in range(B)]
+    assert doc["fields"]["contacts"]["max_error"] == pytest.approx(max(contacts), rel=1e-12)
+    rays = [float(np.mean(metrics.rangefinder_hit_mismatch(traj_mjx.sensordata[i], traj_c.sensordata[i], mask)))
+            / mask.sum() for i in range(B)]
+    assert doc["fields"]["rangefinder"]["max_error"] == pytest.approx(max(rays), rel=1e-12, abs=1e-300)
+    assert any(doc["fields"][f]["max_error"] > 0 for f in per_member), "the comparison compared nothing"
