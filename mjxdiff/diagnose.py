@@ -23,7 +23,7 @@ import mujoco
 import numpy as np
 
 from mjxdiff import metrics
-from mjxdiff import engines
+from mjxdiff import engines, export_cache
 from mjxdiff.engines import MJXEngine, Trajectory, mjx
 from mjxdiff.inputs import BatchedInputs
 
@@ -144,6 +144,7 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.nd
       qpos, qvel, act, ctrl, time: the state and controls before the step.
       precision: sets the relative threshold, :data:`STAGE_RTOL`.
     """
+    export_cache.fresh_digest()  # engines.forward is jitted: never its trace of code since changed
     d = mujoco.MjData(m)
     d.qpos[:], d.qvel[:], d.ctrl[:], d.time = qpos, qvel, ctrl, time
     if m.na:

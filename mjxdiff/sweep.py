@@ -13,7 +13,6 @@ import queue
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
 
 import jax

@@ -62,6 +62,11 @@ def test_bad_inputs_are_reported_and_the_rest_still_runs(tmp_path, capsys):
     assert status["broken"]["status"] == "error" and "cannot compile" in status["broken"]["message"]
     assert status["pendulum"]["status"] == "pass"
     assert "PASS   pendulum" in captured.out
+    # input errors are named as such, not as a divergence
+    summary_line = captured.out.strip().splitlines()[-1]
+    assert "2 input error" in summary_line and "INPUT ERROR" in summary_line and "DIVERGENT" not in summary_line
+    assert (report["summary"]["input_error"], report["summary"]["error"], report["summary"]["verdict"]) == (
+        2, 0, "input-error")
 
 
 def test_unsupported_feature_is_named_and_not_a_failure(capsys):
@@ -78,9 +83,11 @@ def test_nan_scenario_reported_rest_continue(tmp_path, capsys):
     report = json.loads(capsys.readouterr().out)
     unstable, pendulum = report["scenarios"]
     assert code == 1
-    assert unstable["status"] == "error" and unstable["error_kind"] == "nan"
-    assert {d["engine"] for d in unstable["diverged_members"]} == {"c", "mjx"}
-    assert "step" in unstable["message"] and "member" in unstable["message"]
+    # C itself blows up: an unstable scenario, not an MJX divergence
+    assert unstable["status"] == "error" and unstable["error_kind"] == "unstable"
+    assert {d["engine"] for d in unstable["diverged_members"]} == {"c"}
+    assert "MuJoCo C itself" in unstable["message"] and "step" in unstable["message"]
+    assert "member" in unstable["message"]
     assert pendulum["status"] == "pass"
 
 
@@ -90,8 +97,10 @@ def test_report_schema_and_same_seed_same_report(tmp_path, capsys):
     assert main([*args, "--out", str(tmp_path / "b")]) == 0
     a = json.loads((tmp_path / "a" / "report.json").read_text())
     b = json.loads((tmp_path / "b" / "report.json").read_text())
-    assert a["schema_version"] == 1
+    assert a["schema_version"] == 2
     assert {"jax", "mujoco", "mujoco-mjx", "mjxdiff"} <= a["versions"].keys()
+    assert a["code"] == b["code"] and len(a["code"]["mjx"]) == 64, "the tested MJX, named by content"
+    assert a["summary"]["verdict"] == "consistent" and a["summary"]["input_error"] == 0
     assert a["config"]["seed"] == 3 and a["config"]["batch"] == 2
     for sa, sb in zip(a["scenarios"], b["scenarios"]):
         sa["info"].pop("seconds"), sb["info"].pop("seconds")
