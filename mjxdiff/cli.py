@@ -165,12 +165,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _cmd_list() -> int:
-    from mjxdiff.scenario import ScenarioError, bundled_scenarios
+    from mjxdiff.scenario import ScenarioError, bundled_scenarios, no_bundled_scenarios_message
 
     try:
         scenarios = bundled_scenarios()
     except ScenarioError as e:
         print(f"mjxdiff: error: {e}", file=sys.stderr)
+        return 2
+    if not scenarios:
+        print(f"mjxdiff: error: {no_bundled_scenarios_message()}", file=sys.stderr)
         return 2
     for s in scenarios:
         print(f"{s.name:<28} batch {s.batch:>3} x {s.steps:>4} steps  {s.description}")
@@ -181,7 +184,7 @@ def _cmd_list() -> int:
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
     from mjxdiff import engines, report
-    from mjxdiff.scenario import ScenarioError, bundled_scenarios, load_scenario
+    from mjxdiff.scenario import ScenarioError, bundled_scenarios, load_scenario, no_bundled_scenarios_message
     from mjxdiff.sweep import SweepConfig, exit_code, sweep
     from mjxdiff.verdict import ScenarioResult
 
@@ -196,6 +199,9 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         refs = args.scenarios or [s.name for s in bundled_scenarios()]
     except ScenarioError as e:
         print(f"mjxdiff: error: {e}", file=sys.stderr)
+        return 2
+    if not refs:  # never report "consistent" having swept nothing
+        print(f"mjxdiff: error: no scenarios selected ({no_bundled_scenarios_message()})", file=sys.stderr)
         return 2
     for ref in refs:
         try:

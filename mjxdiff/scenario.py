@@ -12,6 +12,7 @@ This module only parses and validates. Turning a scenario into numbers is
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
 import math
 import os
 import tomllib
@@ -22,18 +23,23 @@ import mujoco
 
 __all__ = [
     "BUNDLED_DIR",
+    "BUNDLED_PACKAGE",
     "CONTROL_FAMILIES",
     "SCALED_PARAMETERS",
     "Randomization",
     "Scenario",
     "ScenarioError",
     "Tolerances",
+    "bundled_dir",
     "bundled_scenarios",
     "load_model",
     "load_scenario",
+    "no_bundled_scenarios_message",
 ]
 
-BUNDLED_DIR = Path(os.environ.get("MJXDIFF_SCENARIOS", Path(__file__).resolve().parent.parent / "scenarios"))
+#: Data package the bundled scenarios install as (the repository's top-level
+#: ``scenarios/``, mapped in pyproject.toml); ``$MJXDIFF_SCENARIOS`` overrides it.
+BUNDLED_PACKAGE = "mjxdiff._scenarios"
 CONTROL_FAMILIES = ("zero", "smooth", "sinusoid", "step")
 #: Model parameters a scenario may scale per batch member, by a factor drawn
 #: uniformly from ``[lo, hi]``: one factor per element (body, geom, dof,
@@ -265,9 +271,59 @@ def _from_toml(path: Path) -> Scenario:
     return scenario_from_dict(data, path, path.stem)
 
 
+def bundled_dir() -> Path | None:
+    """The directory bundled scenarios are read from, looked up on each call.
+
+    ``$MJXDIFF_SCENARIOS`` when set and not empty, else the installed data package
+    :data:`BUNDLED_PACKAGE` (a real directory in a wheel or editable install, so
+    a scenario's relative ``model`` path resolves beside its TOML file); None when
+    that package is not installed.
+
+    Raises:
+      ScenarioError: the package is installed but not as files on disk (a zip).
+    """
+    override = os.environ.get("MJXDIFF_SCENARIOS")
+    if override:
+        return Path(override)
+    try:
+        root = importlib.resources.files(BUNDLED_PACKAGE)
+    except ModuleNotFoundError:
+        return None
+    if not isinstance(root, Path):
+        raise ScenarioError(f"bundled scenarios are in {root}, not a directory; "
+                            "install mjxdiff as files (pip install) or set MJXDIFF_SCENARIOS")
+    return root
+
+
+def _bundled_tomls() -> list[Path]:
+    where = bundled_dir()
+    return sorted(where.glob("*.toml")) if where is not None else []
+
+
+def no_bundled_scenarios_message() -> str:
+    """One line for a run that found no bundled scenario: where it looked, what to do."""
+    override = os.environ.get("MJXDIFF_SCENARIOS")
+    if override:
+        where = f"MJXDIFF_SCENARIOS={override}"
+    else:
+        try:
+            found = bundled_dir()
+        except ScenarioError:
+            found = None
+        where = str(found) if found is not None else f"{BUNDLED_PACKAGE} (not installed)"
+    return (f"no bundled scenarios found in {where}; "
+            "reinstall mjxdiff or pass a scenario .toml or MJCF .xml")
+
+
+def __getattr__(name: str) -> Any:
+    if name == "BUNDLED_DIR":  # the former constant, now looked up when asked for
+        return bundled_dir()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 def bundled_scenarios() -> list[Scenario]:
-    """Every scenario in :data:`BUNDLED_DIR`, sorted by name."""
-    return sorted((_from_toml(p) for p in BUNDLED_DIR.glob("*.toml")), key=lambda s: s.name)
+    """Every scenario in :func:`bundled_dir` (``*.toml``, not subdirectories), sorted by name."""
+    return sorted((_from_toml(p) for p in _bundled_tomls()), key=lambda s: s.name)
 
 
 def load_scenario(ref: str | os.PathLike) -> Scenario:
@@ -283,10 +339,11 @@ def load_scenario(ref: str | os.PathLike) -> Scenario:
     if path.suffix in (".xml", ".mjcf"):
         _expect(path.is_file(), str(path), "MJCF file not found")
         return Scenario(name=path.stem, model=str(path.resolve()), description=f"user model {path.name}")
-    bundled = BUNDLED_DIR / f"{ref}.toml"
-    if bundled.is_file():
+    where = bundled_dir()
+    bundled = where / f"{ref}.toml" if where is not None else None
+    if bundled is not None and bundled.is_file():
         return _from_toml(bundled)
-    names = sorted(p.stem for p in BUNDLED_DIR.glob("*.toml"))
+    names = [p.stem for p in _bundled_tomls()]
     import difflib
 
     close = difflib.get_close_matches(str(ref), names, n=1)

@@ -1,0 +1,1 @@
+"""Bundled scenarios, installed as the data package ``mjxdiff._scenarios`` (see pyproject.toml)."""
