@@ -134,7 +134,8 @@ def build_parser() -> argparse.ArgumentParser:
                                     "compare MJX with MuJoCo C on each (as 'sweep' does), and shrink a divergence to "
                                     "a minimal MJCF. The shrunk model is printed and, with --out, saved as a "
                                     "reproducer for 'mjxdiff replay'. Found failures are kept in Hypothesis's "
-                                    "example database and tried first next time. Exit 0 none found, 1 found.",
+                                    "example database and tried first next time. Exit 0 none found, 1 found, 2 the "
+                                    "harness itself failed (traceback shown and, with --out, in DIR/fuzz-report.json).",
                         formatter_class=argparse.RawDescriptionHelpFormatter)
     fz.add_argument("--max-examples", type=_positive, default=300, help="most models to try (default 300)")
     fz.add_argument("--seed", type=int, default=0, help="Hypothesis seed (default 0)")
