@@ -30,9 +30,12 @@ examples:
   python -m mjxdiff sweep --out results --format json
 
 statuses: PASS within tolerance; FAIL a field left its tolerance, or MJX went
-non-finite where MuJoCo C did not (the line names field, object, step and time);
-UNSUP MJX refused the model (feature named); ERROR an engine crashed, or MuJoCo C
+non-finite where MuJoCo C did not (the line names field, object, step and time,
+and the likely cause); UNSUP MJX refused the model (feature named; try
+--drop-unsupported for collision pairs); ERROR an engine crashed, or MuJoCo C
 itself blew up (an unstable scenario); INPUT the scenario could not be read.
+A line ending in [adjusted: ...] ran a model mjxdiff changed so that MJX could
+run it (e.g. the energy flag disabled); --no-adjust turns that off.
 exit codes: 0 consistent, 1 divergence or engine error, 2 bad usage or input."""
 
 
@@ -113,6 +116,14 @@ def build_parser() -> argparse.ArgumentParser:
                     help="for failing scenarios: basic = re-synchronised one-step error and the first "
                          "pipeline stage that differs; full (default) = also the likely cause, from reruns "
                          "with a converged solver, no contacts, a smaller timestep, another integrator")
+    sw.add_argument("--adjust", action=argparse.BooleanOptionalAction, default=True,
+                    help="set aside settings MJX refuses that change nothing compared (the energy and fwdinv "
+                         "flags) and mark the result 'adjusted' (default); --no-adjust reports such models "
+                         "unsupported")
+    sw.add_argument("--drop-unsupported", action="store_true",
+                    help="remove geom pairs MJX cannot collide (e.g. cylinder-box) from the model both engines "
+                         "step and test the rest; changes the dynamics, so it is never the default and every "
+                         "dropped pair is listed in the result")
     sw.add_argument("--out", metavar="DIR", help="write DIR/report.json (versions, config, per-scenario metrics)")
     sw.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     sw.add_argument("--quick", action="store_true", help="smoke run: batch <= 4, steps <= 50")
@@ -194,7 +205,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     config = SweepConfig(seed=args.seed, batch=args.batch, steps=args.steps, precision=args.precision,
                          reproducers=reproducers,
                          quick=args.quick, threshold=args.threshold, envelope=args.envelope,
-                         noise_floor=args.noise_floor, diagnose=args.diagnose)
+                         noise_floor=args.noise_floor, diagnose=args.diagnose, adjust=args.adjust,
+                         drop_unsupported=args.drop_unsupported)
     scenarios, bad = [], []
     try:
         refs = args.scenarios or [s.name for s in bundled_scenarios()]

@@ -27,7 +27,8 @@ from mjxdiff import engines, export_cache
 from mjxdiff.engines import MJXEngine, Trajectory, mjx
 from mjxdiff.inputs import BatchedInputs
 
-__all__ = ["STAGES", "StageDiff", "DrillDown", "drill_down", "local_error", "attribute_cause", "ABLATIONS"]
+__all__ = ["STAGES", "StageDiff", "DrillDown", "drill_down", "local_error", "attribute_cause", "ABLATIONS", "GENUINE",
+           "UNCLASSIFIED"]
 
 #: Pipeline stages in the order ``mj_forward`` computes them, with their fields.
 STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -223,6 +224,11 @@ def _other_integrator(m: mujoco.MjModel) -> None:
     m.opt.integrator = int(mujoco.mjtIntegrator.mjINT_RK4) if m.opt.integrator == euler else euler
 
 
+#: Cause of a failure that no ablation removes: MJX computes something else than C.
+GENUINE = "genuine discrepancy"
+#: Cause when no ablation could run: the diagnosis is incomplete, not a verdict on MJX.
+UNCLASSIFIED = "unclassified (no ablation could run)"
+
 #: (cause class, ablation label, model edit) in the order they are tried.
 ABLATIONS: tuple[tuple[str, str, Callable[[mujoco.MjModel], None]], ...] = (
     ("solver convergence", "converged solver (200 iterations, tolerance 1e-14)", _converged_solver),
@@ -248,6 +254,10 @@ def attribute_cause(passes: Callable[[BatchedInputs, str], bool], inputs: Batche
                     precision: str) -> dict[str, Any]:
     """Tries ablations in order; the first under which the scenario passes names the cause.
 
+    An ablation that cannot run (MJX or C raises on the ablated model, e.g. a
+    sensor MJX cannot evaluate without contacts) is recorded with its error and
+    skipped: a diagnosis never raises.
+
     Args:
       passes: reruns the scenario on the given inputs at the given precision
         and says whether it passes.
@@ -255,18 +265,31 @@ def attribute_cause(passes: Callable[[BatchedInputs, str], bool], inputs: Batche
       precision: the precision it failed at.
 
     Returns:
-      ``{"cause": class, "ablation": label, "tried": [(label, passed), ...]}``;
-      the cause is ``genuine model/engine discrepancy`` when no ablation passes.
+      ``{"cause": class, "ablation": label, "tried": [{"ablation", "passed", "error"}, ...]}``;
+      ``passed`` is None where the ablation could not run. The cause is
+      :data:`GENUINE` when no ablation that ran passes, and :data:`UNCLASSIFIED`
+      when none could run at all.
     """
-    tried = []
-    if precision == "float32":
-        ok = passes(inputs, "float64")
-        tried.append(("float64", ok))
-        if ok:
-            return dict(cause="precision", ablation="float64", tried=tried)
+    tried: list[dict[str, Any]] = []
+
+    def attempt(label: str, cause: str, ablated: BatchedInputs, at: str) -> dict[str, Any] | None:
+        try:
+            ok = bool(passes(ablated, at))
+        except Exception as e:  # noqa: BLE001 - recorded; the verdict stands
+            tried.append(dict(ablation=label, passed=None, error=" ".join(f"{type(e).__name__}: {e}".split())))
+            return None
+        tried.append(dict(ablation=label, passed=ok, error=""))
+        return dict(cause=cause, ablation=label, tried=tried) if ok else None
+
+    if precision == "float32" and (found := attempt("float64", "precision", inputs, "float64")):
+        return found
     for cause, label, edit in ABLATIONS:
-        ok = passes(ablate(inputs, edit), precision)
-        tried.append((label, ok))
-        if ok:
-            return dict(cause=cause, ablation=label, tried=tried)
-    return dict(cause="genuine model/engine discrepancy", ablation=None, tried=tried)
+        try:
+            ablated = ablate(inputs, edit)
+        except Exception as e:  # noqa: BLE001 - recorded; the verdict stands
+            tried.append(dict(ablation=label, passed=None, error=" ".join(f"{type(e).__name__}: {e}".split())))
+            continue
+        if found := attempt(label, cause, ablated, precision):
+            return found
+    ran = any(t["passed"] is not None for t in tried)
+    return dict(cause=GENUINE if ran else UNCLASSIFIED, ablation=None, tried=tried)

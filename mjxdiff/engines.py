@@ -390,6 +390,9 @@ def put_models(models: tuple[mujoco.MjModel, ...]) -> tuple[mjx.Model, tuple[boo
       UnsupportedError: MJX does not implement a feature the model uses.
       ValueError: members differ in a field MJX treats as static structure.
     """
+    if models[0].nv == 0:  # MJX's scans over the kinematic tree raise ValueError on it while tracing
+        raise UnsupportedError("a model without degrees of freedom (nv = 0): MJX cannot step it "
+                               "('Scan across Model with zero DoFs unsupported')")
     with _unsupported():
         mx0 = mjx.put_model(models[0])
     leaves0, treedef = jax.tree.flatten(mx0)

@@ -53,11 +53,13 @@ def summary(results: Sequence[ScenarioResult], threshold: float) -> dict[str, An
     that ran (unsupported and input errors aside). ``consistent`` is True when every
     scenario that ran passed and none had an input error; ``verdict`` says in one
     word what was found: ``consistent``, ``divergent`` (some fail), ``error`` or
-    ``input-error``.
+    ``input-error``. ``adjusted`` counts scenarios whose model mjxdiff changed
+    so that MJX could run it (:mod:`mjxdiff.adjust`), whatever their status.
     """
     counts = {s: sum(r.status == s for r in results) for s in ("pass", "fail", "unsupported")}
     counts["error"] = sum(r.status == "error" and r.error_kind != "input" for r in results)
     counts["input_error"] = sum(r.status == "error" and r.error_kind == "input" for r in results)
+    counts["adjusted"] = sum(bool(r.info.get("adjusted")) for r in results)
     ran = len(results) - counts["unsupported"] - counts["input_error"]
     rate = counts["pass"] / ran if ran else 1.0
     compiles = sum(r.info.get("mjx_compiles", 0) for r in results)
@@ -161,7 +163,8 @@ def write_report(out_dir: str | Path, report: dict[str, Any], name: str = "repor
 def format_line(r: ScenarioResult) -> str:
     """One line per scenario: status, name, and what happened."""
     symbol = "INPUT" if r.status == "error" and r.error_kind == "input" else _SYMBOL[r.status]
-    return f"{symbol:<6} {r.name:<28} {r.message}"
+    adjusted = f" [adjusted: {'; '.join(r.info['adjusted'])}]" if r.info.get("adjusted") else ""
+    return f"{symbol:<6} {r.name:<28} {r.message}{adjusted}"
 
 
 def format_text(results: Sequence[ScenarioResult], threshold: float, seconds: float | None = None) -> str:
@@ -173,6 +176,7 @@ def format_text(results: Sequence[ScenarioResult], threshold: float, seconds: fl
                "input-error": "INPUT ERROR (fix the input above; nothing diverged in the rest)"}[s["verdict"]]
     lines = [format_line(r) for r in results]
     inputs = f", {s['input_error']} input error" if s["input_error"] else ""
+    inputs += f" ({s['adjusted']} adjusted for MJX)" if s["adjusted"] else ""
     lines.append(f"{s['total']} scenarios{tail}: {s['pass']} pass, {s['fail']} fail, "
                  f"{s['unsupported']} unsupported, {s['error']} error{inputs}; "
                  f"pass rate {s['pass_rate']:.0%} -> {verdict}")

@@ -18,7 +18,7 @@ from typing import Callable, Iterable, Iterator, Sequence
 import jax
 import numpy as np
 
-from mjxdiff import diagnose, engines, export_cache, report, reproducer
+from mjxdiff import adjust, diagnose, engines, export_cache, report, reproducer
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
 from mjxdiff.inputs import BatchedInputs, make_inputs
 from mjxdiff.scenario import Scenario, ScenarioError, Tolerances, load_model
@@ -57,6 +57,11 @@ class SweepConfig:
       piece_steps: steps per streamed piece; None: :func:`piece_steps` of the memory budget.
       group_size: members MJX steps at once; None: the smaller of :func:`group_size` (memory
         budget) and the MJX engine's ``batch_cap()`` (32 members per device).
+      adjust: set aside settings MJX refuses that change nothing compared (the energy
+        flag; :func:`mjxdiff.adjust.harmless`), reported as ``adjusted``.
+      drop_unsupported: remove the geom pairs MJX cannot collide from the model both
+        engines step (:func:`mjxdiff.adjust.drop_unsupported`); changes the dynamics, so
+        off by default and reported as ``adjusted``.
     """
 
     seed: int = 0
@@ -71,6 +76,8 @@ class SweepConfig:
     reproducers: str | None = None
     piece_steps: int | None = None
     group_size: int | None = None
+    adjust: bool = True
+    drop_unsupported: bool = False
 
     def __post_init__(self):
         if self.noise_floor not in NOISE_FLOOR_MODES:
@@ -106,6 +113,16 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
     t0 = time.perf_counter()
     try:
         m = load_model(scenario)
+    except ScenarioError as e:
+        return ScenarioResult(name=scenario.name, status="error", error_kind="input", message=str(e), info=info,
+                              tolerances=tol.as_dict())
+    try:
+        m, adjusted = adjust.for_mjx(m, scenario.model_path, config.adjust, config.drop_unsupported)
+    except Exception as e:  # noqa: BLE001 - the model stays as it is, and says why
+        adjusted = [f"--drop-unsupported could not rewrite the model: {_one_line(e)}"]
+    if adjusted:
+        info["adjusted"] = adjusted
+    try:
         inputs = make_inputs(scenario, m, config.seed, batch, steps)
     except ScenarioError as e:
         return ScenarioResult(name=scenario.name, status="error", error_kind="input", message=str(e), info=info,
@@ -115,10 +132,15 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
     if result.status == "fail" and config.reproducers is not None:
         member = result.first_divergence["member"]
         file = f"{report.safe_filename(scenario.name)}-member{member}.json"
-        path = reproducer.save(
-            report.path_under(config.reproducers, file), scenario.name, member, inputs,
-            scenario.model_path.read_text(), tol, config.as_dict(), report.result_dict(result), report.versions())
-        result = dataclasses.replace(result, info={**result.info, "reproducer": str(path)})
+        try:
+            path = str(reproducer.save(
+                report.path_under(config.reproducers, file), scenario.name, member, inputs,
+                scenario.model_path.read_text(), tol, config.as_dict(), report.result_dict(result),
+                report.versions()))
+        except Exception as e:  # noqa: BLE001 - the verdict stands without its reproducer
+            path = None
+            result = dataclasses.replace(result, message=f"{result.message}; reproducer not saved: {_one_line(e)}")
+        result = dataclasses.replace(result, info={**result.info, "reproducer": path})
     return result
 
 
@@ -399,24 +421,45 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
 
 def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
               config: SweepConfig, mjx_engine: MJXEngine, c_engine: CEngine) -> ScenarioResult:
-    """Adds local error, the stage drill-down and (``full``) the likely cause to a failing verdict."""
-    traj_c = c_engine.rollout(inputs)  # whole, for the failing scenario only
+    """Adds local error, the stage drill-down and (``full``) the likely cause to a failing verdict.
+
+    Never raises: a part of the diagnosis that cannot run (an engine refusing
+    the state or an ablated model) becomes a line in ``diagnosis['notes']``
+    and in the message, and the verdict stands.
+    """
+    diagnosis: dict = {}
+    notes: list[str] = []
+    message = result.message
+
+    def attempt(label: str, fn: Callable[[], object]):
+        try:
+            return fn()
+        except Exception as e:  # noqa: BLE001 - one scenario's diagnosis, never the sweep
+            notes.append(f"{label} could not run: {_one_line(e)}")
+            return None
+
+    traj_c = attempt("C's full rerun", lambda: c_engine.rollout(inputs))  # whole, for the failing scenario only
     first = result.first_divergence
     member, step = first["member"], first["step"]
-    drill = diagnose.drill_down(inputs.models[member], *diagnose.state_before(inputs, traj_c, member, step),
-                                precision=config.precision, member=member, step=step)
-    local = diagnose.local_error(inputs, traj_c, m, rangefinder_mask(m), 1, mjx_engine)
-    diagnosis = dict(drill_down=dataclasses.asdict(drill), local_error=local)
-    message = result.message
-    if drill.first_field:
-        message += f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
-    elif max(local[f] / max(getattr(tol, f), 1e-300) for f in local) > 1e-3:
-        # mj_forward agrees from the same state, yet one step does not: the update after it
-        drill = dataclasses.replace(drill, first_stage="integration", first_field="qpos/qvel update")
+    drill = local = None
+    if traj_c is not None:
+        drill = attempt("drill-down", lambda: diagnose.drill_down(
+            inputs.models[member], *diagnose.state_before(inputs, traj_c, member, step),
+            precision=config.precision, member=member, step=step))
+        local = attempt("local error", lambda: diagnose.local_error(
+            inputs, traj_c, m, rangefinder_mask(m), 1, mjx_engine))
+    if local is not None:
+        diagnosis["local_error"] = local
+    if drill is not None:
+        if drill.first_field:
+            message += f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
+        elif local is not None and max(local[f] / max(getattr(tol, f), 1e-300) for f in local) > 1e-3:
+            # mj_forward agrees from the same state, yet one step does not: the update after it
+            drill = dataclasses.replace(drill, first_stage="integration", first_field="qpos/qvel update")
+            message += "; every forward stage agrees, the one-step error does not: integration"
+        else:
+            message += "; every stage agrees at that state (an accumulation of small differences)"
         diagnosis["drill_down"] = dataclasses.asdict(drill)
-        message += "; every forward stage agrees, the one-step error does not: integration"
-    else:
-        message += "; every stage agrees at that state (an accumulation of small differences)"
     if config.diagnose == "full":
         def passes(ablated: BatchedInputs, precision: str) -> bool:
             with _precision(precision):
@@ -424,10 +467,14 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
                                 {})[0].status == "pass"
 
         cause = diagnose.attribute_cause(passes, inputs, config.precision)
+        notes += [f"ablation '{t['ablation']}' could not run: {t['error']}" for t in cause["tried"] if t["error"]]
         diagnosis["cause"] = cause
         message += f"; likely cause: {cause['cause']}"
         if cause["ablation"]:
             message += f" (passes with {cause['ablation']})"
+    if notes:
+        diagnosis["notes"] = notes
+        message += "; diagnosis incomplete: " + "; ".join(notes)
     return dataclasses.replace(result, message=message, diagnosis=diagnosis)
 
 
@@ -464,7 +511,11 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
     results = []
     for i, scenario in enumerate(scenarios):
         bar.start(i, scenario.name)
-        result = run_scenario(scenario, config, mjx_engine, c_engine)
+        try:
+            result = run_scenario(scenario, config, mjx_engine, c_engine)
+        except Exception as e:  # noqa: BLE001 - one scenario's trouble stays that scenario's
+            result = ScenarioResult(name=scenario.name, status="error", error_kind="internal",
+                                    message=f"mjxdiff itself failed on this scenario: {_one_line(e)}")
         results.append(result)
         if on_result:
             on_result(result)

@@ -37,7 +37,8 @@ def test_bad_flags_exit_2_with_one_line(args, message):
 def test_help_teaches_statuses_and_exit_codes():
     proc = _run("sweep", "--help")
     assert proc.returncode == 0
-    for word in ("--seed", "--precision", "--out", "--noise-floor", "exit codes", "UNSUP", "examples"):
+    for word in ("--seed", "--precision", "--out", "--noise-floor", "exit codes", "UNSUP", "examples",
+                 "--drop-unsupported", "--no-adjust", "adjusted"):
         assert word in proc.stdout
 
 
@@ -70,10 +71,10 @@ def test_bad_inputs_are_reported_and_the_rest_still_runs(tmp_path, capsys):
 
 
 def test_unsupported_feature_is_named_and_not_a_failure(capsys):
-    code = main(["sweep", "energy_flag_unsupported", *SMALL])
+    code = main(["sweep", "energy_flag", "--no-adjust", *SMALL])
     out = capsys.readouterr().out
     assert code == 0
-    assert "UNSUP" in out and "energy" in out.lower()
+    assert "UNSUP" in out and "mjENBL_ENERGY" in out
 
 
 def test_nan_scenario_reported_rest_continue(tmp_path, capsys):

@@ -111,7 +111,7 @@ def test_cause_attribution_blames_contacts_for_a_contact_bug(fresh_mjx, monkeypa
 def test_cause_attribution_calls_a_damping_bug_genuine(fresh_mjx, monkeypatch):
     core.extra_damping(monkeypatch)
     result = run_scenario(load_scenario("pendulum"), SweepConfig(seed=0, batch=4, diagnose="full"))
-    assert result.diagnosis["cause"]["cause"] == "genuine model/engine discrepancy"
+    assert result.diagnosis["cause"]["cause"] == "genuine discrepancy"
     assert len(result.diagnosis["cause"]["tried"]) == 4
 
 
