@@ -14,7 +14,6 @@
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 from typing import Any, Callable
 
@@ -26,6 +25,7 @@ from mjxdiff import metrics
 from mjxdiff import engines, export_cache
 from mjxdiff.engines import MJXEngine, Trajectory, mjx
 from mjxdiff.inputs import BatchedInputs
+from mjxdiff.noise import converge_solver
 
 __all__ = ["STAGES", "StageDiff", "DrillDown", "drill_down", "local_error", "attribute_cause", "ABLATIONS", "GENUINE",
            "UNCLASSIFIED"]
@@ -207,10 +207,6 @@ def local_error(inputs: BatchedInputs, traj_c: Trajectory, m: mujoco.MjModel, rf
 # cause attribution
 
 
-def _converged_solver(m: mujoco.MjModel) -> None:
-    m.opt.iterations, m.opt.ls_iterations, m.opt.tolerance = 200, 100, 1e-14
-
-
 def _no_contacts(m: mujoco.MjModel) -> None:
     m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
 
@@ -231,7 +227,7 @@ UNCLASSIFIED = "unclassified (no ablation could run)"
 
 #: (cause class, ablation label, model edit) in the order they are tried.
 ABLATIONS: tuple[tuple[str, str, Callable[[mujoco.MjModel], None]], ...] = (
-    ("solver convergence", "converged solver (200 iterations, tolerance 1e-14)", _converged_solver),
+    ("solver convergence", "converged solver (200 iterations, tolerance 1e-14)", converge_solver),
     ("contact generation", "contacts disabled", _no_contacts),
     ("integration", "timestep / 4", _quarter_timestep),
     ("integration", "other integrator (Euler <-> RK4)", _other_integrator),
@@ -240,14 +236,7 @@ ABLATIONS: tuple[tuple[str, str, Callable[[mujoco.MjModel], None]], ...] = (
 
 def ablate(inputs: BatchedInputs, edit: Callable[[mujoco.MjModel], None]) -> BatchedInputs:
     """``inputs`` with ``edit`` applied to a copy of every member's model."""
-    cache: dict[int, mujoco.MjModel] = {}
-    models = []
-    for mi in inputs.models:
-        if id(mi) not in cache:
-            cache[id(mi)] = copy.copy(mi)
-            edit(cache[id(mi)])
-        models.append(cache[id(mi)])
-    return dataclasses.replace(inputs, models=tuple(models))
+    return inputs.edit_models(edit)
 
 
 def attribute_cause(passes: Callable[[BatchedInputs, str], bool], inputs: BatchedInputs,

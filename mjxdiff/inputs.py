@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import zlib
+from typing import Callable
 
 import mujoco
 import numpy as np
@@ -73,6 +74,16 @@ class BatchedInputs:
             self, qpos=pick(self.qpos), qvel=pick(self.qvel), act=pick(self.act), ctrl=pick(self.ctrl),
             models=tuple(self.models[int(i)] for i in np.arange(self.batch)[members]),
             factors={k: pick(v) for k, v in self.factors.items()}, member_ids=ids)
+
+    def edit_models(self, edit: Callable[[mujoco.MjModel], None]) -> "BatchedInputs":
+        """These inputs with ``edit`` applied to a copy of every member's model (members that
+        share a model share its edited copy)."""
+        copies: dict[int, mujoco.MjModel] = {}
+        for mi in self.models:
+            if id(mi) not in copies:
+                copies[id(mi)] = copy.copy(mi)
+                edit(copies[id(mi)])
+        return dataclasses.replace(self, models=tuple(copies[id(mi)] for mi in self.models))
 
     def concat(self, other: "BatchedInputs") -> "BatchedInputs":
         """These members followed by ``other``'s (same model structure, steps and ``energy``)."""

@@ -12,6 +12,18 @@ calm ones. The envelope an MJX error is judged against is
 
 (a running maximum, so that a chance zero crossing of the self-divergence does
 not close the envelope), floored by the scenario's fixed tolerance.
+
+A model's solver settings allow a second kind of freedom: the constraint
+solver may stop anywhere within its tolerance (or at its iteration cap), and
+chaos amplifies where it stopped. Rounding-perturbed reruns cannot show this
+(both stop at the same iteration). The **solver floor** is C against itself
+with the solver converged (:func:`converge_solver`), with the envelope
+
+    solver_envelope_i(t) = SOLVER_MARGIN * max_{s <= t} |C_i(t) - C_converged_i(t)|
+
+The sweep consults it only for a scenario whose first divergence starts in
+the constraint stage (see :mod:`mjxdiff.sweep`); each field then reports which
+bound held it (:data:`FLOORS`).
 """
 
 from __future__ import annotations
@@ -27,7 +39,8 @@ from mjxdiff import metrics
 from mjxdiff.engines import Trajectory
 from mjxdiff.inputs import BatchedInputs
 
-__all__ = ["EPS", "NoiseFloor", "noise_floor", "perturb"]
+__all__ = ["EPS", "FLOORS", "SOLVER_MARGIN", "NoiseFloor", "combine", "converge_solver", "converged",
+           "has_constraints", "noise_floor", "perturb"]
 
 #: Unit roundoff of each precision MJX can run in.
 EPS = {"float64": float(np.finfo(np.float64).eps), "float32": float(np.finfo(np.float32).eps)}
@@ -35,6 +48,13 @@ EPS = {"float64": float(np.finfo(np.float64).eps), "float32": float(np.finfo(np.
 ULPS = 4.0
 #: How far above the self-divergence an MJX error may sit and still count as rounding.
 MARGIN = 1e3
+#: How far above C's divergence from its converged self an MJX error may sit and still count as
+#: solver freedom. Small: both engines run the same solver settings, so MJX's truncation is of
+#: the size of C's (measured: MJX within 1e-13 of C where C's own freedom reached 3.6e-3).
+SOLVER_MARGIN = 10.0
+#: What bounded a field where it came closest to its bound: the fixed tolerance, the rounding
+#: envelope (:class:`NoiseFloor` of :func:`perturb`), or the solver floor (of :func:`converged`).
+FLOORS = ("tolerance", "rounding", "solver")
 
 
 class NoiseFloor:
@@ -115,6 +135,40 @@ def perturb(inputs: BatchedInputs, precision: str) -> BatchedInputs:
         return x + signs * eps * np.maximum(np.abs(x), 1.0)
 
     return dataclasses.replace(inputs, qpos=move(inputs.qpos), qvel=move(inputs.qvel))
+
+
+def converge_solver(m: mujoco.MjModel) -> None:
+    """Edits ``m`` in place so that its constraint solver converges: 200 iterations, 100
+    line-search iterations, tolerance 1e-14."""
+    m.opt.iterations, m.opt.ls_iterations, m.opt.tolerance = 200, 100, 1e-14
+
+
+def converged(inputs: BatchedInputs) -> BatchedInputs:
+    """``inputs`` with every member's solver converged (:func:`converge_solver`): the rerun
+    whose divergence from the reference is the solver floor."""
+    return inputs.edit_models(converge_solver)
+
+
+def has_constraints(m: mujoco.MjModel) -> bool:
+    """Whether the constraint solver can have work: contacts between geoms that may collide,
+    limits, equalities or friction loss, with constraints enabled."""
+    if m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT):
+        return False
+    colliding = (m.geom_contype | m.geom_conaffinity) != 0
+    contacts = m.npair > 0 or (colliding.sum() > 1 and not m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CONTACT))
+    return bool(contacts or m.neq or m.jnt_limited.any() or m.tendon_limited.any() or m.dof_frictionloss.any()
+                or m.tendon_frictionloss.any())
+
+
+def combine(rounding: dict[str, np.ndarray], solver: dict[str, np.ndarray] | None
+            ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray] | None]:
+    """The envelope of both floors, field -> (b, K) elementwise max, and which one it came
+    from (index into :data:`FLOORS`: 1 rounding, 2 solver); ``(rounding, None)`` without a solver floor."""
+    if solver is None:
+        return rounding, None
+    envelope = {k: np.maximum(v, solver[k]) for k, v in rounding.items()}
+    source = {k: np.where(solver[k] > v, 2, 1) for k, v in rounding.items()}
+    return envelope, source
 
 
 @jax.jit

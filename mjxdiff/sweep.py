@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import queue
 import sys
 import threading
@@ -22,7 +23,7 @@ from mjxdiff import adjust, diagnose, engines, export_cache, report, reproducer
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
 from mjxdiff.inputs import BatchedInputs, make_inputs
 from mjxdiff.scenario import Scenario, ScenarioError, Tolerances, load_model
-from mjxdiff.noise import NoiseFloor, perturb
+from mjxdiff.noise import SOLVER_MARGIN, NoiseFloor, combine, converged, has_constraints, perturb
 from mjxdiff.verdict import Judge, ScenarioResult, rangefinder_mask
 
 __all__ = ["SweepConfig", "run_scenario", "sweep"]
@@ -276,42 +277,48 @@ def _ahead(items: Iterable, depth: int = 1) -> Iterator:
 
 
 class _CPieces:
-    """C's pieces of one group of members, (reference, perturbed rerun or None), computed in a
-    background thread (:func:`_ahead`).
+    """C's pieces of one group of members, (reference, perturbed rerun or None, converged rerun
+    or None), computed in a background thread (:func:`_ahead`).
 
     Without the noise floor C steps the reference alone. :meth:`start_floor`
-    restarts it from step 0 with the reference and its perturbed rerun as one
-    batch (half the thread-pool rounds of two batches; each member's rows are
+    restarts it from step 0 with the reference and its perturbed rerun (and,
+    with ``solver``, its rerun with a converged solver) as one batch (fewer
+    thread-pool rounds than separate batches; each member's rows are
     bit-identical to a run of its own) and feeds the noise floor the pieces it
     missed, so that the floor's running maxima are those of a rerun that ran
     from the start. C steps ~8x faster than MJX, so catching up costs little.
     """
 
     def __init__(self, c_engine: CEngine, group: BatchedInputs, chunk: int, precision: str,
-                 seconds: dict[str, float], floor: bool):
+                 seconds: dict[str, float], floor: bool, solver: bool = False):
         self.c_engine, self.group, self.chunk, self.precision, self.seconds = c_engine, group, chunk, precision, seconds
-        self.floor, self._pieces = floor, self._open(floor)
+        self.solver, self.floor = solver, floor
+        self._pieces = self._open(floor)
 
-    def _open(self, floor: bool) -> Iterator[tuple[Trajectory, Trajectory | None]]:
+    def _open(self, floor: bool) -> Iterator[tuple[Trajectory, Trajectory | None, Trajectory | None]]:
         group, stream = self.group, self.c_engine.stream
         if not floor:
-            return _ahead((p, None) for p in _timed(lambda: stream(group, self.chunk), "c", self.seconds))
-        both = _timed(lambda: stream(group.concat(perturb(group, self.precision)), self.chunk), "c", self.seconds)
-        return _ahead((_rows(p, slice(0, group.batch)), _rows(p, slice(group.batch, None))) for p in both)
+            return _ahead((p, None, None) for p in _timed(lambda: stream(group, self.chunk), "c", self.seconds))
+        batches = [group, perturb(group, self.precision)] + ([converged(group)] if self.solver else [])
+        joined = functools.reduce(BatchedInputs.concat, batches)
+        pieces = _timed(lambda: stream(joined, self.chunk), "c", self.seconds)
+        B = group.batch
+        return _ahead(tuple(_rows(p, slice(i * B, (i + 1) * B)) if i < len(batches) else None for i in range(3))
+                      for p in pieces)
 
-    def __next__(self) -> tuple[Trajectory, Trajectory | None]:
+    def __next__(self) -> tuple[Trajectory, Trajectory | None, Trajectory | None]:
         return next(self._pieces)
 
-    def start_floor(self, until: int, feed: Callable[[Trajectory, Trajectory, int], object]) -> float:
-        """Restarts with the perturbed rerun; ``feed(perturbed, reference, start)`` gets the
+    def start_floor(self, until: int, feed: Callable[[Trajectory, Trajectory, Trajectory | None, int], object]) -> float:
+        """Restarts with the reruns; ``feed(reference, perturbed, converged, start)`` gets the
         pieces before step ``until``, and the next piece is the one starting there.
         Returns the seconds it took (C's time, mostly)."""
         t = time.perf_counter()
         self.close()
         self._pieces, self.floor, start = self._open(True), True, 0
         while start < until:
-            reference, perturbed = next(self)
-            feed(perturbed, reference, start)
+            reference, perturbed, solved = next(self)
+            feed(reference, perturbed, solved, start)
             start += reference.time.shape[1]
         return time.perf_counter() - t
 
@@ -320,7 +327,8 @@ class _CPieces:
 
 
 def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig, mjx_engine: MJXEngine,
-             c_engine: CEngine, seconds: dict[str, float]) -> tuple[ScenarioResult, dict[str, int]]:
+             c_engine: CEngine, seconds: dict[str, float],
+             solver: bool = False) -> tuple[ScenarioResult, dict[str, int]]:
     """Streams both engines (and C's perturbed rerun) piece by piece into a :class:`Judge`.
 
     Members run in groups of at most :func:`group_size` (memory) and the MJX
@@ -328,7 +336,9 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
     :func:`piece_steps`; ``seconds`` gains wall time per engine and for the verdict.
     With ``config.noise_floor == 'on-demand'`` a group's perturbed rerun starts (from step
     0) at its first piece with an error above the fixed tolerances: before that, no
-    envelope could have changed the verdict.
+    envelope could have changed the verdict. With ``solver`` (and the envelope on), C's
+    rerun with a converged solver runs beside the perturbed one, and errors are judged
+    against the larger of both floors (:func:`mjxdiff.noise.combine`).
 
     Returns:
       The verdict, and the counts of ``groups``, ``pieces`` and ``noise_floor_members``
@@ -342,35 +352,42 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
     chunk = config.piece_steps or piece_steps(m, len(groups[0]), T)
     judge = Judge(m, tol, B, T)
     floor = NoiseFloor(m, rangefinder_mask(m), B, T) if config.envelope else None
+    solver_floor = NoiseFloor(m, rangefinder_mask(m), B, T, SOLVER_MARGIN) if floor and solver else None
     for idx in groups:
         members = idx[:len(np.unique(idx))]  # the padding repeats come last
         n = len(members)
         group = inputs.take(idx) if len(groups) > 1 else inputs
-        feed = lambda perturbed, reference, at: floor.update(_rows(perturbed, n), _rows(reference, n), at, members)
+
+        def feed(reference, perturbed, solved, at):
+            """Both floors' envelopes of a piece, and which floor each value came from."""
+            reference = _rows(reference, n)
+            envelope = floor.update(_rows(perturbed, n), reference, at, members)
+            return combine(envelope, solver_floor and solver_floor.update(_rows(solved, n), reference, at, members))
         # MJX first: its first piece is stepping before C's thread starts
         mjx = _timed(lambda: mjx_engine.stream(group, chunk), "mjx", seconds)
         start = 0
         # C in a thread, MJX dispatching its next piece before handing this one over: both engines
         # keep stepping while the verdict of a piece is computed
         with contextlib.closing(_CPieces(c_engine, group, chunk, config.precision, seconds,
-                                         floor is not None and config.noise_floor == "always")) as c:
+                                         floor is not None and config.noise_floor == "always",
+                                         solver_floor is not None)) as c:
             for piece_mjx in mjx:
-                piece_c, piece_p = next(c)
+                piece_c, piece_p, piece_s = next(c)
                 t = time.perf_counter()
                 reference, simulated = _rows(piece_c, n), _rows(piece_mjx, n)
                 series = judge.errors(reference, simulated)
                 if floor and not c.floor and judge.exceeds_tolerance(series):
                     t += c.start_floor(start, feed)
-                    piece_c, piece_p = next(c)
-                envelope = feed(piece_p, piece_c, start) if piece_p is not None else None
-                judge.update(reference, simulated, envelope, start, members, series)
+                    piece_c, piece_p, piece_s = next(c)
+                envelope, source = feed(piece_c, piece_p, piece_s, start) if piece_p is not None else (None, None)
+                judge.update(reference, simulated, envelope, start, members, series, source)
                 start += piece_c.time.shape[1]
                 if floor and not c.floor and judge.contacts_exceed_tolerance(members):
                     t += c.start_floor(start, feed)
                 seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
     t = time.perf_counter()
     noise = floor if floor is not None and floor.fed.any() else None
-    result = judge.result(name, config.threshold, noise)
+    result = judge.result(name, config.threshold, noise, solver_floor if noise is not None else None)
     seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
     counts = dict(groups=len(groups), pieces=len(groups) * -(-T // chunk),
                   noise_floor_members=int(floor.fed.sum()) if floor is not None else 0)
@@ -408,8 +425,13 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
         engine = "MuJoCo C" if e.engine == "c" else "MJX"
         return ScenarioResult(status="error", error_kind="engine", message=f"{engine} failed: {e}", **base)
     t = time.perf_counter()
+    traj_c = drill = None
+    if result.status == "fail" and config.envelope and has_constraints(m) and not any(
+            d["engine"] == "mjx" for d in result.diverged_members):
+        result, traj_c, drill, info["solver_floor"] = _solver_floor(result, m, inputs, tol, config, mjx_engine,
+                                                                     c_engine, clock)
     if result.status == "fail" and config.diagnose != "none":
-        result = _diagnose(result, m, inputs, tol, config, mjx_engine, c_engine)
+        result = _diagnose(result, m, inputs, tol, config, mjx_engine, c_engine, traj_c, drill)
     seconds.update(c=clock.get("c", 0.0), mjx=clock.get("mjx", 0.0), verdict=clock.get("verdict", 0.0),
                    diagnosis=time.perf_counter() - t, compile=engines.compile_seconds() - compile_s)
     info.update(mjx_compiles=engines.compile_count() - compiles, mjx_loaded=export_cache.loaded_count() - loaded,
@@ -419,9 +441,53 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     return dataclasses.replace(result, info=info)
 
 
+def _drill(result: ScenarioResult, inputs: BatchedInputs, traj_c: Trajectory, precision: str) -> diagnose.DrillDown:
+    """The stage drill-down at the state before the first divergent step."""
+    member, step = result.first_divergence["member"], result.first_divergence["step"]
+    return diagnose.drill_down(inputs.models[member], *diagnose.state_before(inputs, traj_c, member, step),
+                               precision=precision, member=member, step=step)
+
+
+def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
+                  mjx_engine: MJXEngine, c_engine: CEngine, clock: dict[str, float]):
+    """A second look at a failure that starts in the constraint stage: judged again against the
+    larger of the rounding envelope and the solver floor (C against C with a converged solver,
+    :mod:`mjxdiff.noise`). Chaos amplifying where a solver stopped within its own settings
+    then passes; a constraint MJX gets wrong does not.
+
+    Returns:
+      (result, C's whole trajectory or None, the drill-down or None, what was checked for
+      ``info['solver_floor']``); the trajectory and drill-down are reused by the diagnosis.
+      Never raises.
+    """
+    traj_c = drill = None
+    try:
+        traj_c = c_engine.rollout(inputs)
+        drill = _drill(result, inputs, traj_c, config.precision)
+        check = dict(first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
+                     margin=SOLVER_MARGIN, status="not needed: the divergence starts before the constraint stage")
+        if drill.first_stage != "constraint":
+            return result, traj_c, drill, check
+        second, _ = _verdict(result.name, m, inputs, tol, config, mjx_engine, c_engine, clock, solver=True)
+    except Exception as e:  # noqa: BLE001 - the verdict stands
+        return result, traj_c, drill, dict(status=f"could not run: {_one_line(e)}")
+    first = result.first_divergence
+    check["status"] = second.status
+    if second.status != "pass":
+        return result, traj_c, drill, check
+    held = [f.field for f in second.fields if f.floor == "solver"]
+    message = (f"{second.message}; within C's own solver freedom: the divergence of {first['field']} at step "
+               f"{first['step']} starts in the constraint stage ({drill.first_field}, {drill.object}) and stays "
+               f"within {SOLVER_MARGIN:g}x C's divergence from its converged self"
+               + (f" (solver floor bounds {', '.join(held)})" if held else ""))
+    return dataclasses.replace(second, message=message), traj_c, drill, check
+
+
 def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
-              config: SweepConfig, mjx_engine: MJXEngine, c_engine: CEngine) -> ScenarioResult:
-    """Adds local error, the stage drill-down and (``full``) the likely cause to a failing verdict.
+              config: SweepConfig, mjx_engine: MJXEngine, c_engine: CEngine,
+              traj_c: Trajectory | None = None, drill: diagnose.DrillDown | None = None) -> ScenarioResult:
+    """Adds local error, the stage drill-down and (``full``) the likely cause to a failing verdict;
+    ``traj_c`` (C's whole rollout) and ``drill`` when already computed.
 
     Never raises: a part of the diagnosis that cannot run (an engine refusing
     the state or an ablated model) becomes a line in ``diagnosis['notes']``
@@ -438,14 +504,12 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
             notes.append(f"{label} could not run: {_one_line(e)}")
             return None
 
-    traj_c = attempt("C's full rerun", lambda: c_engine.rollout(inputs))  # whole, for the failing scenario only
-    first = result.first_divergence
-    member, step = first["member"], first["step"]
-    drill = local = None
+    if traj_c is None:  # whole, for the failing scenario only
+        traj_c = attempt("C's full rerun", lambda: c_engine.rollout(inputs))
+    local = None
     if traj_c is not None:
-        drill = attempt("drill-down", lambda: diagnose.drill_down(
-            inputs.models[member], *diagnose.state_before(inputs, traj_c, member, step),
-            precision=config.precision, member=member, step=step))
+        if drill is None:
+            drill = attempt("drill-down", lambda: _drill(result, inputs, traj_c, config.precision))
         local = attempt("local error", lambda: diagnose.local_error(
             inputs, traj_c, m, rangefinder_mask(m), 1, mjx_engine))
     if local is not None:

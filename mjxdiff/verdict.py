@@ -30,7 +30,7 @@ import numpy as np
 
 from mjxdiff import metrics
 from mjxdiff.engines import Trajectory, first_diverged
-from mjxdiff.noise import NoiseFloor, noise_floor
+from mjxdiff.noise import FLOORS, NoiseFloor, noise_floor
 from mjxdiff.scenario import Tolerances
 
 __all__ = ["FieldResult", "Judge", "ScenarioResult", "judge", "error_series", "STATUSES"]
@@ -56,6 +56,9 @@ class FieldResult:
       ratio: worst error / bound over members and steps (> 1 means out); steps
         judged before a member's noise floor started (on demand) count against the
         tolerance alone.
+      floor: which bound held the field where it came closest to it (at ``first_step``
+        when exceeded): ``tolerance``, ``rounding`` (the chaos envelope) or ``solver``
+        (C's freedom under its own solver settings), see :data:`mjxdiff.noise.FLOORS`.
     """
 
     field: str
@@ -67,6 +70,7 @@ class FieldResult:
     growth_rate: float
     envelope: float = 0.0
     ratio: float = 0.0
+    floor: str = "tolerance"
 
     @property
     def ok(self) -> bool:
@@ -157,11 +161,15 @@ class _FieldTrack:
         self.first_time = np.zeros(batch)
         self.max_ratio = np.zeros(batch)
         self.ratio_comp = np.zeros(batch, int)
+        self.ratio_floor = np.zeros(batch, int)  # index into FLOORS of the bound at the worst ratio
+        self.first_floor = np.zeros(batch, int)
         self.last_bound = np.full(batch, tol)
         self.batch_max = np.zeros(steps)
 
     def update(self, err: np.ndarray, bound: np.ndarray, time: np.ndarray, start: int, members: np.ndarray,
-               healthy: np.ndarray) -> None:
+               healthy: np.ndarray, floor: np.ndarray | None = None) -> None:
+        """Adds (b, K, n) errors against (b, K) bounds; ``floor`` (b, K) says which of
+        :data:`FLOORS` each bound is (the tolerance when None)."""
         self.width = err.shape[-1]
         if self.width == 0:
             return
@@ -178,6 +186,9 @@ class _FieldTrack:
         at = np.nan_to_num(ratio, nan=np.inf).argmax(axis=1)
         better = ratio[rows, at] > self.max_ratio[members]
         self.ratio_comp[members] = np.where(better, err[rows, at].argmax(axis=-1), self.ratio_comp[members])
+        if floor is not None:
+            self.first_floor[members] = np.where(new, floor[rows, k], self.first_floor[members])
+            self.ratio_floor[members] = np.where(better, floor[rows, at], self.ratio_floor[members])
         self.max_ratio[members] = np.fmax(self.max_ratio[members], np.nanmax(ratio, axis=1, initial=0.0))
         self.max_error[members] = np.maximum(self.max_error[members], per_step.max(axis=1))  # NaN propagates
         if start + K == len(self.batch_max):
@@ -194,16 +205,16 @@ class _FieldTrack:
         if out.any():
             step = int(self.first_step[out].min())
             member = int(np.flatnonzero(out & (self.first_step == step))[0])
-            comp = int(self.first_comp[member])
+            comp, floor = int(self.first_comp[member]), int(self.first_floor[member])
         else:
             step = -1
             member = int(np.where(healthy, self.max_ratio, 0.0).argmax())
-            comp = int(self.ratio_comp[member])
+            comp, floor = int(self.ratio_comp[member]), int(self.ratio_floor[member])
         growth = metrics.error_growth(jnp.asarray(self.batch_max), dt)
         envelope = float(np.where(healthy, self.last_bound, 0.0).max()) if self.above_tol else 0.0
         return FieldResult(field, float(np.where(healthy, self.max_error, 0.0).max()), self.tol, step, member,
                            objects[comp] if objects else "", float(growth.rate), envelope,
-                           float(np.where(healthy, self.max_ratio, 0.0).max()))
+                           float(np.where(healthy, self.max_ratio, 0.0).max()), FLOORS[floor])
 
 
 class _FractionTrack:
@@ -370,9 +381,11 @@ class Judge:
 
     def update(self, traj_c: Trajectory, traj_mjx: Trajectory, envelope: dict[str, np.ndarray] | None = None,
                start: int = 0, members: np.ndarray | slice = slice(None),
-               series: dict[str, np.ndarray] | None = None) -> None:
+               series: dict[str, np.ndarray] | None = None, source: dict[str, np.ndarray] | None = None) -> None:
         """Adds a piece: (b, K, ...) trajectories of ``members`` from step ``start``, and
-        optionally field -> (b, K) envelopes and the piece's :meth:`errors` if already computed."""
+        optionally field -> (b, K) envelopes, which floor each envelope value came from
+        (``source``, indices into :data:`FLOORS`; rounding when None, see
+        :func:`mjxdiff.noise.combine`) and the piece's :meth:`errors` if already computed."""
         members = np.arange(self.batch)[members]
         for engine, traj in (("c", traj_c), ("mjx", traj_mjx)):
             at = self.diverged_at[engine]
@@ -385,17 +398,21 @@ class Judge:
         healthy = (self.diverged_at["c"][members] < 0) & (self.diverged_at["mjx"][members] < 0)
         series = self.errors(traj_c, traj_mjx) if series is None else series
         for key, track in self.fields.items():
-            bound = np.full(series["ncon"].shape, getattr(self.tol, key))
+            tol = getattr(self.tol, key)
+            bound, floor = np.full(series["ncon"].shape, tol), None
             if envelope is not None:
+                floor = np.where(envelope[key] > tol, source[key] if source is not None else 1, 0)
                 bound = np.maximum(bound, envelope[key])
-            track.update(series[key], bound, traj_c.time, start, members, healthy)
+            track.update(series[key], bound, traj_c.time, start, members, healthy, floor)
         # a step whose counts differ at all, as metrics.contact_mismatch(atol=0) counts it
         self.contacts.update(np.asarray(metrics.exceeds(series["ncon"], 0), float), traj_c.time, start, members)
         if self.rf_mask.any():
             self.rangefinder.update(series["rangefinder"] / self.rf_mask.sum(), traj_c.time, start, members)
 
-    def result(self, name: str, threshold: float = 0.95, noise: NoiseFloor | None = None) -> ScenarioResult:
-        """The verdict on everything fed so far; ``noise`` is the floor whose envelopes were fed.
+    def result(self, name: str, threshold: float = 0.95, noise: NoiseFloor | None = None,
+               solver: NoiseFloor | None = None) -> ScenarioResult:
+        """The verdict on everything fed so far; ``noise`` is the rounding floor whose envelopes
+        were fed, ``solver`` the solver floor when it was fed too.
 
         Members where MuJoCo C blows up are not judged (an unstable scenario: ``error`` if
         nothing else fails). A member where MJX goes non-finite while C stays finite fails,
@@ -410,8 +427,9 @@ class Judge:
         objects = component_objects(m, self.layout)
         fields = [track.result(key, judged, objects[key], dt) for key, track in self.fields.items()]
         allowed = np.full(self.batch, tol.contact_mismatch)
-        if noise is not None:  # a contact-count mismatch may reach twice what C's perturbed rerun shows
-            allowed = np.maximum(allowed, np.minimum(1.0, 2 * noise.contact_fraction))
+        for floor in (noise, solver):  # a contact-count mismatch may reach twice what C's own reruns show
+            if floor is not None:
+                allowed = np.maximum(allowed, np.minimum(1.0, 2 * floor.contact_fraction))
         fields.append(self.contacts.result("contacts", allowed, judged))
         member_fails = mjx_bad.copy()
         for track in self.fields.values():

@@ -1,0 +1,69 @@
+"""The solver floor: a divergence that starts in the constraint stage is judged again against C's
+own freedom under the model's solver settings (C against C with a converged solver). Chaos
+amplifying where a loose solver stopped passes; a constraint MJX gets wrong still fails."""
+
+import mujoco
+import pytest
+from mujoco.mjx._src import smooth as mjx_smooth
+from mujoco.mjx._src import solver as mjx_solver
+
+from mjxdiff.scenario import load_scenario
+from mjxdiff.sweep import SweepConfig, run_scenario
+
+#: A ball, a capsule and an ellipsoid resting on the floor; the default randomization
+#: (qpos noise 0.05) presses them into it, so the solver has work from step 0.
+RESTING = """<mujoco model="resting">
+  <option timestep="0.004" {solver}/>
+  <default><geom friction="0.8 0.01 0.001" density="800"/></default>
+  <worldbody>
+    <geom name="floor" type="plane" size="3 3 0.1"/>
+    <body name="ball" pos="-0.3 0 0.07"><freejoint name="ball"/><geom type="sphere" size="0.07"/></body>
+    <body name="cap" pos="0 0 0.05" euler="0 90 0"><freejoint name="cap"/><geom type="capsule" size="0.04 0.08"/></body>
+    <body name="egg" pos="0.3 0 0.04"><freejoint name="egg"/><geom type="ellipsoid" size="0.08 0.05 0.04"/></body>
+  </worldbody>
+</mujoco>"""
+
+LOOSE = 'solver="Newton" iterations="100" tolerance="1e-4" ls_iterations="20"'
+CONVERGED = 'solver="Newton" iterations="100" tolerance="1e-12" ls_iterations="50"'
+CONFIG = SweepConfig(seed=0, diagnose="basic")
+
+
+def _scenario(tmp_path, solver: str):
+    path = tmp_path / "resting.xml"
+    path.write_text(RESTING.format(solver=solver))
+    return load_scenario(str(path))
+
+
+def test_a_loose_solver_passes_within_cs_own_solver_freedom(tmp_path):
+    scenario = _scenario(tmp_path, LOOSE)
+    fixed = run_scenario(scenario, SweepConfig(seed=0, diagnose="none", envelope=False))
+    assert fixed.status == "fail", "the tolerance alone cries wolf on this model"
+    result = run_scenario(scenario, CONFIG)
+    assert result.status == "pass", result.message
+    check = result.info["solver_floor"]
+    assert (check["first_stage"], check["first_field"], check["status"]) == ("constraint", "qfrc_constraint", "pass")
+    assert result.field("qvel").floor == "solver" and result.field("qvel").envelope > result.field("qvel").tolerance
+    assert "within C's own solver freedom" in result.message
+
+
+def _one_percent_more_constraint_force(monkeypatch):
+    """The constraint solver's force comes out 1% too large (and the acceleration follows it)."""
+    orig = mjx_solver.solve
+
+    def buggy(m, d):
+        d = orig(m, d)
+        extra = 0.01 * d.qfrc_constraint
+        return d.replace(qfrc_constraint=d.qfrc_constraint + extra, qacc=d.qacc + mjx_smooth.solve_m(m, d, extra))
+
+    monkeypatch.setattr(mjx_solver, "solve", buggy)
+
+
+def test_a_wrong_constraint_force_at_a_converged_solver_still_fails(tmp_path, fresh_mjx, monkeypatch):
+    scenario = _scenario(tmp_path, CONVERGED)
+    assert run_scenario(scenario, CONFIG).status == "pass", "unmodified MJX passes this model"
+    _one_percent_more_constraint_force(monkeypatch)
+    result = run_scenario(scenario, CONFIG)
+    assert result.status == "fail", result.message
+    assert result.info["solver_floor"]["first_stage"] == "constraint"
+    assert result.info["solver_floor"]["status"] == "fail", "the solver floor was consulted and does not explain it"
+    assert "qfrc_constraint" in result.message and result.first_divergence["step"] < 5
