@@ -207,8 +207,15 @@ def local_error(inputs: BatchedInputs, traj_c: Trajectory, m: mujoco.MjModel, rf
 # cause attribution
 
 
+_CONTACT_SENSORS = (int(mujoco.mjtSensor.mjSENS_TOUCH), int(mujoco.mjtSensor.mjSENS_CONTACT))
+
+
 def _no_contacts(m: mujoco.MjModel) -> None:
+    """Contacts off; sensors off too where the model reads contacts (MJX cannot evaluate a
+    touch sensor without any contact: 'Need at least one array to concatenate')."""
     m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+    if np.isin(m.sensor_type, _CONTACT_SENSORS).any():
+        m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
 
 
 def _quarter_timestep(m: mujoco.MjModel) -> None:
