@@ -3,6 +3,7 @@ divergence signal is a find; any other exception ends the run with exit code 2, 
 error line, the traceback, and DIR/fuzz-report.json. No engine runs here: the function
 the property calls to simulate is replaced by one that answers at once."""
 
+import dataclasses
 import json
 
 import pytest
@@ -83,3 +84,20 @@ def test_a_find_is_still_a_find(monkeypatch, tmp_path, capsys):
     assert doc["harness_error"] is None and doc["failure"]["message"] == "qvel differs"
     assert doc["failure"]["reproducer"] == str(tmp_path / "reproducers" / "fuzz.json")
     assert (tmp_path / "reproducers" / "fuzz.json").is_file()
+
+
+def test_c_blowing_up_or_mjx_refusing_is_not_a_find(tmp_path):
+    """A generated model on which MuJoCo C itself goes unstable says nothing about MJX."""
+    from mjxdiff.fuzz import is_divergence
+    from mjxdiff.scenario import load_scenario
+    from mjxdiff.sweep import SweepConfig, run_scenario
+    from tests.test_cli import UNSTABLE_XML
+
+    path = tmp_path / "unstable.xml"
+    path.write_text(UNSTABLE_XML)
+    unstable = run_scenario(load_scenario(str(path)), SweepConfig(batch=2, steps=60, diagnose="none"))
+    assert (unstable.status, unstable.error_kind) == ("error", "unstable")
+    assert not is_divergence(unstable)
+    refused = run_scenario(load_scenario("unsupported_pair"), SweepConfig(batch=2, steps=20, diagnose="none"))
+    assert refused.status == "unsupported" and not is_divergence(refused)
+    assert is_divergence(dataclasses.replace(unstable, status="fail", error_kind=""))
