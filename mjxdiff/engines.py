@@ -404,8 +404,11 @@ def put_models(models: tuple[mujoco.MjModel, ...]) -> tuple[mjx.Model, tuple[boo
         for mi in distinct[1:]:
             leaves, td = jax.tree.flatten(mjx.put_model(mi))
             if td != treedef:
-                raise ValueError("batch members differ in a field MJX treats as static; randomize only numeric "
-                                 "parameters (masses, friction, damping, gains, gravity, timestep)")
+                first, this = _c_fields(distinct[0]), _c_fields(mi)
+                leaves = {jax.tree_util.keystr(p).lstrip(".") for p, _ in jax.tree_util.tree_flatten_with_path(mx0)[0]}
+                names = sorted(k for k, v in first.items() if v.tobytes() != this[k].tobytes() and k not in leaves)
+                raise ValueError(f"batch members differ in {', '.join(names)}, which MJX compiles into the rollout "
+                                 "(static): draw it once per scenario (in the model), not per member")
             per_member.append([np.asarray(x) for x in leaves])
         columns = {k: [np.asarray(col[k]) for col in per_member] for k in range(len(leaves0))
                    if any(not np.array_equal(col[k], per_member[0][k]) for col in per_member[1:])}

@@ -10,15 +10,16 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import re
 import zlib
 from typing import Callable
 
 import mujoco
 import numpy as np
 
-from mjxdiff.scenario import Randomization, Scenario
+from mjxdiff.scenario import Randomization, Scenario, ScenarioError
 
-__all__ = ["BatchedInputs", "make_inputs", "make_controls"]
+__all__ = ["BatchedInputs", "make_inputs", "make_controls", "settable"]
 
 _CONTROL_KNOT_SECONDS = 0.1  # smooth/step controls change about every 0.1 s of simulated time
 
@@ -173,10 +174,50 @@ def make_controls(m: mujoco.MjModel, randomize: Randomization, batch: int, steps
     return np.clip(ctrl, lo, hi)
 
 
-def _scaled_model(m: mujoco.MjModel, factors: dict[str, np.ndarray], i: int, d: mujoco.MjData) -> mujoco.MjModel:
-    """A copy of ``m`` with member ``i``'s factors applied and constants recomputed (``d``: scratch
-    data of ``m``'s sizes; allocating one per member cost more than the copy itself)."""
+Setter = Callable[[mujoco.MjModel, np.ndarray], None]
+
+
+def settable(m: mujoco.MjModel, key: str) -> tuple[tuple[int, ...], Setter]:
+    """Where a ``[randomize.set]`` key writes: the shape of its values and a setter.
+
+    ``key`` is a floating-point ``mjModel`` field (``dof_armature``), one column of
+    one (``"geom_solref[0]"``), or an option (``"opt.impratio"``, ``"opt.wind"``).
+    Values are absolute, one per element.
+
+    Raises:
+      ScenarioError: no such field, not floating point, or empty in this model.
+    """
+    match = re.fullmatch(r"(opt\.)?([a-z][a-z0-9_]*)(?:\[(\d+)\])?", key)
+    owner = m.opt if match and match[1] else m
+    value = getattr(owner, match[2], None) if match else None
+    where = f"[randomize.set] '{key}'"
+    if value is None or isinstance(value, (bool, int)) or key in ("opt.timestep", "opt.gravity"):
+        raise ScenarioError(f"{where}: not a floating-point model field or option (timestep and gravity are "
+                            "[randomize.scale] parameters)")
+    if isinstance(value, float):
+        if match[3] is not None:
+            raise ScenarioError(f"{where}: '{match[2]}' is a scalar, it has no columns")
+        return (), lambda mi, v: setattr(mi.opt, match[2], float(v))
+    value = np.asarray(value)
+    if value.dtype.kind != "f" or value.size == 0:
+        raise ScenarioError(f"{where}: {'empty in this model' if value.size == 0 else 'not floating point'}")
+    name, col = match[2], None if match[3] is None else int(match[3])
+    if col is not None:
+        if value.ndim != 2 or col >= value.shape[1]:
+            raise ScenarioError(f"{where}: '{name}' has no column {col} (shape {value.shape})")
+        return value.shape[:1], lambda mi, v: getattr(mi.opt if match[1] else mi, name).__setitem__(
+            (slice(None), col), v)
+    return value.shape, lambda mi, v: getattr(mi.opt if match[1] else mi, name).__setitem__(..., v)
+
+
+def _scaled_model(m: mujoco.MjModel, factors: dict[str, np.ndarray], i: int, d: mujoco.MjData,
+                  values: dict[str, tuple[Setter, np.ndarray]] | None = None) -> mujoco.MjModel:
+    """A copy of ``m`` with member ``i``'s factors and set values applied and constants
+    recomputed (``d``: scratch data of ``m``'s sizes; allocating one per member cost more
+    than the copy itself)."""
     mi = copy.copy(m)
+    for setter, drawn in (values or {}).values():
+        setter(mi, drawn[i])
     f = {k: v[i] for k, v in factors.items()}
     if "body_mass" in f:
         mi.body_mass[:] = m.body_mass * f["body_mass"]
@@ -238,9 +279,17 @@ def make_inputs(scenario: Scenario, m: mujoco.MjModel, seed: int,
             continue
         factors[name] = rng.uniform(lo, hi, (batch, *FACTOR_SHAPES[name](m)))
     ctrl = make_controls(m, rz, batch, steps, m.opt.timestep, rng)
-    if factors:
+    values = {}
+    for key in sorted(rz.values):  # drawn last: scenarios without them draw what they always drew
+        try:
+            shape, setter = settable(m, key)
+        except ScenarioError as e:
+            raise ScenarioError(f"{scenario.name}: {e}") from None
+        lo, hi = rz.values[key]
+        values[key] = (setter, rng.uniform(lo, hi, (batch, *shape)))
+    if factors or values:
         scratch = mujoco.MjData(m)
-        models = tuple(_scaled_model(m, factors, i, scratch) for i in range(batch))
+        models = tuple(_scaled_model(m, factors, i, scratch, values) for i in range(batch))
     else:
         models = (m,) * batch
     return BatchedInputs(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl, models=models, factors=factors, seed=seed,

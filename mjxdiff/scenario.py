@@ -110,6 +110,10 @@ class Randomization:
         half-width (unlimited actuators use [-1, 1]).
       scale: parameter name -> (lo, hi) multiplicative range, see
         :data:`SCALED_PARAMETERS`.
+      values: model field -> (lo, hi): absolute values drawn uniformly, one per element
+        and member (``[randomize.set]``), for parameters whose default (often 0) no factor
+        can move: ``dof_armature``, ``jnt_stiffness``, ``"geom_solref[0]"`` (one column),
+        ``"opt.impratio"``; see :func:`mjxdiff.inputs.settable`.
     """
 
     qpos_noise: float = 0.05
@@ -126,6 +130,7 @@ class Randomization:
             "timestep": (1.0, 1.0),
         }
     )
+    values: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -194,7 +199,7 @@ def _check_keys(table: Mapping[str, Any], allowed: set[str], where: str) -> None
 
 def _parse_randomization(table: Mapping[str, Any], where: str) -> Randomization:
     where = f"{where} [randomize]"
-    _check_keys(table, {"qpos_noise", "qvel_noise", "control", "control_scale", "scale"}, where)
+    _check_keys(table, {"qpos_noise", "qvel_noise", "control", "control_scale", "scale", "set"}, where)
     default = Randomization()
     control = table.get("control", default.control)
     _expect(control in CONTROL_FAMILIES, where,
@@ -209,12 +214,22 @@ def _parse_randomization(table: Mapping[str, Any], where: str) -> Randomization:
               and 0 < rng[0] <= rng[1] and math.isfinite(rng[1]))
         _expect(ok, f"{where}.scale", f"'{key}' must be [lo, hi] with 0 < lo <= hi, got {rng!r}")
         scale[key] = (float(rng[0]), float(rng[1]))
+    raw_set = table.get("set", {})
+    _expect(isinstance(raw_set, dict), where, "'set' must be a table")
+    values = {}
+    for key, rng in raw_set.items():
+        ok = (isinstance(rng, list) and len(rng) == 2
+              and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in rng)
+              and rng[0] <= rng[1])
+        _expect(ok, f"{where}.set", f"'{key}' must be [lo, hi] with lo <= hi, got {rng!r}")
+        values[key] = (float(rng[0]), float(rng[1]))
     return Randomization(
         qpos_noise=_nonneg_float(table, "qpos_noise", default.qpos_noise, where),
         qvel_noise=_nonneg_float(table, "qvel_noise", default.qvel_noise, where),
         control=control,
         control_scale=_nonneg_float(table, "control_scale", default.control_scale, where),
         scale=scale,
+        values=values,
     )
 
 

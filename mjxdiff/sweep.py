@@ -129,6 +129,8 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
         return ScenarioResult(name=scenario.name, status="error", error_kind="input", message=str(e), info=info,
                               tolerances=tol.as_dict())
     info.update(factors=sorted(inputs.factors), seconds=dict(inputs=time.perf_counter() - t0))
+    if scenario.randomize.values:
+        info["set"] = {k: list(v) for k, v in sorted(scenario.randomize.values.items())}
     result = run_inputs(scenario.name, m, inputs, tol, config, mjx_engine, c_engine, info)
     if result.status == "fail" and config.reproducers is not None:
         member = result.first_divergence["member"]
