@@ -1,0 +1,149 @@
+"""Bugs that only matter away from a parameter's default are caught by the scenarios that move
+it (joint_parameters, contact_parameters), and provably by none of the scenarios before them:
+in every other bundled scenario the parameter sits where the buggy term vanishes.
+
+Each bug is a monkeypatch of one function inside mujoco.mjx._src that ignores one parameter
+(uses its default instead), the shape of a realistic one-line slip."""
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from mujoco.mjx._src import constraint as mjx_constraint
+from mujoco.mjx._src import forward as mjx_forward
+from mujoco.mjx._src import passive as mjx_passive
+
+from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
+from mjxdiff.sweep import SweepConfig, run_scenario
+
+NEW = ("joint_parameters", "contact_parameters")
+CONFIG = SweepConfig(seed=0, batch=2, steps=150, diagnose="none")
+_T = mujoco.mjtJoint
+_LIMITED_SCALAR = lambda m: m.jnt_limited.astype(bool) & np.isin(m.jnt_type, [int(_T.mjJNT_HINGE), int(_T.mjJNT_SLIDE)])
+
+
+def _scalar_adr(m):
+    j = np.flatnonzero(np.isin(m.jnt_type, [int(_T.mjJNT_HINGE), int(_T.mjJNT_SLIDE)]))
+    return j, m.jnt_qposadr[j]
+
+
+def springref_ignored(monkeypatch):
+    """Joint springs pull towards qpos0 (the joint's ref) instead of springref."""
+    orig = mjx_passive._spring_damper
+    monkeypatch.setattr(mjx_passive, "_spring_damper", lambda m, d: orig(m.replace(qpos_spring=m.qpos0), d))
+
+
+def springref_moved(m):
+    j, adr = _scalar_adr(m)
+    return bool(np.any((m.jnt_stiffness[j] > 0) & (m.qpos_spring[adr] != m.qpos0[adr])))
+
+
+def limit_solref_ignored(monkeypatch):
+    """Hinge and slide limits use the default solref (0.02, 1) instead of the joint's."""
+    orig = mjx_constraint._efc_limit_slide_hinge
+
+    def buggy(m, d):
+        return orig(m.replace(jnt_solref=jnp.ones_like(m.jnt_solref) * jnp.array([0.02, 1.0])), d)
+
+    monkeypatch.setattr(mjx_constraint, "_efc_limit_slide_hinge", buggy)
+
+
+def limit_margin_ignored(monkeypatch):
+    """Hinge and slide limits activate at the limit itself, ignoring the joint's margin."""
+    orig = mjx_constraint._efc_limit_slide_hinge
+    monkeypatch.setattr(mjx_constraint, "_efc_limit_slide_hinge",
+                        lambda m, d: orig(m.replace(jnt_margin=m.jnt_margin * 0), d))
+
+
+def polycoef_quadratic_ignored(monkeypatch):
+    """Joint equalities drop the quadratic term of their polynomial."""
+    orig = mjx_constraint._efc_equality_joint
+    monkeypatch.setattr(mjx_constraint, "_efc_equality_joint",
+                        lambda m, d: orig(m.replace(eq_data=m.eq_data.at[:, 2].set(0.0)), d))
+
+
+def affine_gain_velocity_ignored(monkeypatch):
+    """Affine gains drop their velocity term (gainprm[2])."""
+    orig = mjx_forward.fwd_actuation
+    monkeypatch.setattr(mjx_forward, "fwd_actuation",
+                        lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm.at[:, 2].set(0.0)), d))
+
+
+def affine_bias_constant_ignored(monkeypatch):
+    """Affine biases drop their constant term (biasprm[0])."""
+    orig = mjx_forward.fwd_actuation
+    monkeypatch.setattr(mjx_forward, "fwd_actuation",
+                        lambda m, d: orig(m.replace(actuator_biasprm=m.actuator_biasprm.at[:, 0].set(0.0)), d))
+
+
+def filterexact_as_filter(monkeypatch):
+    """filterexact activations integrated like filter (explicit Euler instead of exact)."""
+    orig = mjx_forward._next_activation
+    exact, plain = int(mujoco.mjtDyn.mjDYN_FILTEREXACT), int(mujoco.mjtDyn.mjDYN_FILTER)
+
+    def buggy(m, d, act_dot):
+        return orig(m.replace(actuator_dyntype=np.where(m.actuator_dyntype == exact, plain, m.actuator_dyntype)),
+                    d, act_dot)
+
+    monkeypatch.setattr(mjx_forward, "_next_activation", buggy)
+
+
+def fluid_force_high(monkeypatch):
+    """Fluid forces (density, viscosity, wind) 1% too large."""
+    orig = mjx_passive._fluid
+    monkeypatch.setattr(mjx_passive, "_fluid", lambda m, d: orig(m, d) * 1.01)
+
+
+def impratio_ignored(monkeypatch):
+    """Elliptic cones regularise friction as if impratio were 1."""
+    orig = mjx_constraint._efc_contact_elliptic
+    monkeypatch.setattr(mjx_constraint, "_efc_contact_elliptic",
+                        lambda m, d, condim: orig(m.replace(opt=m.opt.replace(impratio=1.0)), d, condim))
+
+
+_GAIN = lambda m, t: m.actuator_gaintype == int(t)
+_BIAS = lambda m, t: m.actuator_biastype == int(t)
+#: bug -> (scenario that catches it, where its term is non-zero in a model)
+FAMILIES = {
+    springref_ignored: ("joint_parameters", springref_moved),
+    limit_solref_ignored: ("joint_parameters", lambda m: bool(np.any(
+        _LIMITED_SCALAR(m) & np.any(m.jnt_solref != [0.02, 1.0], axis=1)))),
+    limit_margin_ignored: ("joint_parameters", lambda m: bool(np.any(_LIMITED_SCALAR(m) & (m.jnt_margin != 0)))),
+    polycoef_quadratic_ignored: ("joint_parameters", lambda m: bool(np.any(
+        (m.eq_type == int(mujoco.mjtEq.mjEQ_JOINT)) & (m.eq_data[:, 2] != 0)))),
+    affine_gain_velocity_ignored: ("joint_parameters", lambda m: bool(np.any(
+        _GAIN(m, mujoco.mjtGain.mjGAIN_AFFINE) & (m.actuator_gainprm[:, 2] != 0)))),
+    affine_bias_constant_ignored: ("joint_parameters", lambda m: bool(np.any(
+        _BIAS(m, mujoco.mjtBias.mjBIAS_AFFINE) & (m.actuator_biasprm[:, 0] != 0)))),
+    filterexact_as_filter: ("joint_parameters", lambda m: bool(np.any(
+        m.actuator_dyntype == int(mujoco.mjtDyn.mjDYN_FILTEREXACT)))),
+    fluid_force_high: ("joint_parameters", lambda m: bool(m.opt.density > 0 or m.opt.viscosity > 0)),
+    impratio_ignored: ("contact_parameters", lambda m: bool(
+        m.opt.cone == int(mujoco.mjtCone.mjCONE_ELLIPTIC) and m.opt.impratio != 1)),
+}
+
+
+@pytest.fixture(scope="module")
+def old_models():
+    """The model of every bundled scenario that predates the parameter-family scenarios."""
+    return {s.name: load_model(s) for s in bundled_scenarios() if s.name not in NEW}
+
+
+@pytest.mark.parametrize("bug", list(FAMILIES), ids=lambda b: b.__name__)
+def test_the_old_scenarios_leave_the_term_at_zero(bug, old_models):
+    """What makes the old set blind to the bug: ([randomize.scale] factors cannot move a zero)."""
+    scenario, moved = FAMILIES[bug]
+    assert not any(s.randomize.values for s in bundled_scenarios() if s.name not in NEW)
+    assert moved(load_model(load_scenario(scenario)))
+    blind = [name for name, m in old_models.items() if moved(m)]
+    assert blind == [], f"{bug.__name__} matters in {blind} too"
+
+
+@pytest.mark.parametrize("bug", list(FAMILIES), ids=lambda b: b.__name__)
+def test_the_new_scenario_catches_it(bug, fresh_mjx, monkeypatch):
+    scenario, _ = FAMILIES[bug]
+    bug(monkeypatch)
+    result = run_scenario(load_scenario(scenario), CONFIG)
+    assert result.status == "fail", f"{bug.__name__} not caught: {result.message}"
+    first = result.first_divergence
+    assert first["field"] in ("qpos", "qvel", "act", "sensordata", "contacts") and first["step"] >= 0
