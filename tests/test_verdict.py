@@ -204,3 +204,18 @@ def test_the_reports_numbers_are_what_mjxdiff_metrics_computes(lidar):
             / mask.sum() for i in range(B)]
     assert doc["fields"]["rangefinder"]["max_error"] == pytest.approx(max(rays), rel=1e-12, abs=1e-300)
     assert any(doc["fields"][f]["max_error"] > 0 for f in per_member), "the comparison compared nothing"
+
+
+@pytest.mark.parametrize("factor, status", [(50.0, "pass"), (1e4, "fail")])
+def test_one_member_far_out_of_bound_fails_whatever_the_pass_rate(lidar, factor, status):
+    """5 of 6 members pass (83%, above a threshold of 0.8); the sixth is 50x its bound (within
+    what a pass rate may excuse) or 1e4x (an outlier: a bug, not scatter)."""
+    scenario, m, _, traj_c, _ = lidar
+    qvel = traj_c.qvel.copy()
+    qvel[2, 23:] += factor * scenario.tolerance.qvel
+    result = judge("lidar", m, traj_c, dataclasses.replace(traj_c, qvel=qvel), scenario.tolerance, threshold=0.8)
+    assert result.pass_rate == pytest.approx(5 / 6)
+    assert result.status == status, result.message
+    if status == "fail":
+        assert result.first_divergence["member"] == 2 and result.first_divergence["step"] == 23
+        assert "member 2 is 1e+04x its bound: an outlier" in result.message
