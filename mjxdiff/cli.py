@@ -171,6 +171,17 @@ def build_parser() -> argparse.ArgumentParser:
     bn.add_argument("--out", metavar="DIR", help="write DIR/bench.json (versions, machine, every number)")
     bn.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     bn.add_argument("--cache-dir", metavar="DIR", help="JAX persistent compilation cache (see sweep --help)")
+    cv = sub.add_parser("coverage", help="measure which MJX code and which model parameters the scenarios exercise",
+                        description="Trace MJX (put_model, make_data, one mjx.step) for every scenario under "
+                                    "coverage.py and report line and branch coverage of mujoco/mjx/_src per module, "
+                                    "the functions never traced, and which floating-point model fields and options "
+                                    "some member of some scenario moves away from MuJoCo's default. Nothing is "
+                                    "compiled or stepped. --out DIR writes DIR/coverage.json.")
+    cv.add_argument("scenarios", nargs="*", metavar="SCENARIO",
+                    help="bundled scenario name, scenario .toml or MJCF .xml (default: every bundled scenario)")
+    cv.add_argument("--seed", type=int, default=0, help="seed of the randomized members (default 0)")
+    cv.add_argument("--out", metavar="DIR", help="write DIR/coverage.json")
+    cv.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     sub.add_parser("list", help="list bundled scenarios and what each exercises",
                    description="List bundled scenarios with their model, size and what they exercise.")
     return parser
@@ -347,10 +358,33 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
     return 1
 
 
+def _cmd_coverage(args: argparse.Namespace) -> int:
+    from mjxdiff import coverage, engines, report
+    from mjxdiff.scenario import ScenarioError, bundled_scenarios, load_scenario, no_bundled_scenarios_message
+
+    engines.configure_jax("float64", "")
+    try:
+        scenarios = [load_scenario(ref) for ref in args.scenarios] if args.scenarios else bundled_scenarios()
+    except ScenarioError as e:
+        print(f"mjxdiff: error: {e}", file=sys.stderr)
+        return 2
+    if not scenarios:
+        print(f"mjxdiff: error: no scenarios selected ({no_bundled_scenarios_message()})", file=sys.stderr)
+        return 2
+    doc = dict(versions=report.versions(), seed=args.seed, **coverage.measure(scenarios, args.seed))
+    if args.out:
+        path = report.write_report(args.out, doc, "coverage.json")
+        print(f"coverage written to {path}", file=sys.stderr)
+    print(json.dumps(doc, indent=2) if args.format == "json" else coverage.format_text(doc))
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "list":
         return _cmd_list()
+    if args.command == "coverage":
+        return _cmd_coverage(args)
     if args.command == "fuzz":
         return _cmd_fuzz(args)
     if args.command == "bench":

@@ -1,0 +1,227 @@
+"""What the scenarios make MJX do: code coverage of ``mujoco/mjx/_src`` and parameter coverage.
+
+A differential tester only catches bugs in what its scenarios exercise. Two measures:
+
+* **Code** (:func:`code_coverage`): line and branch coverage of MJX's ``_src`` modules,
+  recorded with ``coverage.py`` while ``mjx.put_model``, ``mjx.make_data`` and one
+  ``mjx.step`` are traced for every scenario (MJX is Python traced once per model
+  structure, so the trace visits every path the compiled rollout contains). Modules that
+  cannot run in a CPU sweep are left out, each with its reason (:data:`EXCLUDED`).
+* **Parameters** (:func:`parameter_coverage`): for every floating-point ``mjModel`` field
+  MJX reads and every option, whether some member of some scenario holds a value other
+  than MuJoCo's compiler default (the value an MJCF gets when it says nothing).
+
+Both go into ``coverage.json`` (``python -m mjxdiff coverage --out DIR``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tempfile
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import mujoco
+import numpy as np
+
+__all__ = ["EXCLUDED", "code_coverage", "parameter_coverage", "measure", "format_text"]
+
+#: ``_src`` modules a CPU sweep cannot reach, with the reason.
+EXCLUDED = {
+    "render.py": "rendering: Warp backend only",
+    "render_util.py": "rendering: Warp backend only",
+    "bvh.py": "bounding volume hierarchies for rendering: Warp backend only",
+    "inverse.py": "inverse dynamics: not part of mjx.step",
+    "__init__.py": "imports only",
+}
+
+
+def _src_dir() -> Path:
+    import mujoco.mjx._src as src
+
+    return Path(src.__path__[0])
+
+
+def _trace_one(m: mujoco.MjModel) -> None:
+    """``put_model``, ``make_data`` and one traced ``mjx.step`` of ``m`` (nothing compiled)."""
+    import jax
+    from mujoco import mjx
+
+    mx = mjx.put_model(m)
+    dx = mjx.make_data(mx)
+    jax.make_jaxpr(mjx.step)(mx, dx)
+
+
+def code_coverage(models: Sequence[tuple[str, mujoco.MjModel]]) -> dict[str, Any]:
+    """Line and branch coverage of MJX's ``_src`` while each ``(name, model)`` is traced.
+
+    Returns:
+      ``{"totals": {...}, "modules": {file: {...}}, "functions_never_traced": [...],
+      "excluded": EXCLUDED, "errors": {name: message}}``; percentages in [0, 100].
+    """
+    import coverage
+
+    src = _src_dir()
+    cov = coverage.Coverage(data_file=None, branch=True, include=[str(src / "*.py")],
+                            omit=[str(src / "*_test.py")] + [str(src / f) for f in EXCLUDED])
+    errors = {}
+    cov.start()
+    try:
+        for name, m in models:
+            try:
+                _trace_one(m)
+            except Exception as e:  # noqa: BLE001 - an unsupported model covers what it reached
+                errors[name] = " ".join(f"{type(e).__name__}: {e}".split())[:300]
+    finally:
+        cov.stop()
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp, "cov.json")
+        cov.json_report(outfile=str(out))
+        raw = json.loads(out.read_text())
+    # Function bodies only: module-level statements ran at import, before recording started.
+    modules, never, warp = {}, [], []
+    totals = dict.fromkeys(("lines", "lines_covered", "branches", "branches_covered"), 0)
+    for path, data in sorted(raw["files"].items()):
+        name = Path(path).name
+        mod = dict.fromkeys(totals, 0)
+        for fn, fd in data.get("functions", {}).items():
+            if not fn:
+                continue
+            if "warp" in fn.lower():  # the Warp backend's code paths cannot run in a JAX CPU sweep
+                warp.append(f"{name}:{fn}")
+                continue
+            s = fd["summary"]
+            got = dict(lines=s["num_statements"], lines_covered=s["covered_lines"],
+                       branches=s.get("num_branches", 0), branches_covered=s.get("covered_branches", 0))
+            for k, v in got.items():
+                mod[k] += v
+            if got["lines"] and not got["lines_covered"]:
+                never.append(f"{name}:{fn}")
+        mod["percent"] = round(100 * mod["lines_covered"] / max(mod["lines"], 1), 2)
+        modules[name] = mod
+        for k in totals:
+            totals[k] += mod[k]
+    totals["line_percent"] = round(100 * totals["lines_covered"] / max(totals["lines"], 1), 2)
+    totals["branch_percent"] = round(100 * totals["branches_covered"] / max(totals["branches"], 1), 2)
+    excluded = dict(EXCLUDED, **{f: "Warp backend only" for f in warp})
+    return dict(totals=totals, modules=modules, functions_never_traced=sorted(never), excluded=excluded,
+                errors=errors)
+
+
+#: An MJCF with one element of each kind and no attributes: its values are MuJoCo's defaults.
+_DEFAULTS_XML = """<mujoco>
+  <worldbody>
+    <body><joint name="a"/><geom name="a" size="0.1"/><site/></body>
+    <body pos="1 0 0"><joint name="b"/><geom name="b" size="0.1"/></body>
+  </worldbody>
+  <contact><pair geom1="a" geom2="b"/></contact>
+  <tendon><fixed><joint joint="a" coef="1"/></fixed></tendon>
+  <equality><joint joint1="a" joint2="b"/></equality>
+  <actuator><general joint="a"/></actuator>
+  <sensor><jointpos joint="a"/></sensor>
+</mujoco>"""
+
+_ELEMENT_PREFIXES = ("body_", "jnt_", "dof_", "geom_", "site_", "pair_", "tendon_", "eq_", "actuator_", "sensor_")
+#: Fields derived from geometry and masses by the compiler: never at a "default", not parameters.
+_DERIVED = ("_pos", "_quat", "_ipos", "_iquat", "_mass", "_inertia", "_rbound", "_aabb", "_size", "invweight0",
+            "_subtreemass", "_M0", "_length0", "_acc0", "_lengthrange", "_adr", "_num", "_id", "_user", "_rgba",
+            "_frame", "_group", "_simple", "_sameframe", "_type")
+
+
+def _parameter_fields(defaults: mujoco.MjModel) -> list[str]:
+    """Floating-point per-element fields MJX's model holds, that an MJCF sets (not derived)."""
+    from mujoco.mjx._src import types
+
+    mjx_fields = {f.name for f in dataclasses.fields(types.Model)}
+    out = []
+    for name in sorted(mjx_fields):
+        if not name.startswith(_ELEMENT_PREFIXES) or any(name.endswith(s) for s in _DERIVED):
+            continue
+        value = getattr(defaults, name, None)
+        if isinstance(value, np.ndarray) and value.dtype.kind == "f" and value.size:
+            out.append(name)
+    return out
+
+
+_OPTIONS = ("impratio", "tolerance", "ls_tolerance", "noslip_tolerance", "density", "viscosity", "wind",
+            "magnetic", "o_margin", "o_solref", "o_solimp", "o_friction", "integrator", "cone", "jacobian",
+            "solver", "iterations", "ls_iterations", "disableflags", "enableflags")
+
+
+def parameter_coverage(models: Iterable[tuple[str, Sequence[mujoco.MjModel]]]) -> dict[str, Any]:
+    """Which parameters some scenario moves away from MuJoCo's default.
+
+    Args:
+      models: (scenario name, its members' models).
+
+    Returns:
+      ``{"fields": {field: [scenario, ...]}, "options": {option: [...]}, "never": [...],
+      "percent": ...}``: for each parameter, the scenarios in which some member's value
+      (of some element) differs from the default; ``never`` lists those none moves.
+    """
+    defaults = mujoco.MjModel.from_xml_string(_DEFAULTS_XML)
+    names = _parameter_fields(defaults)
+    fields: dict[str, list[str]] = {n: [] for n in names}
+    options: dict[str, list[str]] = {o: [] for o in _OPTIONS}
+    for scenario, members in models:
+        for name in names:
+            default = np.asarray(getattr(defaults, name))[0]
+            if any(np.asarray(getattr(mi, name)).size and np.any(np.asarray(getattr(mi, name)) != default)
+                   for mi in members):
+                fields[name].append(scenario)
+        for o in _OPTIONS:
+            default = np.asarray(getattr(defaults.opt, o))
+            if any(np.any(np.asarray(getattr(mi.opt, o)) != default) for mi in members):
+                options[o].append(scenario)
+    never = sorted([n for n, v in fields.items() if not v] + [f"opt.{o}" for o, v in options.items() if not v])
+    total = len(fields) + len(options)
+    return dict(fields=fields, options=options, never=never,
+                percent=round(100 * (total - len(never)) / max(total, 1), 2))
+
+
+def measure(scenarios, seed: int = 0, batch: int = 4, code: bool = True) -> dict[str, Any]:
+    """Both measures over ``scenarios`` (their randomized members, ``batch`` of each)."""
+    from mjxdiff import adjust
+    from mjxdiff.inputs import make_inputs
+    from mjxdiff.scenario import ScenarioError, load_model
+
+    members, first, skipped = [], [], {}
+    for s in scenarios:
+        try:
+            m = load_model(s)
+            m, _ = adjust.for_mjx(m, s.model_path)
+            inputs = make_inputs(s, m, seed, batch, 2)
+        except ScenarioError as e:
+            skipped[s.name] = str(e)
+            continue
+        members.append((s.name, inputs.models))
+        first.append((s.name, inputs.models[0]))
+    out = dict(scenarios=[n for n, _ in members], skipped=skipped, parameters=parameter_coverage(members))
+    if code:
+        out["code"] = code_coverage(first)
+    return out
+
+
+def format_text(doc: dict[str, Any]) -> str:
+    lines = []
+    if "code" in doc:
+        t = doc["code"]["totals"]
+        lines.append(f"MJX code traced: {t['line_percent']:.1f}% of {t['lines']} lines, "
+                     f"{t['branch_percent']:.1f}% of {t['branches']} branches "
+                     f"({len(doc['scenarios'])} scenarios)")
+        for name, mod in doc["code"]["modules"].items():
+            lines.append(f"  {name:<24} {mod['percent']:6.1f}%  ({mod['lines_covered']}/{mod['lines']} lines, "
+                         f"{mod['branches_covered']}/{mod['branches']} branches)")
+        never = doc["code"]["functions_never_traced"]
+        lines.append(f"  functions never traced ({len(never)}): {', '.join(never)}")
+        left = doc["code"]["excluded"]
+        lines.append(f"  left out ({len(left)}): " + "; ".join(f"{k} ({v})" for k, v in EXCLUDED.items())
+                     + f"; {len(left) - len(EXCLUDED)} Warp-backend functions")
+        for name, err in doc["code"]["errors"].items():
+            lines.append(f"  {name}: traced until {err}")
+    p = doc["parameters"]
+    lines.append(f"parameters moved from their default: {p['percent']:.1f}% "
+                 f"({len(p['fields']) + len(p['options']) - len(p['never'])} of {len(p['fields']) + len(p['options'])})")
+    lines.append(f"  never moved ({len(p['never'])}): {', '.join(p['never'])}")
+    return "\n".join(lines)
