@@ -412,6 +412,11 @@ def _options(draw: Callable, options: Any, mjx_only: bool) -> dict[str, Any]:
     opt["iterations"] = draw(_maybe(100, _ints(20, 200)))
     opt["ls_iterations"] = draw(_maybe(50, _ints(10, 100)))
     opt["tolerance"] = draw(_maybe(1e-10, _sampled((1e-8, 1e-9, 1e-12))))
+    if opt["cone"] == "elliptic":
+        opt["impratio"] = draw(_maybe(1.0, _floats(1.0, 5.0)))
+    if opt["integrator"] != "implicitfast":  # MJX: no fluid forces under implicitfast
+        opt["density"] = draw(_maybe(0.0, _floats(0.5, 1.5)))
+        opt["viscosity"] = draw(_maybe(0.0, _floats(1e-4, 1e-2)))
     return opt
 
 
@@ -428,6 +433,10 @@ def _option_features(opt: Mapping[str, Any]) -> set[str]:
     for k in ("iterations", "ls_iterations", "tolerance"):
         if opt[k] != DEFAULT_OPTIONS[k]:
             out.add(f"solver {k}")
+    if opt.get("impratio", 1.0) != 1.0:
+        out.add("impratio")
+    if opt.get("density", 0.0) or opt.get("viscosity", 0.0):
+        out.add("fluid drag")
     return out
 
 
@@ -445,10 +454,28 @@ def _joint(draw: Callable, name: str, jtype: str) -> tuple[dict[str, str], set[s
             features.add(f"joint {key}")
     if jtype in ("hinge", "slide"):
         span = 1.5 if jtype == "hinge" else 0.3  # rad or m
+        if "stiffness" in attrs:
+            springref = draw(_maybe(0.0, _floats(-0.5 * span, 0.5 * span)))
+            if springref:
+                attrs["springref"] = _f(springref)
+                features.add("joint springref")
         rng = draw(_optional(_box((-span, -0.1 * span), (0.1 * span, span))))
         if rng is not None:
             attrs["limited"], attrs["range"] = "true", _vec(rng)
             features.add("joint limit")
+            solref = draw(_optional(_box((0.01, 0.05), (0.5, 1.5))))
+            if solref is not None:
+                attrs["solreflimit"] = _vec(solref)
+                features.add("limit solref")
+            solimp = draw(_optional(_box((0.8, 0.9), (0.92, 0.99), (0.001, 0.01))))
+            if solimp is not None:
+                attrs["solimplimit"] = _vec(solimp)
+                features.add("limit solimp")
+            # below half the narrower side: with both sides inside the margin C adds two rows, MJX one
+            margin = draw(_maybe(0.0, _floats(0.0, 0.4 * min(-rng[0], rng[1]))))
+            if margin:
+                attrs["margin"] = _f(margin)
+                features.add("limit margin")
     return attrs, features
 
 
@@ -587,7 +614,8 @@ def _tendons(draw: Callable, spec: _Spec) -> None:
     for k in range(draw(_ints(1, 2))):
         kind = draw(_sampled(("fixed", "spatial") if joints else ("spatial",)))
         attrs: dict[str, str] = {"name": f"t{k}"}
-        for key, lo, hi in (("stiffness", 0.1, 10.0), ("damping", 0.01, 1.0)):
+        for key, lo, hi in (("stiffness", 0.1, 10.0), ("damping", 0.01, 1.0), ("frictionloss", 0.001, 0.1),
+                            ("armature", 0.001, 0.05)):
             v = draw(_maybe(0.0, _floats(lo, hi)))
             if v:
                 attrs[key] = _f(v)
@@ -632,13 +660,23 @@ def _actuators(draw: Callable, spec: _Spec) -> None:
         elif kind == "velocity":
             attrs["kv"] = _f(draw(_maybe(1.0, _floats(0.1, 5.0))))
         elif kind == "general":
-            dyntype = draw(_sampled(("none", "filter", "integrator")))
+            dyntype = draw(_sampled(("none", "filter", "filterexact", "integrator")))
             attrs["dyntype"] = dyntype
-            if dyntype == "filter":
+            if dyntype in ("filter", "filterexact"):
                 attrs["dynprm"] = _f(draw(_floats(0.02, 0.2)))  # time constant (s)
             if dyntype != "none":
                 spec.features.add(f"{dyntype} dynamics")
-            attrs["gainprm"] = _f(draw(_maybe(1.0, _floats(0.1, 10.0))))
+            gain = [draw(_maybe(1.0, _floats(0.1, 10.0)))]
+            if draw(st.booleans()):  # affine gain: gain + gain_length * length + gain_velocity * velocity
+                attrs["gaintype"] = "affine"
+                gain += [draw(_maybe(0.0, _floats(-2.0, 2.0))), draw(_maybe(0.0, _floats(-1.0, 0.0)))]
+                spec.features.add("affine gain")
+            attrs["gainprm"] = _vec(gain)
+            if draw(st.booleans()):  # affine bias: a spring-damper towards a drawn offset
+                attrs["biastype"] = "affine"
+                attrs["biasprm"] = _vec((draw(_floats(-1.0, 1.0)), -draw(_floats(0.0, 5.0)),
+                                         -draw(_floats(0.0, 0.5))))
+                spec.features.add("affine bias")
         spec.actuator.append(_tag(kind, attrs))
         spec.features.add(f"{kind} actuator")
         if trn == "tendon":
@@ -656,6 +694,10 @@ def _equalities(draw: Callable, spec: _Spec) -> None:
             i2 = draw(_optional(_ints(0, len(joints) - 2))) if len(joints) > 1 else None
             j2 = None if i2 is None else joints[i2 + (i2 >= i1)]  # any joint but the first
             attrs = {"joint1": joints[i1], "joint2": j2}
+            poly = draw(_optional(st.tuples(_floats(-0.2, 0.2), _floats(0.5, 1.5), _floats(-0.3, 0.3))))
+            if poly is not None:
+                attrs["polycoef"] = _vec((*poly, 0.0, 0.0))
+                spec.features.add("joint equality polycoef")
         else:
             a = draw(_ints(0, nb - 1))
             b = _other_body(draw, a, nb)

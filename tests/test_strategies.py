@@ -296,3 +296,15 @@ def test_parameter_perturbations_shrink_to_ones(fixed_model):
                    settings=MINIMAL)
     assert factors["body_mass"].shape == (fixed_model.nbody,) and factors["gravity"].shape == ()
     assert all((f == 1).all() for f in factors.values())
+
+
+@pytest.mark.parametrize("feature", ["joint springref", "limit solref", "limit solimp", "limit margin",
+                                     "affine gain", "affine bias", "filterexact dynamics", "tendon frictionloss",
+                                     "joint equality polycoef", "impratio", "fluid drag"])
+def test_fuzz_reaches_the_parameter_families_the_scenarios_exercise(feature):
+    """The generated models move the same parameters away from their defaults as the bundled
+    parameter-family scenarios, so that fuzz can find bugs there too."""
+    mm = find(mjcf_models(max_bodies=3), lambda x: feature in x.features,
+              settings=settings(max_examples=2000, database=None, deadline=None, phases=[Phase.generate],
+                                suppress_health_check=list(HealthCheck)))
+    mm.model()  # compiles in MuJoCo C
