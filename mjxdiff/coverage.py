@@ -10,6 +10,10 @@ A differential tester only catches bugs in what its scenarios exercise. Two meas
 * **Parameters** (:func:`parameter_coverage`): for every floating-point ``mjModel`` field
   MJX reads and every option, whether some member of some scenario holds a value other
   than MuJoCo's compiler default (the value an MJCF gets when it says nothing).
+* **Regimes** (:func:`regime_coverage`): which state regimes that switch code paths
+  (limits active on either side, friction loss sticking or sliding, contacts making and
+  breaking, each friction cone, clamped activations, large rotations) some member
+  reaches, read off MuJoCo C stepping the scenario's own inputs.
 
 Both go into ``coverage.json`` (``python -m mjxdiff coverage --out DIR``).
 """
@@ -25,7 +29,7 @@ from typing import Any, Iterable, Sequence
 import mujoco
 import numpy as np
 
-__all__ = ["EXCLUDED", "code_coverage", "parameter_coverage", "measure", "format_text"]
+__all__ = ["EXCLUDED", "REGIMES", "code_coverage", "parameter_coverage", "regime_coverage", "measure", "format_text"]
 
 #: ``_src`` modules a CPU sweep cannot reach, with the reason.
 EXCLUDED = {
@@ -180,24 +184,101 @@ def parameter_coverage(models: Iterable[tuple[str, Sequence[mujoco.MjModel]]]) -
                 percent=round(100 * (total - len(never)) / max(total, 1), 2))
 
 
+#: State regimes that switch MJX code paths, as read off MuJoCo C's data after a step.
+REGIMES = ("lower limit active", "upper limit active", "ball limit active", "tendon limit active",
+           "frictionloss sticking", "frictionloss sliding", "contact making", "contact breaking",
+           "pyramidal cone contact", "elliptic cone contact", "activation clamped", "quaternion far from identity",
+           "equality active")
+
+
+def _regimes(m: mujoco.MjModel, d: mujoco.MjData, before: int) -> set[str]:
+    """The :data:`REGIMES` present in ``d`` (after a step; ``before``: ncon before it)."""
+    C, S = mujoco.mjtConstraint, mujoco.mjtConstraintState
+    out = set()
+    types, ids, state = d.efc_type, d.efc_id, d.efc_state
+    for row in np.flatnonzero(types == int(C.mjCNSTR_LIMIT_JOINT)):
+        j = ids[row]
+        if m.jnt_type[j] == int(mujoco.mjtJoint.mjJNT_BALL):
+            out.add("ball limit active")
+        else:
+            q = d.qpos[m.jnt_qposadr[j]]
+            out.add("lower limit active" if q - m.jnt_range[j, 0] < m.jnt_range[j, 1] - q else "upper limit active")
+    if np.any(types == int(C.mjCNSTR_LIMIT_TENDON)):
+        out.add("tendon limit active")
+    friction = np.isin(types, [int(C.mjCNSTR_FRICTION_DOF), int(C.mjCNSTR_FRICTION_TENDON)])
+    if np.any(friction & (state == int(S.mjCNSTRSTATE_QUADRATIC))):
+        out.add("frictionloss sticking")
+    if np.any(friction & np.isin(state, [int(S.mjCNSTRSTATE_LINEARNEG), int(S.mjCNSTRSTATE_LINEARPOS)])):
+        out.add("frictionloss sliding")
+    if d.ncon > before:
+        out.add("contact making")
+    if d.ncon < before:
+        out.add("contact breaking")
+    if np.any(types == int(C.mjCNSTR_CONTACT_PYRAMIDAL)):
+        out.add("pyramidal cone contact")
+    if np.any(types == int(C.mjCNSTR_CONTACT_ELLIPTIC)):
+        out.add("elliptic cone contact")
+    if np.any(types == int(C.mjCNSTR_EQUALITY)):
+        out.add("equality active")
+    for a in np.flatnonzero(m.actuator_actlimited):
+        adr = m.actuator_actadr[a]
+        if adr >= 0 and (d.act[adr] <= m.actuator_actrange[a, 0] or d.act[adr] >= m.actuator_actrange[a, 1]):
+            out.add("activation clamped")
+    for j in np.flatnonzero(np.isin(m.jnt_type, [int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)])):
+        adr = m.jnt_qposadr[j] + (3 if m.jnt_type[j] == int(mujoco.mjtJoint.mjJNT_FREE) else 0)
+        if 2 * np.arccos(min(1.0, abs(d.qpos[adr]))) > 1.0:  # rotated by more than 1 rad
+            out.add("quaternion far from identity")
+    return out
+
+
+def regime_coverage(runs: Iterable[tuple[str, Any]]) -> dict[str, Any]:
+    """Which :data:`REGIMES` some member of some scenario reaches, stepping MuJoCo C.
+
+    Args:
+      runs: (scenario name, its :class:`~mjxdiff.inputs.BatchedInputs`).
+
+    Returns:
+      ``{"regimes": {regime: [scenario, ...]}, "never": [...]}``.
+    """
+    reached: dict[str, list[str]] = {r: [] for r in REGIMES}
+    for name, inputs in runs:
+        seen: set[str] = set()
+        for i, mi in enumerate(inputs.models):
+            d = mujoco.MjData(mi)
+            d.qpos[:], d.qvel[:] = inputs.qpos[i], inputs.qvel[i]
+            if mi.na:
+                d.act[:] = inputs.act[i]
+            mujoco.mj_forward(mi, d)
+            for t in range(inputs.steps):
+                before = d.ncon
+                d.ctrl[:] = inputs.ctrl[i, t]
+                mujoco.mj_step(mi, d)
+                seen |= _regimes(mi, d, before)
+        for r in sorted(seen):
+            reached[r].append(name)
+    return dict(regimes=reached, never=[r for r, v in reached.items() if not v])
+
+
 def measure(scenarios, seed: int = 0, batch: int = 4, code: bool = True) -> dict[str, Any]:
     """Both measures over ``scenarios`` (their randomized members, ``batch`` of each)."""
     from mjxdiff import adjust
     from mjxdiff.inputs import make_inputs
     from mjxdiff.scenario import ScenarioError, load_model
 
-    members, first, skipped = [], [], {}
+    members, first, runs, skipped = [], [], [], {}
     for s in scenarios:
         try:
             m = load_model(s)
             m, _ = adjust.for_mjx(m, s.model_path)
-            inputs = make_inputs(s, m, seed, batch, 2)
+            inputs = make_inputs(s, m, seed, batch)
         except ScenarioError as e:
             skipped[s.name] = str(e)
             continue
         members.append((s.name, inputs.models))
         first.append((s.name, inputs.models[0]))
-    out = dict(scenarios=[n for n, _ in members], skipped=skipped, parameters=parameter_coverage(members))
+        runs.append((s.name, inputs))
+    out = dict(scenarios=[n for n, _ in members], skipped=skipped, parameters=parameter_coverage(members),
+               regimes=regime_coverage(runs))
     if code:
         out["code"] = code_coverage(first)
     return out
@@ -224,4 +305,7 @@ def format_text(doc: dict[str, Any]) -> str:
     lines.append(f"parameters moved from their default: {p['percent']:.1f}% "
                  f"({len(p['fields']) + len(p['options']) - len(p['never'])} of {len(p['fields']) + len(p['options'])})")
     lines.append(f"  never moved ({len(p['never'])}): {', '.join(p['never'])}")
+    r = doc["regimes"]
+    lines.append(f"state regimes reached: {len(REGIMES) - len(r['never'])} of {len(REGIMES)}"
+                 + (f"; never: {', '.join(r['never'])}" if r["never"] else ""))
     return "\n".join(lines)

@@ -38,6 +38,11 @@ def test_parameter_coverage_stays_above_the_floor(measured, floor):
     assert lost == [], f"parameters no scenario moves from their default any more: {lost}"
 
 
+def test_every_recorded_state_regime_is_still_reached(measured, floor):
+    lost = sorted(set(floor["regimes_reached"]) - {r for r, v in measured["regimes"]["regimes"].items() if v})
+    assert lost == [], f"state regimes no scenario reaches any more: {lost}"
+
+
 def test_a_model_that_moves_nothing_moves_nothing(tmp_path):
     """The measure itself: a default pendulum moves no parameter but its own geometry."""
     xml = tmp_path / "plain.xml"
@@ -48,6 +53,7 @@ def test_a_model_that_moves_nothing_moves_nothing(tmp_path):
     moved = [k for k, v in doc["parameters"]["fields"].items() if v]
     assert "dof_damping" not in moved and "jnt_stiffness" not in moved and "opt.impratio" not in moved
     assert doc["parameters"]["options"]["impratio"] == []
+    assert "lower limit active" in doc["regimes"]["never"] and "contact making" in doc["regimes"]["never"]
 
 
 def test_cli_writes_coverage_json(tmp_path, capsys):
