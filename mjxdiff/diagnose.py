@@ -211,11 +211,15 @@ _CONTACT_SENSORS = (int(mujoco.mjtSensor.mjSENS_TOUCH), int(mujoco.mjtSensor.mjS
 
 
 def _no_contacts(m: mujoco.MjModel) -> None:
-    """Contacts off; sensors off too where the model reads contacts (MJX cannot evaluate a
-    touch sensor without any contact: 'Need at least one array to concatenate')."""
+    """Contacts off. MJX 3.17 cannot trace two things without any contact, so they go too:
+    sensors where the model reads contacts (a touch sensor: 'Need at least one array to
+    concatenate'), and the elliptic cone, which becomes pyramidal (the cone only shapes
+    contacts, so C computes the same without them; MJX's solver otherwise indexes with an
+    empty float array: 'Indexer must have integer or boolean type')."""
     m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
     if np.isin(m.sensor_type, _CONTACT_SENSORS).any():
         m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
+    m.opt.cone = int(mujoco.mjtCone.mjCONE_PYRAMIDAL)
 
 
 def _quarter_timestep(m: mujoco.MjModel) -> None:
