@@ -34,6 +34,7 @@ from hypothesis.errors import Flaky, HypothesisException
 from mjxdiff import report, reproducer, strategies
 from mjxdiff.inputs import BatchedInputs
 from mjxdiff.scenario import Tolerances
+from mjxdiff.sweep import release_compiled_if_crowded
 from mjxdiff.verdict import ScenarioResult
 
 __all__ = ["DEFAULT_BUDGET", "KNOWN_DIVERGENCES", "FuzzResult", "fuzz", "model_strategy"]
@@ -185,6 +186,7 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
         if progress:
             print(f"[fuzz] example {seen['examples']}: {mj.nbody} bodies, {mj.ngeom} geoms, {horizon} steps"
                   f" ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+        release_compiled_if_crowded()  # every generated structure compiles anew
         result = _divergence(mj.xml, state.qpos, state.qvel, state.act, ctrl, config)
         if not is_divergence(result):
             assume(result.status == "pass")  # C blew up or MJX refused the model: not a divergence either

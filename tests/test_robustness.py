@@ -80,3 +80,18 @@ def test_an_internal_error_is_that_scenarios_error(monkeypatch):
                           SweepConfig(seed=0, batch=2, steps=30, diagnose="none"))
     assert (first.status, first.error_kind) == ("error", "internal") and "KeyError" in first.message
     assert second.status == "pass", second.message
+
+
+def test_a_crowded_process_lets_go_of_its_compiled_functions():
+    """A long sweep must not run into the kernel's memory-map limit (LLVM then fails and the
+    process segfaults): past the budget, compiled functions are dropped and the maps freed."""
+    from mjxdiff.sweep import SweepConfig, _memory_maps, release_compiled_if_crowded, run_scenario
+
+    run_scenario(load_scenario("pendulum"), SweepConfig(batch=2, steps=20, diagnose="none"))
+    held, limit = _memory_maps()
+    assert limit > 0 and held > 0
+    assert release_compiled_if_crowded(budget=1.0) is False
+    assert release_compiled_if_crowded(budget=0.0) is True
+    assert _memory_maps()[0] < held, "dropping the compiled functions frees their memory maps"
+    again = run_scenario(load_scenario("pendulum"), SweepConfig(batch=2, steps=20, diagnose="none"))
+    assert again.status == "pass", "and the next scenario compiles or loads them again"
