@@ -187,16 +187,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _cmd_list() -> int:
-    from mjxdiff.scenario import ScenarioError, bundled_scenarios, no_bundled_scenarios_message
+def _selected(refs: Sequence[str]) -> list | None:
+    """The scenarios ``refs`` name (every bundled one when empty); None, after one error line on
+    stderr, when one cannot be read or none is selected."""
+    from mjxdiff.scenario import ScenarioError, bundled_scenarios, load_scenario, no_bundled_scenarios_message
 
     try:
-        scenarios = bundled_scenarios()
+        scenarios = [load_scenario(ref) for ref in refs] if refs else bundled_scenarios()
     except ScenarioError as e:
         print(f"mjxdiff: error: {e}", file=sys.stderr)
-        return 2
+        return None
     if not scenarios:
-        print(f"mjxdiff: error: {no_bundled_scenarios_message()}", file=sys.stderr)
+        print(f"mjxdiff: error: no scenarios selected ({no_bundled_scenarios_message()})", file=sys.stderr)
+        return None
+    return scenarios
+
+
+def _cmd_list() -> int:
+    scenarios = _selected(())
+    if scenarios is None:
         return 2
     for s in scenarios:
         print(f"{s.name:<28} batch {s.batch:>3} x {s.steps:>4} steps  {s.description}")
@@ -360,17 +369,11 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
 
 def _cmd_coverage(args: argparse.Namespace) -> int:
     from mjxdiff import coverage, engines, report
-    from mjxdiff.scenario import ScenarioError, bundled_scenarios, load_scenario, no_bundled_scenarios_message
 
+    scenarios = _selected(args.scenarios)
+    if scenarios is None:
+        return 2
     engines.configure_jax("float64", "")
-    try:
-        scenarios = [load_scenario(ref) for ref in args.scenarios] if args.scenarios else bundled_scenarios()
-    except ScenarioError as e:
-        print(f"mjxdiff: error: {e}", file=sys.stderr)
-        return 2
-    if not scenarios:
-        print(f"mjxdiff: error: no scenarios selected ({no_bundled_scenarios_message()})", file=sys.stderr)
-        return 2
     doc = dict(versions=report.versions(), seed=args.seed, **coverage.measure(scenarios, args.seed))
     if args.out:
         path = report.write_report(args.out, doc, "coverage.json")
