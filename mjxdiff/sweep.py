@@ -538,11 +538,19 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
                                 {})[0].status == "pass"
 
         cause = diagnose.attribute_cause(passes, inputs, config.precision)
-        notes += [f"ablation '{t['ablation']}' could not run: {t['error']}" for t in cause["tried"] if t["error"]]
+        if cause["cause"] == diagnose.GENUINE and drill is not None and drill.first_stage == "collision":
+            # the drill-down saw the engines generate other contacts from the same state; that no
+            # single ablation passes means something else differs too, which the line says
+            cause = dict(cause, cause="contact generation",
+                         evidence=f"drill-down: {drill.object} at step {drill.step}; no ablation passes, so "
+                                  "something else differs as well")
         diagnosis["cause"] = cause
         message += f"; likely cause: {cause['cause']}"
         if cause["ablation"]:
             message += f" (passes with {cause['ablation']})"
+        elif "evidence" in cause:
+            message += f" ({cause['evidence']})"
+        notes += [f"ablation '{t['ablation']}' could not run: {t['error']}" for t in cause["tried"] if t["error"]]
     if notes:
         diagnosis["notes"] = notes
         message += "; diagnosis incomplete: " + "; ".join(notes)

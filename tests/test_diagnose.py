@@ -172,3 +172,17 @@ def test_replay_rejects_a_non_reproducer(tmp_path, capsys):
     bad.write_text("{}")
     assert main(["replay", str(bad)]) == 2
     assert "not a reproducer" in capsys.readouterr().err
+
+
+def test_a_collision_stage_divergence_no_ablation_removes_is_still_contact_generation(fresh_mjx, monkeypatch):
+    """The drill-down saw other contacts from the same state; when no ablation passes (here the
+    only one tried changes nothing), the cause says so instead of 'genuine discrepancy'."""
+    from mjxdiff import diagnose
+
+    contact_distance(monkeypatch)
+    monkeypatch.setattr(diagnose, "ABLATIONS", (("integration", "nothing changed", lambda m: None),))
+    result = run_scenario(load_scenario("primitives_on_plane"), SweepConfig(seed=0, batch=4, diagnose="full"))
+    assert result.status == "fail" and result.diagnosis["drill_down"]["first_stage"] == "collision"
+    cause = result.diagnosis["cause"]
+    assert cause["cause"] == "contact generation" and cause["ablation"] is None
+    assert "drill-down: geoms" in cause["evidence"] and "something else differs as well" in result.message
