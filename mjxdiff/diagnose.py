@@ -245,11 +245,6 @@ ABLATIONS: tuple[tuple[str, str, Callable[[mujoco.MjModel], None]], ...] = (
 )
 
 
-def ablate(inputs: BatchedInputs, edit: Callable[[mujoco.MjModel], None]) -> BatchedInputs:
-    """``inputs`` with ``edit`` applied to a copy of every member's model."""
-    return inputs.edit_models(edit)
-
-
 def attribute_cause(passes: Callable[[BatchedInputs, str], bool], inputs: BatchedInputs,
                     precision: str) -> dict[str, Any]:
     """Tries ablations in order; the first under which the scenario passes names the cause.
@@ -272,24 +267,19 @@ def attribute_cause(passes: Callable[[BatchedInputs, str], bool], inputs: Batche
     """
     tried: list[dict[str, Any]] = []
 
-    def attempt(label: str, cause: str, ablated: BatchedInputs, at: str) -> dict[str, Any] | None:
+    def attempt(label: str, cause: str, ablated: Callable[[], BatchedInputs], at: str) -> dict[str, Any] | None:
         try:
-            ok = bool(passes(ablated, at))
+            ok = bool(passes(ablated(), at))
         except Exception as e:  # noqa: BLE001 - recorded; the verdict stands
             tried.append(dict(ablation=label, passed=None, error=" ".join(f"{type(e).__name__}: {e}".split())))
             return None
         tried.append(dict(ablation=label, passed=ok, error=""))
         return dict(cause=cause, ablation=label, tried=tried) if ok else None
 
-    if precision == "float32" and (found := attempt("float64", "precision", inputs, "float64")):
+    if precision == "float32" and (found := attempt("float64", "precision", lambda: inputs, "float64")):
         return found
     for cause, label, edit in ABLATIONS:
-        try:
-            ablated = ablate(inputs, edit)
-        except Exception as e:  # noqa: BLE001 - recorded; the verdict stands
-            tried.append(dict(ablation=label, passed=None, error=" ".join(f"{type(e).__name__}: {e}".split())))
-            continue
-        if found := attempt(label, cause, ablated, precision):
+        if found := attempt(label, cause, lambda: inputs.edit_models(edit), precision):
             return found
     ran = any(t["passed"] is not None for t in tried)
     return dict(cause=GENUINE if ran else UNCLASSIFIED, ablation=None, tried=tried)

@@ -21,9 +21,10 @@ with the solver converged (:func:`converge_solver`), with the envelope
 
     solver_envelope_i(t) = SOLVER_MARGIN * max_{s <= t} |C_i(t) - C_converged_i(t)|
 
-The sweep consults it only for a scenario whose first divergence starts in
-the constraint stage (see :mod:`mjxdiff.sweep`); each field then reports which
-bound held it (:data:`FLOORS`).
+The sweep consults it only for a failing scenario whose drill-down starts in
+the constraint or acceleration stage, or finds every forward stage agreeing (the
+step's own constraint solves, e.g. RK4's four; see :mod:`mjxdiff.sweep`); each
+field then reports which bound held it (:data:`FLOORS`).
 """
 
 from __future__ import annotations

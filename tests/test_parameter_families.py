@@ -27,10 +27,15 @@ def _scalar_adr(m):
     return j, m.jnt_qposadr[j]
 
 
+def _model_edited(monkeypatch, module, name: str, edit) -> None:
+    """Patches ``module.name(m, d, ...)`` to run on ``edit(m)``: MJX reading a parameter wrong."""
+    orig = getattr(module, name)
+    monkeypatch.setattr(module, name, lambda m, d, *args: orig(edit(m), d, *args))
+
+
 def springref_ignored(monkeypatch):
     """Joint springs pull towards qpos0 (the joint's ref) instead of springref."""
-    orig = mjx_passive._spring_damper
-    monkeypatch.setattr(mjx_passive, "_spring_damper", lambda m, d: orig(m.replace(qpos_spring=m.qpos0), d))
+    _model_edited(monkeypatch, mjx_passive, "_spring_damper", lambda m: m.replace(qpos_spring=m.qpos0))
 
 
 def springref_moved(m):
@@ -40,52 +45,39 @@ def springref_moved(m):
 
 def limit_solref_ignored(monkeypatch):
     """Hinge and slide limits use the default solref (0.02, 1) instead of the joint's."""
-    orig = mjx_constraint._efc_limit_slide_hinge
-
-    def buggy(m, d):
-        return orig(m.replace(jnt_solref=jnp.ones_like(m.jnt_solref) * jnp.array([0.02, 1.0])), d)
-
-    monkeypatch.setattr(mjx_constraint, "_efc_limit_slide_hinge", buggy)
+    _model_edited(monkeypatch, mjx_constraint, "_efc_limit_slide_hinge",
+                  lambda m: m.replace(jnt_solref=jnp.ones_like(m.jnt_solref) * jnp.array([0.02, 1.0])))
 
 
 def limit_margin_ignored(monkeypatch):
     """Hinge and slide limits activate at the limit itself, ignoring the joint's margin."""
-    orig = mjx_constraint._efc_limit_slide_hinge
-    monkeypatch.setattr(mjx_constraint, "_efc_limit_slide_hinge",
-                        lambda m, d: orig(m.replace(jnt_margin=m.jnt_margin * 0), d))
+    _model_edited(monkeypatch, mjx_constraint, "_efc_limit_slide_hinge",
+                  lambda m: m.replace(jnt_margin=m.jnt_margin * 0))
 
 
 def polycoef_quadratic_ignored(monkeypatch):
     """Joint equalities drop the quadratic term of their polynomial."""
-    orig = mjx_constraint._efc_equality_joint
-    monkeypatch.setattr(mjx_constraint, "_efc_equality_joint",
-                        lambda m, d: orig(m.replace(eq_data=m.eq_data.at[:, 2].set(0.0)), d))
+    _model_edited(monkeypatch, mjx_constraint, "_efc_equality_joint",
+                  lambda m: m.replace(eq_data=m.eq_data.at[:, 2].set(0.0)))
 
 
 def affine_gain_velocity_ignored(monkeypatch):
     """Affine gains drop their velocity term (gainprm[2])."""
-    orig = mjx_forward.fwd_actuation
-    monkeypatch.setattr(mjx_forward, "fwd_actuation",
-                        lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm.at[:, 2].set(0.0)), d))
+    _model_edited(monkeypatch, mjx_forward, "fwd_actuation",
+                  lambda m: m.replace(actuator_gainprm=m.actuator_gainprm.at[:, 2].set(0.0)))
 
 
 def affine_bias_constant_ignored(monkeypatch):
     """Affine biases drop their constant term (biasprm[0])."""
-    orig = mjx_forward.fwd_actuation
-    monkeypatch.setattr(mjx_forward, "fwd_actuation",
-                        lambda m, d: orig(m.replace(actuator_biasprm=m.actuator_biasprm.at[:, 0].set(0.0)), d))
+    _model_edited(monkeypatch, mjx_forward, "fwd_actuation",
+                  lambda m: m.replace(actuator_biasprm=m.actuator_biasprm.at[:, 0].set(0.0)))
 
 
 def filterexact_as_filter(monkeypatch):
     """filterexact activations integrated like filter (explicit Euler instead of exact)."""
-    orig = mjx_forward._next_activation
     exact, plain = int(mujoco.mjtDyn.mjDYN_FILTEREXACT), int(mujoco.mjtDyn.mjDYN_FILTER)
-
-    def buggy(m, d, act_dot):
-        return orig(m.replace(actuator_dyntype=np.where(m.actuator_dyntype == exact, plain, m.actuator_dyntype)),
-                    d, act_dot)
-
-    monkeypatch.setattr(mjx_forward, "_next_activation", buggy)
+    _model_edited(monkeypatch, mjx_forward, "_next_activation", lambda m: m.replace(
+        actuator_dyntype=np.where(m.actuator_dyntype == exact, plain, m.actuator_dyntype)))
 
 
 def fluid_force_high(monkeypatch):
@@ -96,9 +88,8 @@ def fluid_force_high(monkeypatch):
 
 def impratio_ignored(monkeypatch):
     """Elliptic cones regularise friction as if impratio were 1."""
-    orig = mjx_constraint._efc_contact_elliptic
-    monkeypatch.setattr(mjx_constraint, "_efc_contact_elliptic",
-                        lambda m, d, condim: orig(m.replace(opt=m.opt.replace(impratio=1.0)), d, condim))
+    _model_edited(monkeypatch, mjx_constraint, "_efc_contact_elliptic",
+                  lambda m: m.replace(opt=m.opt.replace(impratio=1.0)))
 
 
 _GAIN = lambda m, t: m.actuator_gaintype == int(t)
