@@ -27,8 +27,9 @@ import dataclasses
 import functools
 import io
 import os
+import threading
 from pathlib import Path
-from typing import Iterator, Protocol
+from typing import Any, Iterator, Protocol
 
 # Load-bearing, the XLA CPU thread pool: jax's batched LAPACK kernels (the Newton solver's
 # Cholesky) split a large enough batch into tasks on XLA's intra-op pool and block their own
@@ -256,6 +257,30 @@ class CEngine:
     def rollout(self, inputs: BatchedInputs) -> Trajectory:
         return concat(list(self.stream(inputs, inputs.steps)))
 
+    def _bound(self, inputs: BatchedInputs, chunk: int):
+        """The compiled piece function of :meth:`stream`, its first arguments, the placer and the
+        padded controls: (run, (mx, dx, ctrl piece), place, ctrl)."""
+        B, T = inputs.batch, inputs.steps
+        mx, varying, dx0, place, mesh = self._prepare(inputs)
+        dtype = dx0.qpos.dtype
+        state = dict(qpos=inputs.qpos, qvel=inputs.qvel, act=inputs.act)
+        dx = jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (B, *x.shape)), jax.device_get(dx0))
+        dx = place(dx.replace(**{k: np.asarray(v, dtype) for k, v in state.items()}))
+        ctrl = np.zeros((B, -(-T // chunk) * chunk, inputs.ctrl.shape[2]), dtype)
+        ctrl[:, :T] = inputs.ctrl
+        args = (mx, dx, place(ctrl[:, :chunk]))
+        steps = ctrl.shape[1]  # every piece runs the compiled function: the work it will do
+        run = export_cache.bind(_rollout, args, dict(varying=varying, with_energy=inputs.energy, mesh=mesh),
+                                xla_options(self.compile, steps), (self.compile, steps))
+        return run, args, place, ctrl
+
+    def compile_ahead(self, inputs: BatchedInputs, chunk: int) -> None:
+        """Compiles what :meth:`stream` of ``inputs`` in pieces of ``chunk`` steps will run, so
+        that the stream starts at once; safe from another thread. Best effort: any problem
+        (an unsupported feature) is left for :meth:`stream` to raise and report."""
+        with contextlib.suppress(Exception), _unsupported():
+            self._bound(inputs, chunk)
+
     def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
         """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
 
@@ -429,6 +454,12 @@ _COMPILE_EVENTS = frozenset({"/jax/core/compile/jaxpr_trace_duration",
 def _on_duration(event: str, duration: float, **_) -> None:
     if event in _COMPILE_EVENTS:
         _COMPILES["seconds"] += duration
+        export_cache.count("seconds", duration)
+
+
+def _traced() -> None:
+    _COMPILES["count"] += 1
+    export_cache.count("traced")
 
 
 jax.monitoring.register_event_duration_secs_listener(_on_duration)
@@ -548,7 +579,7 @@ def _split(fn, mesh: Mesh | None, mx, varying, batched: tuple[bool, ...]):
 def _rollout(mx, dx, ctrl, varying, with_energy=False, mesh=None):
     """B members stepped from their data ``dx`` (leaves (B, ...)) over ``ctrl`` (B, T, nu):
     (last data, (B, T, ...) records)."""
-    _COMPILES["count"] += 1  # runs only while tracing
+    _traced()  # runs only while tracing
 
     def batch(mx, dx, ctrl):
         member = functools.partial(_scan_steps, with_energy=with_energy)
@@ -560,7 +591,7 @@ def _rollout(mx, dx, ctrl, varying, with_energy=False, mesh=None):
 @functools.partial(jax.jit, static_argnames=("varying", "mesh"))
 def _resync_rollout(mx, dx0, qpos, qvel, act, time, ctrl, varying, mesh=None):
     """(B, S, k, ...) records of B members restarted from S given states, k steps each."""
-    _COMPILES["count"] += 1
+    _traced()
 
     def batch(mx, dx0, qpos, qvel, act, time, ctrl):
         def member(mx, q, v, a, t, u):
@@ -603,6 +634,72 @@ def device_count() -> int:
     return len(jax.devices("cpu"))
 
 
+#: Values of :class:`MJXEngine`'s ``compile``.
+COMPILE_MODES = ("auto", "fast", "optimized")
+#: XLA options of a rollout compiled for stepping: LLVM level 1 and XLA CPU's classic emitters
+#: instead of its fusion emitters. Measured (2 cores, 8 members x 200 steps, against XLA's
+#: defaults): compile 36-40% shorter (ant 5.7 -> 3.5 s, humanoid 10.0 -> 6.3, box_stack
+#: 8.4 -> 5.9, primitive_pairs 11.6 -> 7.0), stepping within -12%..+9%.
+BALANCED_COMPILE = {"xla_backend_optimization_level": 1, "xla_cpu_use_fusion_emitters": False}
+#: XLA options of a rollout compiled quickly: LLVM level 0, classic emitters: compile 55-62%
+#: shorter than XLA's defaults (ant 2.2 s, humanoid 4.5, box_stack 3.7, primitive_pairs 4.9),
+#: stepping 2.7-3.7x slower than :data:`BALANCED_COMPILE`.
+FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
+#: Seconds per flop (XLA's cost analysis of one step of the batch) that :data:`FAST_COMPILE`
+#: adds to stepping over :data:`BALANCED_COMPILE`: the largest measured, with a margin (ant
+#: 3.7e-9, humanoid 2.8e-9, box_stack 0.8e-9, primitive_pairs 0.5e-9).
+FAST_SECONDS_PER_FLOP = 4e-9
+#: Stepping seconds ``auto`` may add to save compile time: :data:`FAST_COMPILE` saved
+#: 1.3-2.2 s over :data:`BALANCED_COMPILE` (ant, humanoid, box_stack, primitive_pairs).
+FAST_BUDGET_SECONDS = 1.0
+
+_LAST_CHOICE = export_cache.untraced(threading.local())  # per thread: never part of a code digest
+
+
+def last_choice() -> dict | None:
+    """What :func:`xla_options` chose for the last stream this thread started (None if not compiled here)."""
+    return getattr(_LAST_CHOICE, "value", None)
+
+
+def xla_options(mode: str, steps: int) -> export_cache.Options:
+    """Chooses how hard XLA optimises a rollout from the stepping it will do.
+
+    A sweep's rollout (8 members x 300 steps) steps for well under a second and
+    compiles for 2-11 s, so its compile time decides how long the answer takes;
+    a long soak run is the opposite. ``auto`` compiles with :data:`FAST_COMPILE` when
+    the stepping that costs, estimated as ``FAST_SECONDS_PER_FLOP x flops x steps``
+    (``flops``: XLA's cost analysis of one step of the whole batch), stays below
+    :data:`FAST_BUDGET_SECONDS`, else with :data:`BALANCED_COMPILE`; ``fast`` always
+    with :data:`FAST_COMPILE`; ``optimized`` with XLA's defaults. All compile the
+    same StableHLO: results agree to rounding (the emitters and LLVM levels vectorise
+    and contract differently), which the verdict's envelope covers
+    (``tests/test_compile_options.py``); measured in ``benchmarks/scripts/xla_options.py``.
+
+    Returns:
+      ``options(lowered) -> (XLA options, choice)``, the choice being what the report records:
+      ``level`` (``fast``, ``balanced`` or ``optimized``), ``mode``, and for ``auto``
+      ``flops_per_step`` and ``fast_extra_seconds`` (the estimate).
+    """
+    def choose(lowered):
+        choice: dict[str, Any] = dict(mode=mode)
+        level = mode
+        if mode == "auto":
+            try:
+                cost = lowered.cost_analysis()
+                cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+                flops = float(cost.get("flops", 0.0))
+            except Exception:  # noqa: BLE001 - no estimate: compile for stepping
+                flops = float("inf")
+            extra = FAST_SECONDS_PER_FLOP * flops * steps
+            choice.update(flops_per_step=flops, fast_extra_seconds=round(extra, 3))
+            level = "fast" if extra < FAST_BUDGET_SECONDS else "balanced"
+        choice["level"] = level
+        options = {"fast": FAST_COMPILE, "balanced": BALANCED_COMPILE}.get(level, {})
+        return dict(options), choice
+
+    return choose
+
+
 def _pad(x: np.ndarray, n: int) -> np.ndarray:
     """``x`` with its last row repeated ``n`` more times along axis 0."""
     return np.concatenate([x, np.repeat(x[-1:], n, axis=0)]) if n else x
@@ -628,13 +725,18 @@ class MJXEngine:
         the batch and the devices there are); 1: never split. A batch that
         does not divide evenly is padded with copies of its last member,
         whose records are dropped.
+      compile: how hard XLA optimises a rollout (:func:`xla_options`): ``auto``
+        chooses from the expected stepping work, ``fast`` always compiles quickly,
+        ``optimized`` always uses XLA's defaults.
     """
 
     name = "mjx"
 
-    def __init__(self, devices: int | None = None):
+    def __init__(self, devices: int | None = None, compile: str = "auto"):
         _ensure_safe_backend()
-        self.devices = devices
+        if compile not in COMPILE_MODES:
+            raise ValueError(f"compile must be one of {COMPILE_MODES}, not {compile!r}")
+        self.devices, self.compile = devices, compile
 
     def _usable_devices(self) -> int:
         return device_count() if self.devices is None else max(1, min(self.devices, device_count()))
@@ -685,6 +787,30 @@ class MJXEngine:
     def rollout(self, inputs: BatchedInputs) -> Trajectory:
         return concat(list(self.stream(inputs, inputs.steps)))
 
+    def _bound(self, inputs: BatchedInputs, chunk: int):
+        """The compiled piece function of :meth:`stream`, its first arguments, the placer and the
+        padded controls: (run, (mx, dx, ctrl piece), place, ctrl)."""
+        B, T = inputs.batch, inputs.steps
+        mx, varying, dx0, place, mesh = self._prepare(inputs)
+        dtype = dx0.qpos.dtype
+        state = dict(qpos=inputs.qpos, qvel=inputs.qvel, act=inputs.act)
+        dx = jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (B, *x.shape)), jax.device_get(dx0))
+        dx = place(dx.replace(**{k: np.asarray(v, dtype) for k, v in state.items()}))
+        ctrl = np.zeros((B, -(-T // chunk) * chunk, inputs.ctrl.shape[2]), dtype)
+        ctrl[:, :T] = inputs.ctrl
+        args = (mx, dx, place(ctrl[:, :chunk]))
+        steps = ctrl.shape[1]  # every piece runs the compiled function: the work it will do
+        run = export_cache.bind(_rollout, args, dict(varying=varying, with_energy=inputs.energy, mesh=mesh),
+                                xla_options(self.compile, steps), (self.compile, steps))
+        return run, args, place, ctrl
+
+    def compile_ahead(self, inputs: BatchedInputs, chunk: int) -> None:
+        """Compiles what :meth:`stream` of ``inputs`` in pieces of ``chunk`` steps will run, so
+        that the stream starts at once; safe from another thread. Best effort: any problem
+        (an unsupported feature) is left for :meth:`stream` to raise and report."""
+        with contextlib.suppress(Exception), _unsupported():
+            self._bound(inputs, chunk)
+
     def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
         """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
 
@@ -701,15 +827,9 @@ class MJXEngine:
         """
         B, T = inputs.batch, inputs.steps
         with _unsupported():  # make_data and tracing mjx.step raise it for some features too
-            mx, varying, dx0, place, mesh = self._prepare(inputs)
-            dtype = dx0.qpos.dtype
-            state = dict(qpos=inputs.qpos, qvel=inputs.qvel, act=inputs.act)
-            dx = jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (B, *x.shape)), jax.device_get(dx0))
-            dx = place(dx.replace(**{k: np.asarray(v, dtype) for k, v in state.items()}))
-            ctrl = np.zeros((B, -(-T // chunk) * chunk, inputs.ctrl.shape[2]), dtype)
-            ctrl[:, :T] = inputs.ctrl
-            args = (mx, dx, place(ctrl[:, :chunk]))
-            run = export_cache.bind(_rollout, args, dict(varying=varying, with_energy=inputs.energy, mesh=mesh))
+            run, args, place, ctrl = self._bound(inputs, chunk)
+            mx = args[0]
+            _LAST_CHOICE.value = run.choice if isinstance(run, export_cache.Bound) else None
             first = run(*args)
 
         def piece(rec, start):
@@ -752,7 +872,8 @@ class MJXEngine:
             arrays = place(tuple(np.asarray(x, dx0.qpos.dtype) for x in batched))
             if mesh is not None:
                 dx0 = jax.device_put(dx0, NamedSharding(mesh, PartitionSpec()))
-            rec = export_cache.call(_resync_rollout, (mx, dx0, *arrays), dict(varying=varying, mesh=mesh))
+            rec = export_cache.call(_resync_rollout, (mx, dx0, *arrays), dict(varying=varying, mesh=mesh),
+                                    xla_options(self.compile, S * k), (self.compile, S * k))
         rec = {key: np.asarray(v)[:B].reshape(B, S * k, *v.shape[3:])[:, :T] for key, v in rec.items()}
         return _trajectory(rec, B, T)
 

@@ -31,6 +31,7 @@ import enum
 import os
 import pickle
 import sys
+import threading
 import types
 from pathlib import Path
 from typing import Any, Callable
@@ -39,11 +40,40 @@ import jax
 import numpy as np
 from jax import export
 
-__all__ = ["bind", "call", "clear", "code_digest", "evict", "export_dir", "fresh_digest", "loaded_count",
-           "rollout_digest", "settings_digest", "untraced"]
+__all__ = ["bind", "call", "clear", "code_digest", "count", "evict", "export_dir", "fresh_digest", "loaded_count",
+           "rollout_digest", "settings_digest", "tally", "untraced"]
 
-_FUNCTIONS: dict[str, tuple[Any, Callable]] = {}  # key -> (output tree structure, jitted call of an Exported)
+# (artifact key, options key) -> (output tree structure, compiled call of an Exported, what the options chose)
+_FUNCTIONS: dict[tuple[str, str], tuple[Any, Callable, Any]] = {}
 _LOADED = {"count": 0}
+_KEY_LOCKS: dict[tuple[str, str], threading.Lock] = {}  # one per key: threads binding the same function compile it once
+_KEY_LOCKS_GUARD = threading.Lock()
+_LOCAL = threading.local()
+
+
+def count(kind: str, amount: float = 1) -> None:
+    """Adds ``amount`` to this thread's open :func:`tally` (if any) under ``kind``."""
+    ledger = getattr(_LOCAL, "tally", None)
+    if ledger is not None:
+        ledger[kind] = ledger.get(kind, 0) + amount
+
+
+@contextlib.contextmanager
+def tally():
+    """Counts what this thread compiles while the block runs: yields a dict that gains
+    ``traced`` (rollouts traced), ``loaded`` (artifacts loaded) and ``seconds`` (JAX's compile
+    events: trace, lowering, XLA compile or cache load). Per thread, so that work done ahead
+    by another thread (a sweep compiles upcoming scenarios concurrently) is not mixed in."""
+    outer = getattr(_LOCAL, "tally", None)
+    ledger: dict[str, float] = {}
+    _LOCAL.tally = ledger
+    try:
+        yield ledger
+    finally:
+        _LOCAL.tally = outer
+        if outer is not None:
+            for k, v in ledger.items():
+                outer[k] = outer.get(k, 0) + v
 
 
 #: Modules whose code a rollout traces: MJX's, and mjxdiff's own traced functions.
@@ -256,6 +286,8 @@ def clear() -> None:
     """Forgets the functions loaded or exported in this process (the files stay)."""
     _FUNCTIONS.clear()
     _KEYS.clear()
+    with _KEY_LOCKS_GUARD:
+        _KEY_LOCKS.clear()
 
 
 @functools.cache
@@ -350,46 +382,85 @@ def evict(directory: Path, keep: Path | None = None, budget: int = MAX_BYTES) ->
     return deleted
 
 
-def call(fn: Callable, args: tuple, static: dict[str, Any]):
-    """``fn(*args, **static)`` for a ``jax.jit`` function ``fn``, through a saved artifact when possible."""
-    return bind(fn, args, static)(*args)
+def call(fn: Callable, args: tuple, static: dict[str, Any], options: Options | None = None, options_key: Any = None):
+    """``fn(*args, **static)`` for a ``jax.jit`` function ``fn``, through a saved artifact when possible
+    (:func:`bind`)."""
+    return bind(fn, args, static, options, options_key)(*args)
 
 
-def bind(fn: Callable, args: tuple, static: dict[str, Any]) -> Callable:
-    """``fn`` with ``static`` bound, for calls whose arguments are shaped, typed and sharded like ``args``:
-    a loaded or freshly exported artifact when possible (exported on first use, from ``args``' shapes).
+def _key_lock(key: tuple[str, str]) -> threading.Lock:
+    with _KEY_LOCKS_GUARD:
+        return _KEY_LOCKS.setdefault(key, threading.Lock())
+
+
+#: Chooses XLA compiler options for a lowered function: ``options(lowered) -> (options, choice)``,
+#: ``choice`` being what to report about it.
+Options = Callable[[Any], tuple[dict[str, Any], Any]]
+
+
+class Bound:
+    """A compiled function bound by :func:`bind`: call it like the function; ``choice`` is what
+    the options callback chose for it (None without one)."""
+
+    def __init__(self, out_tree, run: Callable, choice: Any = None):
+        self.out_tree, self.run, self.choice = out_tree, run, choice
+
+    def __call__(self, *args):
+        return jax.tree.unflatten(self.out_tree, self.run(*jax.tree.leaves(args)))
+
+
+def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | None = None,
+         options_key: Any = None) -> Callable:
+    """``fn`` with ``static`` bound and compiled, for calls whose arguments are shaped, typed and
+    sharded like ``args``: a loaded or freshly exported artifact (exported on first use, from
+    ``args``' shapes; saved when the cache is on), compiled ahead of time by XLA with the
+    options ``options(lowered)`` chooses (a persistent-cache hit after the first process).
 
     Binding once and calling many times (the pieces of a stream) spares each call the
-    structure's key. Falls back to ``fn`` itself when caching is off or the function
-    cannot be exported (calling it then raises MJX's own error, e.g.
-    ``NotImplementedError`` for an unsupported feature). Either way the code that runs
-    is the code loaded now (:func:`fresh_digest`).
+    structure's key. Threads binding the same function wait for one compile; binding is
+    safe from any thread (a sweep compiles upcoming scenarios on idle cores). ``options_key``
+    stands for what ``options`` depends on besides the function (the expected work): it is
+    part of the in-memory key. Falls back to ``fn`` itself when the function cannot be
+    exported (calling it then raises MJX's own error, e.g. ``NotImplementedError`` for an
+    unsupported feature). Either way the code that runs is the code loaded now
+    (:func:`fresh_digest`).
     """
     code = fresh_digest()
     direct = functools.partial(fn, **static)
     directory = export_dir()
-    if directory is None:
-        return direct
     leaves, treedef = jax.tree.flatten(args)
     try:
         key = _key_of(fn, treedef, leaves, static, code)
     except (pickle.PicklingError, TypeError, AttributeError):  # static data that cannot be pickled
         return direct
-    if key not in _FUNCTIONS:
-        path = directory / f"{key}.jaxexport"
-        found = _load(path) if path.exists() else None
-        if found is None:
-            found = _export(fn, treedef, leaves, static)
+    memo = key, repr(options_key)
+    with _key_lock(memo):
+        if memo not in _FUNCTIONS:
+            path = directory / f"{key}.jaxexport" if directory is not None else None
+            found = _load(path) if path is not None and path.exists() else None
             if found is None:
-                return direct
-            with contextlib.suppress(Exception):  # unwritable cache dir, no flatbuffers: use it unsaved
-                _save(path, *found)
-        else:
-            _LOADED["count"] += 1
-        out_tree, exported = found
-        _FUNCTIONS[key] = out_tree, jax.jit(exported.call)
-    out_tree, run = _FUNCTIONS[key]
-    return lambda *args: jax.tree.unflatten(out_tree, run(*jax.tree.leaves(args)))
+                found = _export(fn, treedef, leaves, static)
+                if found is None:
+                    return direct
+                if path is not None:
+                    with contextlib.suppress(Exception):  # unwritable cache dir, no flatbuffers: use it unsaved
+                        _save(path, *found)
+            else:
+                _LOADED["count"] += 1
+                count("loaded")
+            out_tree, exported = found
+            lowered = jax.jit(exported.call).lower(*leaves)
+            chosen, choice = options(lowered) if options is not None else ({}, None)
+            try:
+                compiled = lowered.compile(compiler_options=chosen or None)
+            except Exception as e:  # noqa: BLE001 - e.g. an option this XLA does not know: its defaults
+                if not chosen:
+                    raise
+                compiled = lowered.compile()
+                if isinstance(choice, dict):
+                    choice = dict(choice, level="optimized", options_refused=" ".join(str(e).split())[:200])
+            _FUNCTIONS[memo] = out_tree, compiled, choice
+    return Bound(*_FUNCTIONS[memo])
 
 
 def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):

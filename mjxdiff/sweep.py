@@ -14,6 +14,7 @@ import queue
 import sys
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable, Iterable, Iterator, Sequence
 
 import jax
@@ -63,6 +64,10 @@ class SweepConfig:
       drop_unsupported: remove the geom pairs MJX cannot collide from the model both
         engines step (:func:`mjxdiff.adjust.drop_unsupported`); changes the dynamics, so
         off by default and reported as ``adjusted``.
+      compile: how hard XLA optimises each MJX rollout: ``auto`` (from the stepping it
+        will do, :func:`mjxdiff.engines.xla_options`), ``fast`` or ``optimized``.
+      compile_workers: threads that prepare and compile upcoming scenarios while the
+        current one steps (:func:`sweep`); None: :func:`default_compile_workers`; 0: none.
     """
 
     seed: int = 0
@@ -79,10 +84,16 @@ class SweepConfig:
     group_size: int | None = None
     adjust: bool = True
     drop_unsupported: bool = False
+    compile: str = "auto"
+    compile_workers: int | None = None
 
     def __post_init__(self):
         if self.noise_floor not in NOISE_FLOOR_MODES:
             raise ValueError(f"noise_floor must be one of {NOISE_FLOOR_MODES}, not {self.noise_floor!r}")
+        if self.compile not in engines.COMPILE_MODES:
+            raise ValueError(f"compile must be one of {engines.COMPILE_MODES}, not {self.compile!r}")
+        if self.compile_workers is not None and self.compile_workers < 0:
+            raise ValueError(f"compile_workers must be >= 0, not {self.compile_workers!r}")
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -107,16 +118,37 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
     scenario is saved there as ``<name>-member<i>.json`` (see :mod:`mjxdiff.reproducer`), the
     name made a plain file name (:func:`mjxdiff.report.safe_filename`) so it stays in that directory.
     """
+    return _finish(_prepare(scenario, config), config, mjx_engine, c_engine)
+
+
+@dataclasses.dataclass
+class _Prepared:
+    """A scenario made ready to run: its model and inputs, or the result that ends it early
+    (bad input); ``ahead`` is what compiling ahead did (:func:`_compile_ahead`)."""
+
+    scenario: Scenario
+    tol: Tolerances
+    info: dict
+    m: object = None
+    inputs: BatchedInputs | None = None
+    early: ScenarioResult | None = None
+    ahead: dict | None = None
+
+
+def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
+    """The scenario's model (adjusted for MJX) and batched inputs; bad input becomes its result."""
     batch, steps = config.sizes(scenario)
     tol = scenario.tolerance.for_precision(config.precision)
     info = dict(batch=batch, steps=steps, model=str(scenario.model), exercises=list(scenario.exercises),
                 notes=scenario.notes)
+    prepared = _Prepared(scenario, tol, info)
     t0 = time.perf_counter()
     try:
         m = load_model(scenario)
     except ScenarioError as e:
-        return ScenarioResult(name=scenario.name, status="error", error_kind="input", message=str(e), info=info,
-                              tolerances=tol.as_dict())
+        prepared.early = ScenarioResult(name=scenario.name, status="error", error_kind="input", message=str(e),
+                                        info=info, tolerances=tol.as_dict())
+        return prepared
     try:
         m, adjusted = adjust.for_mjx(m, scenario.model_path, config.adjust, config.drop_unsupported)
     except Exception as e:  # noqa: BLE001 - the model stays as it is, and says why
@@ -126,12 +158,37 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
     try:
         inputs = make_inputs(scenario, m, config.seed, batch, steps)
     except ScenarioError as e:
-        return ScenarioResult(name=scenario.name, status="error", error_kind="input", message=str(e), info=info,
-                              tolerances=tol.as_dict())
+        prepared.early = ScenarioResult(name=scenario.name, status="error", error_kind="input", message=str(e),
+                                        info=info, tolerances=tol.as_dict())
+        return prepared
     info.update(factors=sorted(inputs.factors), seconds=dict(inputs=time.perf_counter() - t0))
     if scenario.randomize.values:
         info["set"] = {k: list(v) for k, v in sorted(scenario.randomize.values.items())}
-    result = run_inputs(scenario.name, m, inputs, tol, config, mjx_engine, c_engine, info)
+    prepared.m, prepared.inputs = m, inputs
+    return prepared
+
+
+def _compile_ahead(scenario: Scenario, config: SweepConfig, mjx_engine: MJXEngine) -> _Prepared:
+    """:func:`_prepare`, then MJX's rollout of the scenario compiled (best effort: a problem is
+    left for the sweep to meet and report); run by a compile worker of :func:`sweep`."""
+    t = time.perf_counter()
+    with export_cache.tally() as work:
+        prepared = _prepare(scenario, config)
+        if prepared.early is None:
+            groups, chunk = _plan(prepared.m, prepared.inputs, config, mjx_engine)
+            first = prepared.inputs.take(groups[0]) if len(groups) > 1 else prepared.inputs
+            mjx_engine.compile_ahead(first, chunk)
+    prepared.ahead = dict(work, wall=time.perf_counter() - t)
+    return prepared
+
+
+def _finish(prepared: _Prepared, config: SweepConfig, mjx_engine: MJXEngine | None,
+            c_engine: CEngine | None) -> ScenarioResult:
+    """Runs a prepared scenario: both engines, the verdict, a reproducer of a failure."""
+    if prepared.early is not None:
+        return prepared.early
+    scenario, m, inputs, tol = prepared.scenario, prepared.m, prepared.inputs, prepared.tol
+    result = run_inputs(scenario.name, m, inputs, tol, config, mjx_engine, c_engine, prepared.info, prepared.ahead)
     if result.status == "fail" and config.reproducers is not None:
         member = result.first_divergence["member"]
         file = f"{report.safe_filename(scenario.name)}-member{member}.json"
@@ -186,6 +243,12 @@ def member_groups(batch: int, most: int) -> list[np.ndarray]:
     size = -(-batch // n)
     idx = np.minimum(np.arange(n * size), batch - 1)
     return [idx[i * size:(i + 1) * size] for i in range(n)]
+
+
+def _plan(m, inputs: BatchedInputs, config: SweepConfig, mjx_engine: MJXEngine) -> tuple[list[np.ndarray], int]:
+    """How the verdict steps ``inputs``: member groups (:func:`member_groups`) and steps per piece."""
+    groups = member_groups(inputs.batch, config.group_size or min(group_size(m, inputs.batch), mjx_engine.batch_cap()))
+    return groups, config.piece_steps or piece_steps(m, len(groups[0]), inputs.steps)
 
 
 class _EngineFailed(Exception):
@@ -350,8 +413,7 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
       UnsupportedError, _EngineFailed: from the engines.
     """
     B, T = inputs.batch, inputs.steps
-    groups = member_groups(B, config.group_size or min(group_size(m, B), mjx_engine.batch_cap()))
-    chunk = config.piece_steps or piece_steps(m, len(groups[0]), T)
+    groups, chunk = _plan(m, inputs, config, mjx_engine)
     judge = Judge(m, tol, B, T)
     floor = NoiseFloor(m, rangefinder_mask(m), B, T) if config.envelope else None
     solver_floor = NoiseFloor(m, rangefinder_mask(m), B, T, SOLVER_MARGIN) if floor and solver else None
@@ -391,24 +453,35 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
     noise = floor if floor is not None and floor.fed.any() else None
     result = judge.result(name, config.threshold, noise, solver_floor if noise is not None else None)
     seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
-    counts = dict(groups=len(groups), pieces=len(groups) * -(-T // chunk),
+    counts = dict(groups=len(groups), pieces=len(groups) * -(-T // chunk), xla=engines.last_choice(),
                   noise_floor_members=int(floor.fed.sum()) if floor is not None else 0)
     return result, counts
 
 
 def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig = SweepConfig(),
                mjx_engine: MJXEngine | None = None, c_engine: CEngine | None = None,
-               info: dict | None = None) -> ScenarioResult:
+               info: dict | None = None, ahead: dict | None = None) -> ScenarioResult:
     """Both engines on given inputs, then the verdict (and diagnosis of a failure).
 
     The comparison is streamed in pieces of :func:`piece_steps` steps, so its
     memory does not grow with the horizon; a failing scenario's C trajectory
     is rerun in full for the diagnosis. MJX runs in ``config.precision``
-    (``jax_enable_x64`` is set for the call and restored after it).
+    (``jax_enable_x64`` is set for the call and restored after it). ``ahead``: what a
+    compile worker did for these inputs beforehand (its :func:`export_cache.tally` and
+    ``wall`` seconds), counted in the scenario's compile numbers.
     """
     engines._ensure_safe_backend()
-    with _precision(config.precision):  # MJX's dtype follows the config, from the CLI or not
-        return _run_inputs(name, m, inputs, tol, config, mjx_engine, c_engine, info)
+    with _precision(config.precision), export_cache.tally() as work:  # MJX's dtype follows the config
+        result = _run_inputs(name, m, inputs, tol, config, mjx_engine, c_engine, info)
+    ahead = ahead or {}
+    info = result.info
+    info["seconds"]["compile"] = work.get("seconds", 0.0) + ahead.get("seconds", 0.0)
+    if ahead:
+        info["seconds"]["compiled_ahead"] = ahead.get("wall", 0.0)
+    if result.status != "error" or result.error_kind != "input":
+        info.update(mjx_compiles=int(work.get("traced", 0) + ahead.get("traced", 0)),
+                    mjx_loaded=int(work.get("loaded", 0) + ahead.get("loaded", 0)))
+    return result
 
 
 def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
@@ -416,8 +489,7 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     info = dict(info or {}, batch=inputs.batch, steps=inputs.steps)
     seconds = info.setdefault("seconds", {})
     base = dict(name=name, tolerances=tol.as_dict(), info=info)
-    compile_s, compiles, loaded = engines.compile_seconds(), engines.compile_count(), export_cache.loaded_count()
-    mjx_engine, c_engine = mjx_engine or MJXEngine(), c_engine or CEngine()
+    mjx_engine, c_engine = mjx_engine or MJXEngine(compile=config.compile), c_engine or CEngine()
     clock: dict[str, float] = {}
     try:
         result, counts = _verdict(name, m, inputs, tol, config, mjx_engine, c_engine, clock)
@@ -435,9 +507,10 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     if result.status == "fail" and config.diagnose != "none":
         result = _diagnose(result, m, inputs, tol, config, mjx_engine, c_engine, traj_c, drill)
     seconds.update(c=clock.get("c", 0.0), mjx=clock.get("mjx", 0.0), verdict=clock.get("verdict", 0.0),
-                   diagnosis=time.perf_counter() - t, compile=engines.compile_seconds() - compile_s)
-    info.update(mjx_compiles=engines.compile_count() - compiles, mjx_loaded=export_cache.loaded_count() - loaded,
-                mjx_code=export_cache.code_digest(),
+                   diagnosis=time.perf_counter() - t)
+    if counts.get("xla") is not None:
+        info["xla"] = counts.pop("xla")
+    info.update(mjx_code=export_cache.code_digest(),
                 nq=m.nq, nv=m.nv, nu=m.nu,
                 nsensordata=m.nsensordata, **counts)
     return dataclasses.replace(result, info=info)
@@ -618,24 +691,57 @@ def release_compiled_if_crowded(budget: float = MAP_BUDGET) -> bool:
     return True
 
 
+def default_compile_workers() -> int:
+    """Compile workers of a sweep: one per core (XLA compiles a module on about one core), at
+    most :data:`MAX_COMPILE_WORKERS` (each compile holds up to ~1 GiB)."""
+    return max(1, min(engines.CORES, MAX_COMPILE_WORKERS))
+
+
+#: Most compile workers :func:`default_compile_workers` gives a sweep.
+MAX_COMPILE_WORKERS = 4
+
+
 def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
           progress: bool | None = None,
           on_result: Callable[[ScenarioResult], None] | None = None) -> list[ScenarioResult]:
-    """Runs every scenario in order, returning one verdict each."""
-    mjx_engine, c_engine = MJXEngine(), CEngine()
+    """Runs every scenario in order, returning one verdict each.
+
+    A cold sweep is mostly XLA compiling MJX rollouts, each on about one core. So
+    ``config.compile_workers`` threads prepare and compile the scenarios ahead (at most
+    one more than there are workers, which bounds memory) while this thread runs each
+    one's verdict in order; results and their order are those of running them one by one.
+    """
+    mjx_engine, c_engine = MJXEngine(compile=config.compile), CEngine()
     bar = _Progress(len(scenarios), progress)
+    workers = default_compile_workers() if config.compile_workers is None else config.compile_workers
+    pool = ThreadPoolExecutor(workers, thread_name_prefix="mjxdiff-compile") if workers else None
+    ahead: dict[int, Future] = {}
+
+    def submit(i: int) -> None:
+        if pool is not None and i < len(scenarios):
+            ahead[i] = pool.submit(_compile_ahead, scenarios[i], config, mjx_engine)
+
     results = []
-    for i, scenario in enumerate(scenarios):
-        bar.start(i, scenario.name)
-        try:
-            result = run_scenario(scenario, config, mjx_engine, c_engine)
-        except Exception as e:  # noqa: BLE001 - one scenario's trouble stays that scenario's
-            result = ScenarioResult(name=scenario.name, status="error", error_kind="internal",
-                                    message=f"mjxdiff itself failed on this scenario: {_one_line(e)}")
-        results.append(result)
-        if on_result:
-            on_result(result)
-        release_compiled_if_crowded()
+    try:
+        with _precision(config.precision):  # for the compile workers too: set once for the whole sweep
+            for i in range(workers + 1):
+                submit(i)
+            for i, scenario in enumerate(scenarios):
+                submit(i + workers + 1)
+                bar.start(i, scenario.name)
+                try:
+                    prepared = ahead.pop(i).result() if i in ahead else _prepare(scenario, config)
+                    result = _finish(prepared, config, mjx_engine, c_engine)
+                except Exception as e:  # noqa: BLE001 - one scenario's trouble stays that scenario's
+                    result = ScenarioResult(name=scenario.name, status="error", error_kind="internal",
+                                            message=f"mjxdiff itself failed on this scenario: {_one_line(e)}")
+                results.append(result)
+                if on_result:
+                    on_result(result)
+                release_compiled_if_crowded()
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
     return results
 
 

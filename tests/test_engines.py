@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+import jax
 import numpy as np
 import pytest
 
@@ -93,17 +94,23 @@ assert device_count() == 2, device_count()
 scenario = load_scenario("cartpole")
 inputs = make_inputs(scenario, load_model(scenario), seed=0, batch=3, steps=60)  # 3 members: padded to 4
 assert MJXEngine(devices=2).split(3) == 2 and MJXEngine().split(3) == 1  # too small to split by itself
-one, split = MJXEngine(devices=1).rollout(inputs), MJXEngine(devices=2).rollout(inputs)
-for field in ("qpos", "qvel", "sensordata"):
-    np.testing.assert_array_equal(getattr(split, field), getattr(one, field), err_msg=field)
+# bit for bit with XLA's default options; compiled fast, the two batch shapes vectorise
+# differently and may differ by rounding (seen: 1 ulp)
+for mode, same in (("optimized", np.testing.assert_array_equal),
+                   ("fast", lambda a, b, err_msg: np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14, err_msg=err_msg))):
+    one, split = MJXEngine(devices=1, compile=mode).rollout(inputs), MJXEngine(devices=2, compile=mode).rollout(inputs)
+    for field in ("qpos", "qvel", "sensordata"):
+        same(getattr(split, field), getattr(one, field), err_msg=f"{mode} {field}")
 c = CEngine().rollout(inputs)
-np.testing.assert_array_equal(MJXEngine(devices=2).resync(inputs, c, 10).qpos, MJXEngine(devices=1).resync(inputs, c, 10).qpos)
+np.testing.assert_array_equal(MJXEngine(devices=2, compile="optimized").resync(inputs, c, 10).qpos,
+                              MJXEngine(devices=1, compile="optimized").resync(inputs, c, 10).qpos)
 print("identical")
 """
 
 
 def test_device_split_is_bit_identical_to_one_device():
-    """MJXDIFF_DEVICES=2 splits the batch over two host devices (padded: 3 members) and changes no number."""
+    """MJXDIFF_DEVICES=2 splits the batch over two host devices (padded: 3 members) and changes no number
+    compiled with XLA's defaults, none beyond rounding compiled fast."""
     env = dict(os.environ, MJXDIFF_DEVICES="2")
     proc = subprocess.run([sys.executable, "-c", SPLIT_CHECK], env=env, capture_output=True, text=True, timeout=400)
     assert proc.returncode == 0 and "identical" in proc.stdout, proc.stderr[-3000:]
@@ -160,11 +167,11 @@ def test_pieces_of_a_stream_share_one_compiled_function(saved, monkeypatch):
     inputs = make_inputs(scenario, load_model(scenario), seed=5, batch=2, steps=21)
     pieces = list(MJXEngine().stream(inputs, 7))
     assert len(pieces) == 3
-    if saved:
-        [(_, run)] = export_cache._FUNCTIONS.values()
-        assert run._cache_size() == 1
-    else:
-        assert engines._rollout._cache_size() == 1
+    # one ahead-of-time compiled executable, which raises rather than recompiles for arguments
+    # sharded or committed differently: every piece ran it
+    [(_, run, choice)] = export_cache._FUNCTIONS.values()
+    assert isinstance(run, jax.stages.Compiled)
+    assert choice["level"] in ("fast", "balanced")
 
 
 def test_automatic_split_needs_enough_members_per_device():

@@ -143,7 +143,7 @@ def test_the_digest_is_stable_across_rollouts_and_processes(pendulum):
 def test_a_damaged_artifact_is_traced_again_and_rewritten(pendulum):
     _, inputs = pendulum
     reference = _rollout(inputs)
-    [(key, _)] = export_cache._FUNCTIONS.items()  # this rollout's artifact, just loaded or saved
+    [((key, _), _)] = export_cache._FUNCTIONS.items()  # this rollout's artifact, just loaded or saved
     path = export_cache.export_dir() / f"{key}.jaxexport"
     for damaged in (b"", b"not a pickle", path.read_bytes()[:100]):
         path.write_bytes(damaged)
@@ -171,7 +171,7 @@ def test_the_least_recently_used_artifacts_are_evicted_beyond_the_budget(tmp_pat
 def test_loading_an_artifact_marks_it_recently_used(pendulum):
     _, inputs = pendulum
     _rollout(inputs)
-    [(key, _)] = export_cache._FUNCTIONS.items()
+    [((key, _), _)] = export_cache._FUNCTIONS.items()
     path = export_cache.export_dir() / f"{key}.jaxexport"
     os.utime(path, (1000, 1000))
     _rollout(inputs)  # loads it
