@@ -165,7 +165,9 @@ def build_parser() -> argparse.ArgumentParser:
                                     "example database and tried first next time. Exit 0 none found, 1 found, 2 the "
                                     "harness itself failed (traceback shown and, with --out, in DIR/fuzz-report.json).",
                         formatter_class=argparse.RawDescriptionHelpFormatter)
-    fz.add_argument("--max-examples", type=_positive, default=300, help="most models to try (default 300)")
+    fz.add_argument("--max-examples", type=_positive, default=300,
+                    help="most generated models (structures) to try (default 300); each is judged on "
+                         "64 variants of its parameters, initial state and controls, compiled once")
     fz.add_argument("--seed", type=int, default=0, help="Hypothesis seed (default 0)")
     fz.add_argument("--budget", type=float, default=None, metavar="SECONDS",
                     help="seconds of generation (default 60); shrinking a find may take longer")
@@ -357,7 +359,8 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
         doc = dict(versions=report.versions(),
                    config=dict(max_examples=args.max_examples, seed=args.seed, budget=budget,
                                include_known=args.include_known),
-                   examples=result.examples, seconds=result.seconds, failure=result.failure,
+                   examples=result.examples, structures=result.structures, seconds=result.seconds,
+                   **result.rates(), failure=result.failure,
                    harness_error=result.harness_error, traceback=result.harness_traceback,
                    harness_example=result.harness_example)
         written = report.write_report(args.out, doc, "fuzz-report.json")
@@ -372,12 +375,15 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
         return 2
     if written:
         print(f"fuzz report written to {written}", file=sys.stderr)
-    rate = result.examples / max(result.seconds, 1e-9) * 60
+    rates = result.rates()
+    tried = (f"{result.examples} examples ({result.structures} generated models x {result.examples // max(1, result.structures)} "
+             f"variants; {rates['examples_per_minute']:.0f} examples, {rates['structures_per_minute']:.1f} models "
+             f"per minute)")
     if result.failure is None:
-        print(f"no divergence in {result.examples} generated models ({result.seconds:.0f} s, {rate:.1f}/min)")
+        print(f"no divergence in {tried}, {result.seconds:.0f} s")
         return 0
     f = result.failure
-    print(f"DIVERGENCE ({f['status']}) after {result.examples} models ({result.seconds:.0f} s): {f['message']}")
+    print(f"DIVERGENCE ({f['status']}) after {tried}, {result.seconds:.0f} s: {f['message']}")
     print(f"shrunk to {f['nbody']} bodies, {f['ngeom']} geoms; features: {', '.join(f['features']) or 'none'}")
     if f["reproducer"]:
         print(f"reproducer: {f['reproducer']} (python -m mjxdiff replay {f['reproducer']})")

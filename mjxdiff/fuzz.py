@@ -1,12 +1,14 @@
 """Differential fuzzing: Hypothesis generates models, states and controls; a
 divergence is shrunk to a minimal MJCF and saved as a reproducer.
 
-The property: for a generated MJX-supported model and a batch of initial
-states and control sequences of that one model (so one compile serves the
-batch), MJX and C rollouts agree under the same verdict as the sweep
-(tolerance floors and the chaos envelope). A failure is shrunk by Hypothesis
-(fewer bodies and geoms, default options, zero velocities, shorter horizons),
-and Hypothesis's example database keeps it so the next run tries it first.
+The property: for a generated MJX-supported model (a structure) and a batch of
+variants of it, MJX and C rollouts agree under the same verdict as the sweep
+(tolerance floors and the chaos envelope). Hypothesis explores structure; within
+one structure, :func:`variants` draws many parameter sets, initial states and
+control sequences at once, so that one compile (5-15 s) buys a batch of examples
+rather than one. A failure is shrunk by Hypothesis (fewer bodies and geoms,
+default options, smaller spreads of states and parameters), and Hypothesis's
+example database keeps it so the next run tries it first.
 
 Only the property's own divergence signal counts as a find: any other exception
 raised while generating, simulating or judging an example stops the run and is
@@ -26,6 +28,7 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from hypothesis import HealthCheck, Phase, assume, given, note, seed as hseed, settings
 from hypothesis import strategies as st
 from hypothesis.database import DirectoryBasedExampleDatabase
@@ -37,17 +40,41 @@ from mjxdiff.scenario import Tolerances
 from mjxdiff.sweep import release_compiled_if_crowded
 from mjxdiff.verdict import ScenarioResult
 
-__all__ = ["DEFAULT_BUDGET", "KNOWN_DIVERGENCES", "FuzzResult", "fuzz", "model_strategy"]
+__all__ = ["DEFAULT_BUDGET", "DEFAULT_VARIANTS", "KNOWN_DIVERGENCES", "FuzzResult", "fuzz", "model_strategy",
+           "variants"]
 
 #: Seconds of generation before the fuzzer stops looking (shrinking a found failure may take longer).
 DEFAULT_BUDGET = 60.0
+#: Variants (parameters, state, controls) judged per generated structure: one compile serves them all.
+DEFAULT_VARIANTS = 64
 
 #: Features left out by default because C 4.0.0 and MJX 3.17.0 are known to differ on them.
 KNOWN_DIVERGENCES = {
     "connect/weld equality": "efc_aref of equality rows differs (scenarios/equality.toml notes)",
     "RK4, implicitfast": "free/ball rotation and RK4 sensordata differ (scenarios/integrator_*.toml notes)",
     "box and mesh geoms": "box-box contact points differ (scenarios/box_stack.toml notes)",
+    "acceleration sensors without constraints": "MJX's forward skips sensor_acc when the model has no "
+                                                "constraint rows: accelerometer, force, torque, framelinacc "
+                                                "and frameangacc read 0 (tests/test_known_divergences.py)",
+    "solver stopping at once": "MJX's solver starts with prev_cost = 0 and stops at 0 iterations when the "
+                               "warm start's cost is positive (tests/test_known_divergences.py)",
 }
+
+#: Sensor types MJX computes in ``sensor_acc``.
+_ACC_SENSORS = frozenset({"mjSENS_ACCELEROMETER", "mjSENS_FORCE", "mjSENS_TORQUE", "mjSENS_FRAMELINACC",
+                          "mjSENS_FRAMEANGACC", "mjSENS_TOUCH", "mjSENS_CONTACT"})
+
+
+def known_divergence(m) -> str | None:
+    """The :data:`KNOWN_DIVERGENCES` entry a generated model falls under that only its compiled
+    form shows, or None: acceleration-stage sensors in a model MJX gives no constraint rows."""
+    import mujoco
+    from mujoco import mjx
+
+    types = {mujoco.mjtSensor(t).name for t in m.sensor_type}
+    if types & _ACC_SENSORS and mjx.make_data(m)._impl.efc_J.size == 0:
+        return "acceleration sensors without constraints"
+    return None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,7 +82,8 @@ class FuzzResult:
     """What a fuzzing run found.
 
     Attributes:
-      examples: models tried (each with a batch of states and controls).
+      examples: examples judged: variants (parameters, initial state, controls) of
+        the structures tried, ``structures x variants``.
       seconds: wall time.
       failure: None, or the shrunk failing example: ``xml``, ``nbody``,
         ``ngeom``, ``features``, ``message`` and ``reproducer`` (path or None).
@@ -66,6 +94,7 @@ class FuzzResult:
       harness_traceback: the full traceback text of ``harness_error``.
       harness_example: MJCF of the generated model being tried when the harness
         failed (None if it failed before a model was drawn).
+      structures: generated models (structures) tried, each compiled once.
     """
 
     examples: int
@@ -74,6 +103,12 @@ class FuzzResult:
     harness_error: str | None = None
     harness_traceback: str | None = None
     harness_example: str | None = None
+    structures: int = 0
+
+    def rates(self) -> dict[str, float]:
+        """Examples and structures per minute of wall time."""
+        minutes = max(self.seconds, 1e-9) / 60
+        return dict(examples_per_minute=self.examples / minutes, structures_per_minute=self.structures / minutes)
 
 
 class _Divergence(AssertionError):
@@ -112,11 +147,93 @@ def model_strategy(include_known: bool = False, max_bodies: int = 3) -> st.Searc
                                   equality=False, options=options)
 
 
-def _divergence(xml: str, qpos, qvel, act, ctrl, config) -> ScenarioResult:
+#: Spreads :func:`variants` draws from, simplest first (Hypothesis shrinks toward the first).
+QPOS_SPREADS = (0.0, 0.05, 0.2, 0.5)
+QVEL_SPREADS = (0.0, 0.1, 0.5, 1.0)
+PARAMETER_SPREADS = (0.0, 0.1, 0.3)
+
+
+def variants(m, seed: int, batch: int, steps: int, qpos_noise: float = 0.05, qvel_noise: float = 0.1,
+             control: str = "smooth", spread: float = 0.1) -> BatchedInputs:
+    """``batch`` variants of one model structure, drawn with NumPy from ``seed`` as a scenario's
+    members are (:func:`mjxdiff.inputs.make_inputs`): initial states with Gaussian noise
+    (``qpos_noise`` rad or m, ``qvel_noise`` rad/s or m/s), controls of the ``control`` family,
+    and masses, frictions, damping and actuator gains each scaled by U[1 - spread, 1 + spread]
+    (gravity by a fifth of that). Every variant has the model's structure, so one compiled
+    rollout judges them all."""
+    from mjxdiff.inputs import make_inputs
+    from mjxdiff.scenario import Randomization, Scenario
+
+    scale = {name: (1 - spread, 1 + spread) for name in ("body_mass", "geom_friction", "dof_damping",
+                                                         "actuator_gain")}
+    scale["gravity"] = (1 - spread / 5, 1 + spread / 5)
+    randomize = Randomization(qpos_noise=qpos_noise, qvel_noise=qvel_noise, control=control, scale=scale)
+    inputs = make_inputs(Scenario(name="fuzz", model="<generated>", randomize=randomize), m, seed, batch, steps)
+    qpos = np.stack([_shallow(mi, q) for mi, q in zip(inputs.models, inputs.qpos)])
+    return dataclasses.replace(inputs, qpos=qpos)
+
+
+#: Deepest initial penetration (m) :func:`variants` starts a member with.
+MAX_INITIAL_PENETRATION = 0.01
+
+
+def _shallow(m, qpos: np.ndarray) -> np.ndarray:
+    """``qpos`` or, where it starts a geom deeper than :data:`MAX_INITIAL_PENETRATION` inside
+    another, its displacement from ``qpos0`` halved until it does not (at worst ``qpos0``).
+
+    A member sunk into the floor (a slide joint displaced half a metre) is no physical
+    state, and C and MJX legitimately part there (MJX's plane-cylinder test returns three
+    contacts by design, C adds a fourth on the far cap when a cylinder is fully submerged).
+    """
+    import mujoco
+
+    d = mujoco.MjData(m)
+    v = np.zeros(m.nv)
+    mujoco.mj_differentiatePos(m, v, 1.0, m.qpos0, qpos)
+    for halving in range(8):
+        q = m.qpos0.copy()
+        mujoco.mj_integratePos(m, q, v * 0.5**halving, 1.0)
+        d.qpos[:] = q
+        mujoco.mj_forward(m, d)
+        if d.ncon == 0 or d.contact.dist[:d.ncon].min() >= -MAX_INITIAL_PENETRATION:
+            return q if halving else qpos
+    return m.qpos0.copy()
+
+
+def solver_stopped_at_once(m, inputs: BatchedInputs, result: ScenarioResult) -> bool:
+    """Whether a divergence is MJX's solver stopping at 0 iterations (:data:`KNOWN_DIVERGENCES`):
+    from C's states just before the first divergent step of the first divergent member, MJX's
+    ``forward`` (given C's warm start) does no solver iteration and misses C's ``qacc``."""
+    import mujoco
+    from mujoco import mjx
+
+    from mjxdiff import engines
+
+    first = result.first_divergence or {}
+    member, step = first.get("member", -1), first.get("step", -1)
+    if member < 0 or step < 0:
+        return False
+    mi = inputs.models[member]
+    d = mujoco.MjData(mi)
+    d.qpos[:], d.qvel[:], d.act[:] = inputs.qpos[member], inputs.qvel[member], inputs.act[member]
+    mx = mjx.put_model(mi)
+    for t in range(step + 1):
+        d.ctrl[:] = inputs.ctrl[member, t]
+        if t >= step - 2:
+            mujoco.mj_forward(mi, d)
+            dx = engines.forward(mx, mjx.make_data(mi).replace(
+                qpos=d.qpos.copy(), qvel=d.qvel.copy(), act=d.act.copy(), ctrl=d.ctrl.copy(),
+                qacc_warmstart=d.qacc_warmstart.copy()))
+            if (int(dx._impl.solver_niter) == 0 < d.solver_niter[0]
+                    and not np.allclose(np.asarray(dx.qacc), d.qacc, rtol=1e-6, atol=1e-6)):
+                return True
+        mujoco.mj_step(mi, d)
+    return False
+
+
+def _divergence(m, inputs: BatchedInputs, config) -> ScenarioResult:
     from mjxdiff.sweep import run_inputs
 
-    m = strategies.MjcfModel(xml=xml, nbody=0, ngeom=0, features=(), unsupported_feature=None).model()
-    inputs = BatchedInputs(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl, models=(m,) * len(qpos), factors={}, seed=0)
     return run_inputs("fuzz", m, inputs, Tolerances(), config)
 
 
@@ -129,20 +246,21 @@ def is_divergence(result: ScenarioResult) -> bool:
 
 
 def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET, out: str | Path | None = None,
-         database: str | Path | None = None, include_known: bool = False, batch: int = 4,
+         database: str | Path | None = None, include_known: bool = False, batch: int = DEFAULT_VARIANTS,
          steps: int = 40, progress: bool = False, shrink_budget: float | None = None) -> FuzzResult:
     """Runs the differential property until a divergence, ``max_examples`` or ``budget`` seconds.
 
     Args:
-      max_examples: most models to try.
+      max_examples: most structures (generated models) to try.
       seed: Hypothesis seed (same seed and database, same sequence).
       budget: seconds of generation; once spent, further examples are skipped.
       out: directory for the reproducer of a found divergence.
       database: Hypothesis example database directory (default ``out/.hypothesis``
         or ``~/.cache/mjxdiff/hypothesis``).
       include_known: also generate features with known divergences.
-      batch: states and control sequences per model (one compile each).
-      steps: longest horizon (Hypothesis shrinks toward 10).
+      batch: variants (parameters, states, controls; :func:`variants`) judged per
+        structure, by one compiled rollout.
+      steps: horizon of every rollout (fixed, so that a structure compiles once).
       shrink_budget: seconds allowed for shrinking a find (default max(120, 2 x budget));
         each shrink candidate is a new model structure, hence a new compile.
     """
@@ -173,9 +291,13 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
         mj = data.draw(model_strategy(include_known), label="model")
         seen["xml"] = mj.xml
         m = mj.model()
-        horizon = data.draw(st.integers(10, steps), label="steps")
-        state = data.draw(strategies.initial_states(m, batch=batch), label="state")
-        ctrl = data.draw(strategies.control_sequences(m, horizon, batch=batch), label="ctrl")
+        if not include_known and known_divergence(m) is not None:
+            assume(False)  # not generated by default: see KNOWN_DIVERGENCES
+        spread = dict(qpos_noise=data.draw(st.sampled_from(QPOS_SPREADS), label="qpos spread"),
+                      qvel_noise=data.draw(st.sampled_from(QVEL_SPREADS), label="qvel spread"),
+                      control=data.draw(st.sampled_from(strategies.CONTROL_FAMILIES), label="controls"),
+                      spread=data.draw(st.sampled_from(PARAMETER_SPREADS), label="parameter spread"))
+        variant_seed = data.draw(st.integers(0, 2**32 - 1), label="variant seed")
         # Out of time: pass without simulating (drawing stays deterministic, which Hypothesis
         # checks). While shrinking a find, allow shrink_budget more; the smallest failure so
         # far is kept in `seen`.
@@ -184,14 +306,17 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
             return
         seen["examples"] += searching
         if progress:
-            print(f"[fuzz] example {seen['examples']}: {mj.nbody} bodies, {mj.ngeom} geoms, {horizon} steps"
+            print(f"[fuzz] structure {seen['examples']}: {mj.nbody} bodies, {mj.ngeom} geoms, {batch} variants"
                   f" ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
         release_compiled_if_crowded()  # every generated structure compiles anew
-        result = _divergence(mj.xml, state.qpos, state.qvel, state.act, ctrl, config)
+        inputs = variants(m, variant_seed, batch, steps, **spread)
+        result = _divergence(m, inputs, config)
         if not is_divergence(result):
             assume(result.status == "pass")  # C blew up or MJX refused the model: not a divergence either
             return
-        seen["last_failure"] = dict(mj=mj, state=state, ctrl=ctrl, result=result)
+        if not include_known and solver_stopped_at_once(m, inputs, result):
+            assume(False)  # a known divergence: see KNOWN_DIVERGENCES
+        seen["last_failure"] = dict(mj=mj, inputs=inputs, result=result)
         note(mj.xml)
         raise _Divergence(result.message)
 
@@ -215,17 +340,15 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
         errors = dict(harness_error=" ".join(f"{type(harness).__name__}: {harness}".split()),
                       harness_traceback="".join(traceback.format_exception(harness)), harness_example=example_xml)
     found = seen["last_failure"]
+    structures = seen["examples"]
     if found is None:
-        return FuzzResult(seen["examples"], seconds, None, **errors)
-    mj, result = found["mj"], found["result"]
+        return FuzzResult(structures * batch, seconds, None, structures=structures, **errors)
+    mj, result, inputs = found["mj"], found["result"], found["inputs"]
     path = None
     if out is not None:
-        m = mj.model()
-        inputs = BatchedInputs(qpos=found["state"].qpos, qvel=found["state"].qvel, act=found["state"].act,
-                               ctrl=found["ctrl"], models=(m,) * batch, factors={}, seed=seed)
         member = max(result.first_divergence["member"], 0) if result.first_divergence else 0
         path = reproducer.save(report.path_under(Path(out) / "reproducers", "fuzz.json"), "fuzz", member, inputs,
                                mj.xml, Tolerances(), config.as_dict(), report.result_dict(result), report.versions())
-    return FuzzResult(seen["examples"], seconds, dict(
+    return FuzzResult(structures * batch, seconds, dict(
         xml=mj.xml, nbody=mj.nbody, ngeom=mj.ngeom, features=list(mj.features), message=result.message,
-        status=result.status, reproducer=str(path) if path else None), **errors)
+        status=result.status, reproducer=str(path) if path else None), structures=structures, **errors)

@@ -39,7 +39,7 @@ def test_harness_error_is_reported_not_read_as_no_divergence(error, line, monkey
     assert doc["traceback"].startswith("Traceback (most recent call last):")
     assert "in divergence" in doc["traceback"] and line in doc["traceback"]
     assert doc["traceback"].rstrip("\n") in err
-    assert doc["failure"] is None and doc["examples"] == 1  # stopped at once, not shrunk
+    assert doc["failure"] is None and doc["structures"] == 1  # stopped at once, not shrunk
     assert doc["harness_example"].startswith("<mujoco")
     assert isinstance(doc["seconds"], float)
     assert not (tmp_path / "reproducers").exists()
@@ -66,9 +66,11 @@ def test_clean_run_writes_a_report(monkeypatch, tmp_path, capsys):
     monkeypatch.setattr(fuzz, "_divergence", lambda *a, **k: ScenarioResult(name="fuzz", status="pass", message="ok"))
     assert cli.main([*ARGS, "--out", str(tmp_path)]) == 0
     out, err = capsys.readouterr()
-    assert out.startswith("no divergence in 3 generated models")
+    assert out.startswith(f"no divergence in {3 * fuzz.DEFAULT_VARIANTS} examples (3 generated models x "
+                          f"{fuzz.DEFAULT_VARIANTS} variants"), out
     doc = json.loads((tmp_path / "fuzz-report.json").read_text())
-    assert doc["examples"] == 3 and doc["failure"] is None and doc["harness_error"] is None
+    assert doc["structures"] == 3 and doc["examples"] == 3 * fuzz.DEFAULT_VARIANTS
+    assert doc["failure"] is None and doc["harness_error"] is None
     assert doc["traceback"] is None
     assert "mjxdiff: error" not in err
 

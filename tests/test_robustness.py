@@ -65,19 +65,24 @@ def test_a_drill_down_that_raises_leaves_the_verdict_and_the_rest(fresh_mjx, mon
     assert "local_error" in result.diagnosis and "drill_down" not in result.diagnosis
 
 
-def test_an_internal_error_is_that_scenarios_error(monkeypatch):
+@pytest.mark.parametrize("where", ["_prepare", "_finish"])
+@pytest.mark.parametrize("workers", [0, 2])
+def test_an_internal_error_is_that_scenarios_error(monkeypatch, where, workers):
+    """mjxdiff failing on one scenario, while it is prepared and compiled (ahead, on a compile
+    worker, or in order) or while it runs, is that scenario's error; the next one runs."""
     import mjxdiff.sweep as sweep_module
 
-    real = sweep_module.run_scenario
+    real = getattr(sweep_module, where)
 
-    def flaky(scenario, *args, **kwargs):
+    def flaky(first, *args, **kwargs):
+        scenario = first if where == "_prepare" else first.scenario
         if scenario.name == "pendulum":
             raise KeyError("boom")
-        return real(scenario, *args, **kwargs)
+        return real(first, *args, **kwargs)
 
-    monkeypatch.setattr(sweep_module, "run_scenario", flaky)
+    monkeypatch.setattr(sweep_module, where, flaky)
     first, second = sweep([load_scenario("pendulum"), load_scenario("cartpole")],
-                          SweepConfig(seed=0, batch=2, steps=30, diagnose="none"))
+                          SweepConfig(seed=0, batch=2, steps=30, diagnose="none", compile_workers=workers))
     assert (first.status, first.error_kind) == ("error", "internal") and "KeyError" in first.message
     assert second.status == "pass", second.message
 
