@@ -25,9 +25,10 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import enum
 import hashlib
 import importlib.metadata
-import enum
+import json
 import os
 import pickle
 import sys
@@ -333,8 +334,161 @@ def fresh_digest() -> str:
     digest = rollout_digest()
     if _SEEN["digest"] not in (None, digest):
         jax.clear_caches()
+        _FUNCTION_DIGESTS.clear()
+        _MODULE_FUNCTIONS.clear()
     _SEEN["digest"] = digest
     return digest
+
+
+# --- what one trace depended on -------------------------------------------------------------
+#
+# An artifact is valid for exactly the code its trace ran. The trace records every function of
+# TRACED_MODULES it called (sys.settrace) and every function whose lines emitted an operation
+# (the StableHLO's locations, which a sub-trace JAX took from its caches keeps): its
+# dependencies. Each is digested "shallowly": its code (nested functions included), defaults,
+# closure and the globals it reads, where a function of TRACED_MODULES stands for itself by name
+# (its own code counts only if it ran, and then it is a dependency). An edit of one collision
+# function therefore retraces only the rollouts that ran it.
+
+_FUNCTION_DIGESTS: dict[tuple[str, str], str] = {}  # (module, qualname) -> shallow digest; cleared on a code change
+_LOCATION = __import__("re").compile(r'loc\("([^"]+)":(\d+):')
+
+
+class _Shallow(_Digest):
+    """A :class:`_Digest` in which functions of the traced modules met below the top stand for
+    themselves by name."""
+
+    def feed(self, value: Any, depth: int = 0) -> None:
+        if depth > 0:
+            fn = _unwrap(value)
+            if isinstance(fn, types.FunctionType) and self._ours(getattr(fn, "__module__", None)):
+                self.h.update(f"fn {fn.__module__}.{fn.__qualname__}".encode())
+                return
+        super().feed(value, depth)
+
+
+def _unwrap(value: Any) -> Any:
+    for _ in range(8):
+        inner = getattr(value, "__wrapped__", None)
+        if inner is None or inner is value:
+            break
+        value = inner
+    return value
+
+
+_MODULE_FUNCTIONS: dict[str, dict[str, types.FunctionType]] = {}  # cleared on a code change, with the digests
+
+
+def _functions(module: str) -> dict[str, types.FunctionType]:
+    """``co_qualname`` -> function, for the functions ``module`` defines that can be found from its
+    namespace: module-level functions and methods (unwrapped), and the functions held in their
+    closures (a decorator's wrapper keeps the decorated function there: MJX's colliders)."""
+    if module not in _MODULE_FUNCTIONS:
+        found: dict[str, types.FunctionType] = {}
+
+        def visit(value: Any, depth: int) -> None:
+            fn = _unwrap(value.__func__ if isinstance(value, (staticmethod, classmethod)) else value)
+            if isinstance(value, property):
+                for part in (value.fget, value.fset, value.fdel):
+                    visit(part, depth)
+                return
+            if not isinstance(fn, types.FunctionType) or fn.__module__ != module:
+                return
+            if found.setdefault(fn.__code__.co_qualname, fn) is not fn or depth > 3:
+                return
+            for cell in fn.__closure__ or ():
+                with contextlib.suppress(ValueError):
+                    visit(cell.cell_contents, depth + 1)
+
+        for value in list(vars(sys.modules[module]).values()):
+            if isinstance(value, type) and value.__module__ == module:
+                for member in list(vars(value).values()):
+                    visit(member, 0)
+            else:
+                visit(value, 0)
+        _MODULE_FUNCTIONS[module] = found
+    return _MODULE_FUNCTIONS[module]
+
+
+def _resolve(module: str, qualname: str) -> Any:
+    return _functions(module).get(qualname) if module in sys.modules else None
+
+
+def function_digest(module: str, qualname: str) -> str:
+    """Shallow digest of the module-level function or method ``module.qualname`` as loaded now
+    ("missing" if there is none)."""
+    key = (module, qualname)
+    if key not in _FUNCTION_DIGESTS:
+        obj = _resolve(module, qualname)
+        if obj is None:
+            _FUNCTION_DIGESTS[key] = "missing"
+        else:
+            d = _Shallow(TRACED_MODULES)
+            d.feed(obj)
+            _FUNCTION_DIGESTS[key] = d.h.hexdigest()
+    return _FUNCTION_DIGESTS[key]
+
+
+def _traced_files() -> dict[str, str]:
+    """Source file -> module name, for the modules of TRACED_MODULES."""
+    return {os.path.realpath(m.__file__): name for name, m in _modules(TRACED_MODULES) if getattr(m, "__file__", None)}
+
+
+def _line_index(module: str) -> list[tuple[int, int, str]]:
+    """(first line, last line, qualname) of every function :func:`_functions` finds in ``module``."""
+    out = []
+
+    def lines(code: types.CodeType) -> list[int]:
+        found = [line for _, _, line in code.co_lines() if line is not None]
+        for const in code.co_consts:
+            if isinstance(const, types.CodeType):
+                found += lines(const)
+        return found
+
+    for qualname, fn in _functions(module).items():
+        found = lines(fn.__code__)
+        if found:
+            out.append((min(found), max(found), qualname))
+    return out
+
+
+def dependencies(called: set[types.CodeType], mlir_text: str) -> dict[str, str]:
+    """``"module:qualname"`` -> :func:`function_digest` for each module-level function or method
+    of TRACED_MODULES a trace ran (``called``: code objects of its frames) or whose lines
+    emitted an operation (locations in ``mlir_text``)."""
+    files = _traced_files()
+    found: set[tuple[str, str]] = set()
+    for code in called:
+        module = files.get(os.path.realpath(code.co_filename))
+        if module is not None:
+            found.add((module, code.co_qualname.split(".<locals>")[0]))
+    by_file: dict[str, set[int]] = {}
+    for file, line in _LOCATION.findall(mlir_text):
+        by_file.setdefault(file, set()).add(int(line))
+    for file, lines in by_file.items():
+        module = files.get(os.path.realpath(file))
+        if module is None:
+            continue
+        index = _line_index(module)
+        for line in lines:
+            spans = [(last - first, q) for first, last, q in index if first <= line <= last]
+            if spans:
+                found.add((module, min(spans)[1]))
+            else:  # a line of no function (module level): depend on the whole module
+                found.add((module, "*"))
+    # a function that cannot be found again by name (a lambda in a dict): the whole module counts
+    found = {(m, q if q == "*" or _resolve(m, q) is not None else "*") for m, q in found}
+    return {f"{m}:{q}": (code_digest((m,)) if q == "*" else function_digest(m, q)) for m, q in sorted(found)}
+
+
+def _deps_hold(deps: dict[str, str]) -> bool:
+    for name, digest in deps.items():
+        module, qualname = name.split(":", 1)
+        if module not in sys.modules:
+            return False
+        if (code_digest((module,)) if qualname == "*" else function_digest(module, qualname)) != digest:
+            return False
+    return True
 
 
 #: Most bytes of artifacts kept (~2,500 of 130-230 KB); beyond it the least recently used go.
@@ -352,12 +506,48 @@ def _load(path: Path):
     return found
 
 
-def _save(path: Path, out_tree, exported) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(f".{os.getpid()}.tmp")
-    tmp.write_bytes(pickle.dumps((out_tree, bytes(exported.serialize()))))
+def _write(path: Path, data: bytes) -> None:
+    tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
+    tmp.write_bytes(data)
     os.replace(tmp, path)  # atomic: a concurrent reader sees the old file or the whole new one
-    evict(path.parent, keep=path)
+
+
+def _save(directory: Path, out_tree, exported, deps: dict[str, str]) -> Path:
+    """Writes the artifact and, last, its dependencies (``<digest of deps>.jaxexport`` and
+    ``.deps`` in ``directory``, the arguments' key): a reader only trusts complete pairs."""
+    directory.mkdir(parents=True, exist_ok=True)
+    stem = hashlib.sha256(json.dumps(deps, sort_keys=True).encode()).hexdigest()[:32]
+    path = directory / f"{stem}.jaxexport"
+    _write(path, pickle.dumps((out_tree, bytes(exported.serialize()))))
+    _write(path.with_suffix(".deps"), json.dumps(deps, sort_keys=True).encode())
+    evict(directory.parent, keep=path)
+    return path
+
+
+def matching(directory: Path) -> list[Path]:
+    """The artifacts in ``directory`` (one arguments' key) whose recorded dependencies all still
+    have the digests they had when they were traced: those the code loaded now may run."""
+    try:
+        candidates = sorted(directory.glob("*.deps"))
+    except OSError:
+        return []
+    out = []
+    for deps_path in candidates:
+        try:
+            deps = json.loads(deps_path.read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(deps, dict) and _deps_hold(deps):
+            out.append(deps_path.with_suffix(".jaxexport"))
+    return out
+
+
+def _load_matching(directory: Path):
+    for path in matching(directory):
+        found = _load(path) if path.exists() else None
+        if found is not None:
+            return found
+    return None
 
 
 def evict(directory: Path, keep: Path | None = None, budget: int = MAX_BYTES) -> int:
@@ -366,7 +556,7 @@ def evict(directory: Path, keep: Path | None = None, budget: int = MAX_BYTES) ->
     Returns how many it deleted. JAX's own cache eviction does not see these files, and every
     new model structure (a fuzz run makes hundreds) adds one."""
     files = []
-    for path in directory.glob("*.jaxexport"):
+    for path in directory.rglob("*.jaxexport"):
         with contextlib.suppress(OSError):
             st = path.stat()
             files.append((st.st_mtime, st.st_size, path))
@@ -376,6 +566,7 @@ def evict(directory: Path, keep: Path | None = None, budget: int = MAX_BYTES) ->
             break
         if path != keep:
             with contextlib.suppress(OSError):  # another process got there first
+                path.with_suffix(".deps").unlink(missing_ok=True)
                 path.unlink()
                 deleted += 1
             total -= size
@@ -430,21 +621,21 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
     directory = export_dir()
     leaves, treedef = jax.tree.flatten(args)
     try:
-        key = _key_of(fn, treedef, leaves, static, code)
+        key = _key_of(fn, treedef, leaves, static, settings_digest())
     except (pickle.PicklingError, TypeError, AttributeError):  # static data that cannot be pickled
         return direct
-    memo = key, repr(options_key)
+    memo = key, code, repr(options_key)
     with _key_lock(memo):
         if memo not in _FUNCTIONS:
-            path = directory / f"{key}.jaxexport" if directory is not None else None
-            found = _load(path) if path is not None and path.exists() else None
+            found = _load_matching(directory / key) if directory is not None else None
             if found is None:
-                found = _export(fn, treedef, leaves, static)
-                if found is None:
+                traced = _export(fn, treedef, leaves, static)
+                if traced is None:
                     return direct
-                if path is not None:
+                found, deps = traced[:2], traced[2]
+                if directory is not None:
                     with contextlib.suppress(Exception):  # unwritable cache dir, no flatbuffers: use it unsaved
-                        _save(path, *found)
+                        _save(directory / key, *found, deps)
             else:
                 _LOADED["count"] += 1
                 count("loaded")
@@ -464,7 +655,8 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
 
 
 def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
-    """(output tree structure, Exported) of ``fn`` over flat leaves, or None if it cannot be exported."""
+    """(output tree structure, Exported, dependencies) of ``fn`` over flat leaves (:func:`dependencies`
+    of the trace), or None if it cannot be exported."""
     out_tree = []
     python = getattr(fn, "__wrapped__", fn)  # traced afresh, never a jitted function's cached trace
 
@@ -474,8 +666,18 @@ def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
         return out
 
     shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None)) for x in leaves]
+    called: set[types.CodeType] = set()
+    before = sys.gettrace()
+
+    def tracer(frame, event, arg):  # frames the trace runs: a 'call' event each, no line events
+        called.add(frame.f_code)
+        return before(frame, event, arg) if before is not None else None
+
+    sys.settrace(tracer)
     try:
         exported = export.export(jax.jit(flat), platforms=["cpu"])(*shapes)
     except Exception:  # noqa: BLE001 - the direct call that follows raises MJX's own error, if any
         return None
-    return out_tree[0], exported
+    finally:
+        sys.settrace(before)
+    return out_tree[0], exported, dependencies(called, exported.mlir_module())

@@ -1,6 +1,7 @@
 """Saved rollouts: loaded without tracing, bit-identical, never used for patched MJX or another structure."""
 
 import functools
+import json
 import os
 import subprocess
 import sys
@@ -62,6 +63,37 @@ def test_patched_mjx_is_traced_and_its_own_artifact_reused_for_that_code_only(pe
     assert export_cache.rollout_digest() == clean_code
     np.testing.assert_array_equal(_rollout(inputs).qvel, clean.qvel)
     assert engines.compile_count() == compiles, "the clean code's artifact is loaded again"
+
+
+def test_an_edit_retraces_only_the_rollouts_that_ran_the_edited_function(pendulum, monkeypatch):
+    """Artifacts depend on the functions their trace ran, not on all of MJX: an edit of a collision
+    function the pendulum never runs keeps its artifact; an edit of one it runs does not."""
+    from mujoco.mjx._src import collision_primitive, smooth
+
+    _, inputs = pendulum
+    clean = _rollout(inputs)
+    sphere_sphere = collision_primitive._sphere_sphere
+    monkeypatch.setattr(collision_primitive, "_sphere_sphere",
+                        lambda *a: (lambda dist, pos, n: (dist * 1.001, pos, n))(*sphere_sphere(*a)))
+    compiles, loaded = engines.compile_count(), export_cache.loaded_count()
+    np.testing.assert_array_equal(_rollout(inputs).qpos, clean.qpos)
+    assert (engines.compile_count(), export_cache.loaded_count()) == (compiles, loaded + 1), "not retraced"
+    rne = smooth.rne
+    monkeypatch.setattr(smooth, "rne", lambda m, d, *a, **k: (lambda d: d.replace(
+        qfrc_bias=d.qfrc_bias * (1 + 1e-3)))(rne(m, d, *a, **k)))
+    patched = _rollout(inputs)
+    assert engines.compile_count() + export_cache.loaded_count() == compiles + loaded + 2
+    assert np.abs(patched.qpos - clean.qpos).max() > 1e-9, "the edited rne ran"
+
+
+def test_dependencies_name_the_functions_a_trace_ran(pendulum):
+    _, inputs = pendulum
+    _rollout(inputs)
+    [path] = export_cache.matching(export_cache.export_dir() / next(iter(export_cache._FUNCTIONS))[0])
+    deps = json.loads(path.with_suffix(".deps").read_text())
+    assert "mujoco.mjx._src.smooth:rne" in deps and "mujoco.mjx._src.forward:forward" in deps
+    assert "mjxdiff.engines:_scan_steps" in deps
+    assert not any(name.startswith("mujoco.mjx._src.collision_primitive:") for name in deps), "no contacts"
 
 
 def _key(*models: mujoco.MjModel) -> str:
@@ -140,11 +172,18 @@ def test_the_digest_is_stable_across_rollouts_and_processes(pendulum):
     assert other.stdout.split()[-1] == before, other.stderr[-2000:]
 
 
+def _artifact():
+    """The file of the one rollout compiled in this process (artifacts live in a directory named by
+    the arguments' key, one file per set of traced code)."""
+    [((key, _, _), _)] = export_cache._FUNCTIONS.items()
+    [path] = export_cache.matching(export_cache.export_dir() / key)
+    return path
+
+
 def test_a_damaged_artifact_is_traced_again_and_rewritten(pendulum):
     _, inputs = pendulum
     reference = _rollout(inputs)
-    [((key, _), _)] = export_cache._FUNCTIONS.items()  # this rollout's artifact, just loaded or saved
-    path = export_cache.export_dir() / f"{key}.jaxexport"
+    path = _artifact()  # this rollout's artifact, just loaded or saved
     for damaged in (b"", b"not a pickle", path.read_bytes()[:100]):
         path.write_bytes(damaged)
         loaded = export_cache.loaded_count()
@@ -171,8 +210,7 @@ def test_the_least_recently_used_artifacts_are_evicted_beyond_the_budget(tmp_pat
 def test_loading_an_artifact_marks_it_recently_used(pendulum):
     _, inputs = pendulum
     _rollout(inputs)
-    [((key, _), _)] = export_cache._FUNCTIONS.items()
-    path = export_cache.export_dir() / f"{key}.jaxexport"
+    path = _artifact()
     os.utime(path, (1000, 1000))
     _rollout(inputs)  # loads it
     assert path.stat().st_mtime > 1000

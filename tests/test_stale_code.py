@@ -50,7 +50,7 @@ def test_an_edited_mjx_is_traced_and_fails_although_artifacts_of_the_clean_one_e
     cache = repo_root / ".jax_cache"  # the session's: the clean rollout is usually warm already
     clean = _sweep(tmp_path, "clean", cache)
     assert clean["exit"] == 0 and clean["summary"]["pass"] == 1
-    assert list((cache / "mjxdiff-exports").glob("*.jaxexport")), "the clean run left its artifact"
+    assert list((cache / "mjxdiff-exports").rglob("*.jaxexport")), "the clean run left its artifact"
     edited = _sweep(tmp_path, "edited", cache)
     [scenario] = edited["scenarios"]
     assert edited["exit"] == 1 and scenario["status"] == "fail", scenario["message"]
@@ -77,7 +77,7 @@ shutil.rmtree(export_cache.export_dir(), ignore_errors=True)  # the artifact is 
 scenario = load_scenario("pendulum")
 inputs = make_inputs(scenario, load_model(scenario), seed=0, batch=2, steps=20)
 engines.MJXEngine().rollout(inputs)
-[path] = export_cache.export_dir().glob("*.jaxexport")
+[path] = export_cache.export_dir().rglob("*.jaxexport")
 blob = pickle.loads(path.read_bytes())[1]
 print(hashlib.sha256(blob).hexdigest(), events["hits"], events["misses"])
 """
