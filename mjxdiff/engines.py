@@ -257,30 +257,6 @@ class CEngine:
     def rollout(self, inputs: BatchedInputs) -> Trajectory:
         return concat(list(self.stream(inputs, inputs.steps)))
 
-    def _bound(self, inputs: BatchedInputs, chunk: int):
-        """The compiled piece function of :meth:`stream`, its first arguments, the placer and the
-        padded controls: (run, (mx, dx, ctrl piece), place, ctrl)."""
-        B, T = inputs.batch, inputs.steps
-        mx, varying, dx0, place, mesh = self._prepare(inputs)
-        dtype = dx0.qpos.dtype
-        state = dict(qpos=inputs.qpos, qvel=inputs.qvel, act=inputs.act)
-        dx = jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (B, *x.shape)), jax.device_get(dx0))
-        dx = place(dx.replace(**{k: np.asarray(v, dtype) for k, v in state.items()}))
-        ctrl = np.zeros((B, -(-T // chunk) * chunk, inputs.ctrl.shape[2]), dtype)
-        ctrl[:, :T] = inputs.ctrl
-        args = (mx, dx, place(ctrl[:, :chunk]))
-        steps = ctrl.shape[1]  # every piece runs the compiled function: the work it will do
-        run = export_cache.bind(_rollout, args, dict(varying=varying, with_energy=inputs.energy, mesh=mesh),
-                                xla_options(self.compile, steps), (self.compile, steps))
-        return run, args, place, ctrl
-
-    def compile_ahead(self, inputs: BatchedInputs, chunk: int) -> None:
-        """Compiles what :meth:`stream` of ``inputs`` in pieces of ``chunk`` steps will run, so
-        that the stream starts at once; safe from another thread. Best effort: any problem
-        (an unsupported feature) is left for :meth:`stream` to raise and report."""
-        with contextlib.suppress(Exception), _unsupported():
-            self._bound(inputs, chunk)
-
     def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
         """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
 

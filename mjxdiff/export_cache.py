@@ -8,17 +8,17 @@ plus its input and output structure), and in later processes loads that
 instead of tracing; XLA's compile of the loaded module is a persistent-cache
 hit. Numbers are unchanged: the cold run already executes the exported module.
 
-A cache is only as good as its key. An artifact is keyed on everything the
-trace depended on: the tree structure of the arguments (which holds an
-``mjx.Model``'s static fields), each leaf's shape, dtype and sharding, the
-static arguments, the versions of jax, jaxlib, mujoco and mujoco-mjx, the JAX
-and XLA settings that change compilation, and the code itself
-(:func:`code_digest`): every function, class and constant of every imported
-``mujoco.mjx`` module and of ``mjxdiff.engines``, by bytecode, constants and
-nested code, default arguments, closure contents, the globals each function
-reads and the arguments of partials. MJX edited in place, patched at run time
-or rebuilt under the same version number is therefore traced again, and may
-reuse only artifacts made for exactly that code.
+A cache is only as good as its key. Artifacts live in a directory keyed on the
+tree structure of the arguments (which holds an ``mjx.Model``'s static fields),
+each leaf's shape, dtype and sharding, the static arguments, the versions of jax,
+jaxlib, mujoco and mujoco-mjx, and the JAX and XLA settings that change
+compilation. Each artifact there is valid for the code its trace ran
+(:func:`dependencies`): every function of ``mujoco.mjx`` and ``mjxdiff.engines``
+the trace called or whose lines emitted an operation, each digested by bytecode,
+constants and nested code, default arguments, closure contents and the globals it
+reads. It is loaded only while all of them have the same digest. MJX edited in
+place, patched at run time or rebuilt under the same version number is therefore
+traced again wherever the change reaches a function the rollout ran, and only there.
 """
 
 from __future__ import annotations
@@ -44,10 +44,11 @@ from jax import export
 __all__ = ["bind", "call", "clear", "code_digest", "count", "evict", "export_dir", "fresh_digest", "loaded_count",
            "rollout_digest", "settings_digest", "tally", "untraced"]
 
-# (artifact key, options key) -> (output tree structure, compiled call of an Exported, what the options chose)
-_FUNCTIONS: dict[tuple[str, str], tuple[Any, Callable, Any]] = {}
+# (arguments' key, whole-code digest, options key) -> (output tree structure, compiled call of an
+# Exported, what the options chose)
+_FUNCTIONS: dict[tuple[str, str, str], tuple[Any, Callable, Any]] = {}
 _LOADED = {"count": 0}
-_KEY_LOCKS: dict[tuple[str, str], threading.Lock] = {}  # one per key: threads binding the same function compile it once
+_KEY_LOCKS: dict[tuple[str, str, str], threading.Lock] = {}  # one per key: threads binding the same function compile it once
 _KEY_LOCKS_GUARD = threading.Lock()
 _LOCAL = threading.local()
 
@@ -334,8 +335,8 @@ def fresh_digest() -> str:
     digest = rollout_digest()
     if _SEEN["digest"] not in (None, digest):
         jax.clear_caches()
-        _FUNCTION_DIGESTS.clear()
-        _MODULE_FUNCTIONS.clear()
+        for memo in (_FUNCTION_DIGESTS, _MODULE_FUNCTIONS, _LINE_INDEX):
+            memo.clear()
     _SEEN["digest"] = digest
     return digest
 
@@ -434,8 +435,13 @@ def _traced_files() -> dict[str, str]:
     return {os.path.realpath(m.__file__): name for name, m in _modules(TRACED_MODULES) if getattr(m, "__file__", None)}
 
 
+_LINE_INDEX: dict[str, list[tuple[int, int, str]]] = {}  # cleared on a code change, with the digests
+
+
 def _line_index(module: str) -> list[tuple[int, int, str]]:
     """(first line, last line, qualname) of every function :func:`_functions` finds in ``module``."""
+    if module in _LINE_INDEX:
+        return _LINE_INDEX[module]
     out = []
 
     def lines(code: types.CodeType) -> list[int]:
@@ -449,6 +455,7 @@ def _line_index(module: str) -> list[tuple[int, int, str]]:
         found = lines(fn.__code__)
         if found:
             out.append((min(found), max(found), qualname))
+    _LINE_INDEX[module] = out  # whole: another compile worker may read it at once
     return out
 
 
@@ -579,7 +586,7 @@ def call(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
     return bind(fn, args, static, options, options_key)(*args)
 
 
-def _key_lock(key: tuple[str, str]) -> threading.Lock:
+def _key_lock(key: tuple[str, str, str]) -> threading.Lock:
     with _KEY_LOCKS_GUARD:
         return _KEY_LOCKS.setdefault(key, threading.Lock())
 
@@ -674,12 +681,7 @@ def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
         return out
 
     shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None)) for x in leaves]
-    if not record_dependencies():
-        try:
-            exported = export.export(jax.jit(flat), platforms=["cpu"])(*shapes)
-        except Exception:  # noqa: BLE001 - the direct call that follows raises MJX's own error, if any
-            return None
-        return out_tree[0], exported, {f"{m}:*": code_digest((m,)) for m in TRACED_MODULES}
+    record = record_dependencies()
     called: set[types.CodeType] = set()
     before = sys.gettrace()
 
@@ -687,11 +689,15 @@ def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
         called.add(frame.f_code)
         return before(frame, event, arg) if before is not None else None
 
-    sys.settrace(tracer)
+    if record:
+        sys.settrace(tracer)
     try:
         exported = export.export(jax.jit(flat), platforms=["cpu"])(*shapes)
     except Exception:  # noqa: BLE001 - the direct call that follows raises MJX's own error, if any
         return None
     finally:
-        sys.settrace(before)
-    return out_tree[0], exported, dependencies(called, exported.mlir_module())
+        if record:
+            sys.settrace(before)
+    deps = (dependencies(called, exported.mlir_module()) if record
+            else {f"{m}:*": code_digest((m,)) for m in TRACED_MODULES})
+    return out_tree[0], exported, deps
