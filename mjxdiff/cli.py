@@ -139,8 +139,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "compile time, about the same speed); fast forces the first, optimized XLA's defaults; "
                          "results agree to rounding whichever is used")
     sw.add_argument("--compile-workers", type=_non_negative, metavar="N",
-                    help="threads that prepare and compile the next scenarios while one steps (default: one "
-                         "per core, at most 4; 0: one scenario after another)")
+                    help="scenarios run side by side, each on its own thread from compile to verdict; results "
+                         "are reported in order (default: one per core, at most 4; 0: one after another)")
     sw.add_argument("--out", metavar="DIR", help="write DIR/report.json (versions, config, per-scenario metrics)")
     sw.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     sw.add_argument("--quick", action="store_true", help="smoke run: batch <= 4, steps <= 50")

@@ -661,9 +661,7 @@ def xla_options(mode: str, steps: int) -> export_cache.Options:
         level = mode
         if mode == "auto":
             try:
-                cost = lowered.cost_analysis()
-                cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-                flops = float(cost.get("flops", 0.0))
+                flops = float(lowered.cost_analysis().get("flops", 0.0))
             except Exception:  # noqa: BLE001 - no estimate: compile for stepping
                 flops = float("inf")
             extra = FAST_SECONDS_PER_FLOP * flops * steps

@@ -35,11 +35,12 @@ import sys
 import threading
 import types
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import jax
 import numpy as np
 from jax import export
+from jax._src import config as _config
 
 __all__ = ["bind", "call", "clear", "code_digest", "count", "evict", "export_dir", "fresh_digest", "loaded_count",
            "rollout_digest", "settings_digest", "tally", "untraced"]
@@ -335,7 +336,7 @@ def fresh_digest() -> str:
     digest = rollout_digest()
     if _SEEN["digest"] not in (None, digest):
         jax.clear_caches()
-        for memo in (_FUNCTION_DIGESTS, _MODULE_FUNCTIONS, _LINE_INDEX):
+        for memo in (_FUNCTION_DIGESTS, _MODULE_FUNCTIONS, _LINE_INDEX, _REFERENCES, _METHODS):
             memo.clear()
     _SEEN["digest"] = digest
     return digest
@@ -459,10 +460,138 @@ def _line_index(module: str) -> list[tuple[int, int, str]]:
     return out
 
 
-def dependencies(called: set[types.CodeType], mlir_text: str) -> dict[str, str]:
+_REFERENCES: dict[tuple[str, str], tuple[tuple[tuple[str, str], bool], ...]] = {}  # cleared on a code change
+
+
+def _ours(value: Any) -> bool:
+    name = getattr(value, "__module__", None) or ""
+    return any(name == p or name.startswith(p + ".") for p in TRACED_MODULES)
+
+
+def _name_of(fn: types.FunctionType) -> tuple[str, str]:
+    """(module, qualname) a function is a dependency as: its outermost enclosing function's name
+    (a nested function's code is part of it), or ``*`` (the whole module) when that cannot be
+    found again by name."""
+    module, qualname = fn.__module__, fn.__code__.co_qualname.split(".<locals>")[0]
+    return (module, qualname if _resolve(module, qualname) is not None else "*")
+
+
+def _code_names(code: types.CodeType) -> set[str]:
+    names = set(code.co_names) | set(code.co_freevars)
+    for const in code.co_consts:
+        if isinstance(const, types.CodeType):
+            names |= _code_names(const)
+    return names
+
+
+def _functions_in(value: Any, depth: int = 0) -> Iterator[types.FunctionType]:
+    """The functions of TRACED_MODULES ``value`` stands for: itself (unwrapped), a class's
+    methods (a class called runs its ``__init__``, protocols run the rest), a partial's or a
+    custom derivative's functions."""
+    if depth > 3:
+        return
+    if isinstance(value, (staticmethod, classmethod)):
+        value = value.__func__
+    if isinstance(value, property):
+        for part in (value.fget, value.fset, value.fdel):
+            yield from _functions_in(part, depth + 1)
+        return
+    value = _unwrap(value)
+    if isinstance(value, types.FunctionType):
+        if _ours(value) and not value.__code__.co_filename.startswith("<"):  # not generated (dataclass __init__)
+            yield value
+        return
+    if isinstance(value, functools.partial):
+        yield from _functions_in(value.func, depth + 1)
+        return
+    if isinstance(value, type):
+        if _ours(value):
+            for member in list(vars(value).values()):
+                yield from _functions_in(member, depth + 1)
+        return
+    for attr in ("fun", "jvp", "fwd", "bwd"):  # jax.custom_jvp / custom_vjp
+        inner = getattr(type(value), "__module__", "").startswith("jax") and getattr(value, attr, None)
+        if callable(inner):
+            yield from _functions_in(inner, depth + 1)
+
+
+def _references(module: str, qualname: str) -> tuple[tuple[tuple[str, str], bool], ...]:
+    """The functions of TRACED_MODULES that ``module.qualname`` can call by name, each with
+    whether its own references count (False for functions held in a module-level table, which
+    a dispatch picks from: counted, not followed)."""
+    key = (module, qualname)
+    if key in _REFERENCES:
+        return _REFERENCES[key]
+    fn = _resolve(module, qualname)
+    found: dict[tuple[str, str], bool] = {}
+    if fn is not None:
+        names = _code_names(fn.__code__)
+        spaces = [fn.__globals__] + [vars(v) for v in list(fn.__globals__.values())
+                                     if isinstance(v, types.ModuleType) and _ours_module(v.__name__)]
+        candidates = [space[n] for n in names for space in spaces if n in space]
+        candidates += [method for n in names for method in _methods().get(n, ())]  # x.method() on our objects
+        for cell in fn.__closure__ or ():
+            with contextlib.suppress(ValueError):
+                candidates.append(cell.cell_contents)
+        candidates += list(fn.__defaults__ or ()) + list((fn.__kwdefaults__ or {}).values())
+        for value in candidates:
+            if isinstance(value, (dict, list, tuple, set, frozenset)):
+                items = list(value.items()) if isinstance(value, dict) else list(value)
+                for item in items:
+                    for part in (item if isinstance(item, tuple) else (item,)):
+                        for f in _functions_in(part):
+                            found.setdefault(_name_of(f), False)
+                continue
+            for f in _functions_in(value):
+                found[_name_of(f)] = True
+    out = tuple(sorted(found.items()))
+    _REFERENCES[key] = out
+    return out
+
+
+_METHODS: dict[str, dict[str, list]] = {}  # cleared on a code change
+
+
+def _methods() -> dict[str, list]:
+    """Attribute name -> the methods of that name of every class of TRACED_MODULES."""
+    if "index" not in _METHODS:
+        index: dict[str, list] = {}
+        for _, module in _modules(TRACED_MODULES):
+            for value in list(vars(module).values()):
+                if isinstance(value, type) and value.__module__ == module.__name__:
+                    for attr, member in list(vars(value).items()):
+                        index.setdefault(attr, []).append(member)
+        _METHODS["index"] = index
+    return _METHODS["index"]
+
+
+#: Modules whose every function a trace depends on: MJX's pytree machinery, which JAX calls
+#: (flatten, hash, equality) rather than MJX code by name.
+ALWAYS_DEPENDED_ON = ("mujoco.mjx._src.dataclasses",)
+
+
+def _ours_module(name: str) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in TRACED_MODULES)
+
+
+def _closure(found: set[tuple[str, str]]) -> set[tuple[str, str]]:
+    """``found`` and every function of TRACED_MODULES it can reach by name (:func:`_references`)."""
+    out, todo = set(found), [f for f in found if f[1] != "*"]
+    while todo:
+        for ref, follow in _references(*todo.pop()):
+            if ref not in out:
+                out.add(ref)
+                if follow and ref[1] != "*":
+                    todo.append(ref)
+    return out
+
+
+def dependencies(called: set[types.CodeType], mlir_text: str, follow: bool = True) -> dict[str, str]:
     """``"module:qualname"`` -> :func:`function_digest` for each module-level function or method
     of TRACED_MODULES a trace ran (``called``: code objects of its frames) or whose lines
-    emitted an operation (locations in ``mlir_text``)."""
+    emitted an operation (locations in ``mlir_text``, each with its call stack) and, with
+    ``follow``, each function those can call by name (:func:`_closure`) and every function of
+    :data:`ALWAYS_DEPENDED_ON`. ``*`` for a qualname: the whole module."""
     files = _traced_files()
     found: set[tuple[str, str]] = set()
     for code in called:
@@ -485,6 +614,8 @@ def dependencies(called: set[types.CodeType], mlir_text: str) -> dict[str, str]:
                 found.add((module, "*"))
     # a function that cannot be found again by name (a lambda in a dict): the whole module counts
     found = {(m, q if q == "*" or _resolve(m, q) is not None else "*") for m, q in found}
+    if follow:
+        found = _closure(found) | {(m, "*") for m in ALWAYS_DEPENDED_ON if m in sys.modules}
     return {f"{m}:{q}": (code_digest((m,)) if q == "*" else function_digest(m, q)) for m, q in sorted(found)}
 
 
@@ -550,11 +681,41 @@ def matching(directory: Path) -> list[Path]:
 
 
 def _load_matching(directory: Path):
+    """(out_tree, Exported, path) of the first artifact in ``directory`` the code loaded now may run."""
     for path in matching(directory):
         found = _load(path) if path.exists() else None
         if found is not None:
-            return found
+            return (*found, path)
+        for part in (path.with_suffix(".deps"), path, path.with_suffix(".cost")):  # unreadable: never tried again
+            with contextlib.suppress(OSError):
+                part.unlink()
     return None
+
+
+class _Lowered:
+    """A lowered function whose ``cost_analysis()`` is read from beside its artifact once
+    computed: XLA's cost analysis converts the whole module to HLO (0.1-0.4 s a rollout),
+    which a warm sweep would otherwise pay for every scenario."""
+
+    def __init__(self, lowered, artifact: Path | None):
+        self._lowered, self._path = lowered, artifact.with_suffix(".cost") if artifact is not None else None
+
+    def __getattr__(self, name):
+        return getattr(self._lowered, name)
+
+    def cost_analysis(self) -> dict[str, float]:
+        if self._path is not None:
+            with contextlib.suppress(OSError, ValueError):
+                found = json.loads(self._path.read_text())
+                if isinstance(found, dict):
+                    return found
+        cost = self._lowered.cost_analysis()
+        cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+        cost = {k: float(v) for k, v in dict(cost or {}).items() if isinstance(v, (int, float))}
+        if self._path is not None:
+            with contextlib.suppress(OSError):
+                _write(self._path, json.dumps(cost, sort_keys=True).encode())
+        return cost
 
 
 def evict(directory: Path, keep: Path | None = None, budget: int = MAX_BYTES) -> int:
@@ -574,6 +735,7 @@ def evict(directory: Path, keep: Path | None = None, budget: int = MAX_BYTES) ->
         if path != keep:
             with contextlib.suppress(OSError):  # another process got there first
                 path.with_suffix(".deps").unlink(missing_ok=True)
+                path.with_suffix(".cost").unlink(missing_ok=True)
                 path.unlink()
                 deleted += 1
             total -= size
@@ -639,16 +801,16 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
                 traced = _export(fn, treedef, leaves, static)
                 if traced is None:
                     return direct
-                found, deps = traced[:2], traced[2]
+                (out_tree, exported, deps), artifact = traced, None
                 if directory is not None:
                     with contextlib.suppress(Exception):  # unwritable cache dir, no flatbuffers: use it unsaved
-                        _save(directory / key, *found, deps)
+                        artifact = _save(directory / key, out_tree, exported, deps)
             else:
                 _LOADED["count"] += 1
                 count("loaded")
-            out_tree, exported = found
+                out_tree, exported, artifact = found
             lowered = jax.jit(exported.call).lower(*leaves)
-            chosen, choice = options(lowered) if options is not None else ({}, None)
+            chosen, choice = options(_Lowered(lowered, artifact)) if options is not None else ({}, None)
             try:
                 compiled = lowered.compile(compiler_options=chosen or None)
             except Exception as e:  # noqa: BLE001 - e.g. an option this XLA does not know: its defaults
@@ -661,12 +823,25 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
     return Bound(*_FUNCTIONS[memo])
 
 
-def record_dependencies() -> bool:
-    """Whether traces record the functions they run (:func:`dependencies`): ``$MJXDIFF_DEPENDENCIES``
-    ``functions`` (the default) or ``code`` (an artifact depends on all of MJX's code: traces are
-    ~1.6x faster, and after any edit every rollout is traced again, though unchanged ones still
-    hit XLA's persistent cache)."""
-    return os.environ.get("MJXDIFF_DEPENDENCIES", "functions") != "code"
+#: Values of ``$MJXDIFF_DEPENDENCIES``: what an artifact is recorded to depend on.
+DEPENDENCY_MODES = ("functions", "traced", "code")
+
+
+def dependency_mode() -> str:
+    """What traces record as their artifact's dependencies, from ``$MJXDIFF_DEPENDENCIES``:
+
+    - ``functions`` (the default): the functions whose lines emitted an operation (the
+      StableHLO's locations, with the call stack of each) and every function of
+      TRACED_MODULES those can call by name (:func:`_references`), found without slowing
+      the trace;
+    - ``traced``: the functions the trace ran (``sys.settrace``: ~1.8x slower traces, and
+      Python holds the GIL for all of it) and those whose lines emitted an operation; what
+      ``functions`` is tested against (it must include all of these);
+    - ``code``: all of MJX's code (an edit retraces every rollout, though unchanged ones still
+      hit XLA's persistent cache).
+    """
+    mode = os.environ.get("MJXDIFF_DEPENDENCIES", "functions")
+    return mode if mode in DEPENDENCY_MODES else "functions"
 
 
 def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
@@ -681,7 +856,8 @@ def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
         return out
 
     shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None)) for x in leaves]
-    record = record_dependencies()
+    mode = dependency_mode()
+    record = mode == "traced"
     called: set[types.CodeType] = set()
     before = sys.gettrace()
 
@@ -692,12 +868,14 @@ def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
     if record:
         sys.settrace(tracer)
     try:
-        exported = export.export(jax.jit(flat), platforms=["cpu"])(*shapes)
+        # every operation's whole call stack in its location: the roots of the dependencies
+        with _config.include_full_tracebacks_in_locations(True), _config.traceback_in_locations_limit(-1):
+            exported = export.export(jax.jit(flat), platforms=["cpu"])(*shapes)
     except Exception:  # noqa: BLE001 - the direct call that follows raises MJX's own error, if any
         return None
     finally:
         if record:
             sys.settrace(before)
-    deps = (dependencies(called, exported.mlir_module()) if record
-            else {f"{m}:*": code_digest((m,)) for m in TRACED_MODULES})
+    deps = ({f"{m}:*": code_digest((m,)) for m in TRACED_MODULES} if mode == "code"
+            else dependencies(called, exported.mlir_module(), follow=mode == "functions"))
     return out_tree[0], exported, deps

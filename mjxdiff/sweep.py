@@ -66,8 +66,9 @@ class SweepConfig:
         off by default and reported as ``adjusted``.
       compile: how hard XLA optimises each MJX rollout: ``auto`` (from the stepping it
         will do, :func:`mjxdiff.engines.xla_options`), ``fast`` or ``optimized``.
-      compile_workers: threads that prepare and compile upcoming scenarios while the
-        current one steps (:func:`sweep`); None: :func:`default_compile_workers`; 0: none.
+      compile_workers: threads that run scenarios side by side, each from compile to
+        verdict (:func:`sweep`); None: :func:`default_compile_workers`; 0: none, one
+        scenario after another on the calling thread.
     """
 
     seed: int = 0
@@ -326,7 +327,13 @@ def _ahead(items: Iterable, depth: int = 1) -> Iterator:
         except BaseException as e:  # noqa: BLE001 - handed to the consumer
             put((False, e))
 
-    worker = threading.Thread(target=produce, name="mjxdiff-c", daemon=True)
+    x64 = jax.config.jax_enable_x64  # this thread's setting (thread-local) holds in the producer too
+
+    def produce_here() -> None:
+        with jax.enable_x64(x64):
+            produce()
+
+    worker = threading.Thread(target=produce_here, name="mjxdiff-c", daemon=True)
     worker.start()
     try:
         while True:
@@ -630,14 +637,11 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
     return dataclasses.replace(result, message=message, diagnosis=diagnosis)
 
 
-@contextlib.contextmanager
 def _precision(precision: str):
-    before = jax.config.jax_enable_x64
-    jax.config.update("jax_enable_x64", precision == "float64")
-    try:
-        yield
-    finally:
-        jax.config.update("jax_enable_x64", before)
+    """``jax_enable_x64`` as ``precision`` says, for the calling thread only (JAX's thread-local
+    setting): scenarios a sweep runs at once on its workers never see each other's (a float32
+    sweep's float64 ablation), and the process-wide setting is left as it was."""
+    return jax.enable_x64(precision == "float64")
 
 
 class _Progress:
@@ -692,8 +696,8 @@ def release_compiled_if_crowded(budget: float = MAP_BUDGET) -> bool:
 
 
 def default_compile_workers() -> int:
-    """Compile workers of a sweep: one per core (XLA compiles a module on about one core), at
-    most :data:`MAX_COMPILE_WORKERS` (each compile holds up to ~1 GiB)."""
+    """Scenario workers of a sweep: one per core (XLA compiles a module, and steps a rollout,
+    on about one core), at most :data:`MAX_COMPILE_WORKERS` (each compile holds up to ~1 GiB)."""
     return max(1, min(engines.CORES, MAX_COMPILE_WORKERS))
 
 
@@ -704,41 +708,48 @@ MAX_COMPILE_WORKERS = 4
 def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
           progress: bool | None = None,
           on_result: Callable[[ScenarioResult], None] | None = None) -> list[ScenarioResult]:
-    """Runs every scenario in order, returning one verdict each.
+    """Runs every scenario, returning one verdict each, in order.
 
-    A cold sweep is mostly XLA compiling MJX rollouts, each on about one core. So
-    ``config.compile_workers`` threads prepare and compile the scenarios ahead (at most
-    one more than there are workers, which bounds memory) while this thread runs each
-    one's verdict in order; results and their order are those of running them one by one.
+    ``config.compile_workers`` threads (default one per core) each take the next scenario
+    and run all of it: prepare, compile MJX's rollout, step both engines, judge. A cold
+    sweep is mostly XLA compiling, on about one core per module, and a warm one mostly
+    stepping and judging, which XLA and MuJoCo C also do on about one core each, so
+    scenarios side by side keep every core busy either way. This thread hands out at most
+    twice as many scenarios as there are workers (bounding memory) and reports the results
+    in order; results are those of running the scenarios one by one (each worker sets its own
+    precision: :func:`_precision`). With no workers, the scenarios run here, one by one.
     """
     mjx_engine, c_engine = MJXEngine(compile=config.compile), CEngine()
     bar = _Progress(len(scenarios), progress)
     workers = default_compile_workers() if config.compile_workers is None else config.compile_workers
-    pool = ThreadPoolExecutor(workers, thread_name_prefix="mjxdiff-compile") if workers else None
-    ahead: dict[int, Future] = {}
+    pool = ThreadPoolExecutor(workers, thread_name_prefix="mjxdiff-scenario") if workers else None
+    running: dict[int, Future] = {}
+
+    def run(scenario: Scenario) -> ScenarioResult:
+        with _precision(config.precision):
+            prepared = _compile_ahead(scenario, config, mjx_engine) if pool is not None else _prepare(scenario, config)
+            return _finish(prepared, config, mjx_engine, c_engine)
 
     def submit(i: int) -> None:
         if pool is not None and i < len(scenarios):
-            ahead[i] = pool.submit(_compile_ahead, scenarios[i], config, mjx_engine)
+            running[i] = pool.submit(run, scenarios[i])
 
     results = []
     try:
-        with _precision(config.precision):  # for the compile workers too: set once for the whole sweep
-            for i in range(workers + 1):
-                submit(i)
-            for i, scenario in enumerate(scenarios):
-                submit(i + workers + 1)
-                bar.start(i, scenario.name)
-                try:
-                    prepared = ahead.pop(i).result() if i in ahead else _prepare(scenario, config)
-                    result = _finish(prepared, config, mjx_engine, c_engine)
-                except Exception as e:  # noqa: BLE001 - one scenario's trouble stays that scenario's
-                    result = ScenarioResult(name=scenario.name, status="error", error_kind="internal",
-                                            message=f"mjxdiff itself failed on this scenario: {_one_line(e)}")
-                results.append(result)
-                if on_result:
-                    on_result(result)
-                release_compiled_if_crowded()
+        for i in range(2 * workers):
+            submit(i)
+        for i, scenario in enumerate(scenarios):
+            submit(i + 2 * workers)
+            bar.start(i, scenario.name)
+            try:
+                result = running.pop(i).result() if i in running else run(scenario)
+            except Exception as e:  # noqa: BLE001 - one scenario's trouble stays that scenario's
+                result = ScenarioResult(name=scenario.name, status="error", error_kind="internal",
+                                        message=f"mjxdiff itself failed on this scenario: {_one_line(e)}")
+            results.append(result)
+            if on_result:
+                on_result(result)
+            release_compiled_if_crowded()
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)

@@ -93,7 +93,53 @@ def test_dependencies_name_the_functions_a_trace_ran(pendulum):
     deps = json.loads(path.with_suffix(".deps").read_text())
     assert "mujoco.mjx._src.smooth:rne" in deps and "mujoco.mjx._src.forward:forward" in deps
     assert "mjxdiff.engines:_scan_steps" in deps
-    assert not any(name.startswith("mujoco.mjx._src.collision_primitive:") for name in deps), "no contacts"
+    # no contacts: a pair's colliders are named (MJX's collision table), not what they call
+    assert not {"mujoco.mjx._src.collision_primitive:_sphere_sphere", "mujoco.mjx._src.collision_primitive:*"} & set(deps)
+
+
+#: Functions a trace runs that compute nothing it emits: JAX's event listener that counts compiles.
+_NOT_TRACED_CODE = {"mjxdiff.engines:_on_duration"}
+
+
+@pytest.mark.parametrize("name", ["pendulum", "primitives_on_plane", "tendons"])
+def test_dependencies_found_by_name_include_every_function_the_trace_ran(name, monkeypatch, tmp_path):
+    """The default dependencies (operations' call stacks, followed by name) are found without
+    slowing the trace; they must include every function a ``sys.settrace`` of the same trace sees
+    run (``MJXDIFF_DEPENDENCIES=traced``), or an edit of one could leave a stale artifact in use."""
+    scenario = load_scenario(name)
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, seed=0, batch=2, steps=5)
+    seen = []
+    real = export_cache.dependencies
+    monkeypatch.setattr(export_cache, "dependencies", lambda called, text, follow=True: seen.append(
+        (set(called), text)) or real(called, text, follow))
+    monkeypatch.setattr(export_cache, "export_dir", lambda: tmp_path)  # no artifact: traced here
+    monkeypatch.setenv("MJXDIFF_DEPENDENCIES", "traced")
+    _rollout(inputs)
+    [(called, text)] = seen
+    ran = set(real(called, text, follow=False))
+    found = real(set(), text, follow=True)
+    whole = {n.split(":")[0] for n in found if n.endswith(":*")}
+    missing = {n for n in ran - set(found) if n.split(":")[0] not in whole} - _NOT_TRACED_CODE
+    assert not missing, f"ran, but not found by name: {sorted(missing)}"
+    assert len(ran) > 40
+
+
+def test_a_loaded_rollout_reads_its_cost_analysis_from_beside_the_artifact(pendulum, monkeypatch):
+    """``auto``'s estimate needs XLA's cost analysis (the whole module as HLO): computed once per
+    artifact and kept beside it, so a warm sweep never converts a rollout to HLO."""
+    _, inputs = pendulum
+    _rollout(inputs)
+    [path] = export_cache.matching(export_cache.export_dir() / next(iter(export_cache._FUNCTIONS))[0])
+    cost = json.loads(path.with_suffix(".cost").read_text())
+    assert cost["flops"] > 0
+    calls = []
+    real = jax.stages.Lowered.cost_analysis
+    monkeypatch.setattr(jax.stages.Lowered, "cost_analysis", lambda self: calls.append(1) or real(self))
+    engines.clear_compiled()
+    MJXEngine(devices=1, compile="auto").rollout(inputs)
+    assert calls == [], "the cost analysis was computed again"
+    assert engines.last_choice()["flops_per_step"] == cost["flops"]
 
 
 def _key(*models: mujoco.MjModel) -> str:
@@ -190,7 +236,8 @@ def test_a_damaged_artifact_is_traced_again_and_rewritten(pendulum):
         again = _rollout(inputs)
         np.testing.assert_array_equal(again.qpos, reference.qpos)
         assert export_cache.loaded_count() == loaded, "a damaged artifact cannot have been loaded"
-        assert path.read_bytes() != damaged, "it is replaced by a good one..."
+        assert not path.exists() or path.read_bytes() != damaged, "it is deleted or replaced..."
+        assert export_cache.matching(path.parent), "...by a good one..."
         _rollout(inputs)
         assert export_cache.loaded_count() == loaded + 1, "...which the next process loads"
 
