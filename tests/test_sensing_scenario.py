@@ -1,0 +1,94 @@
+"""The sensing scenario reaches MJX code no other scenario traced (a ray against a mesh, camera
+projection, contact sensors, the weld torque of force and torque sensors, a clamped joint
+actuator force), and a one-line slip in any of them is caught there, while every other bundled
+model provably leaves that code out (the slip could not show).
+
+Each bug is a monkeypatch of one function inside mujoco.mjx._src, as in test_parameter_families."""
+
+import mujoco
+import numpy as np
+import pytest
+from mujoco.mjx._src import forward as mjx_forward
+from mujoco.mjx._src import ray as mjx_ray
+from mujoco.mjx._src import sensor as mjx_sensor
+from mujoco.mjx._src import smooth as mjx_smooth
+from mujoco.mjx._src.types import GeomType
+
+from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
+from mjxdiff.sweep import SweepConfig, run_scenario
+
+CONFIG = SweepConfig(seed=0, batch=2, steps=150, diagnose="none")
+_S = mujoco.mjtSensor
+
+
+def _model_edited(monkeypatch, module, name: str, edit) -> None:
+    orig = getattr(module, name)
+    monkeypatch.setattr(module, name, lambda m, d, *args: orig(edit(m), d, *args))
+
+
+def ray_mesh_long(monkeypatch):
+    """Rays report mesh hits 1% farther than they are."""
+    orig = mjx_ray._RAY_FUNC[GeomType.MESH]
+
+    def longer(*args, **kwargs):
+        dist, *rest = orig(*args, **kwargs)
+        return (dist * 1.01, *rest)
+    monkeypatch.setitem(mjx_ray._RAY_FUNC, GeomType.MESH, longer)
+
+
+def camprojection_resolution_off(monkeypatch):
+    """Camera projections scale by a resolution one pixel larger."""
+    _model_edited(monkeypatch, mjx_sensor, "sensor_pos", lambda m: m.replace(cam_resolution=m.cam_resolution + 1))
+
+
+def contact_sensor_high(monkeypatch):
+    """Contact sensors report values 1% too large."""
+    orig = mjx_sensor._sensor_contact
+
+    def high(*args, **kwargs):
+        sensors, adrs = orig(*args, **kwargs)
+        return [s * 1.01 for s in sensors], adrs
+    monkeypatch.setattr(mjx_sensor, "_sensor_contact", high)
+
+
+def weld_torquescale_ignored(monkeypatch):
+    """Force and torque sensors see welds' torque as if torquescale were 1."""
+    _model_edited(monkeypatch, mjx_smooth, "rne_postconstraint", lambda m: m.replace(
+        eq_data=m.eq_data.at[:, 10].set(1.0)))
+
+
+def actfrcrange_ignored(monkeypatch):
+    """Joint actuator forces are not clamped to actuatorfrcrange."""
+    _model_edited(monkeypatch, mjx_forward, "fwd_actuation",
+                  lambda m: m.replace(jnt_actfrclimited=np.zeros_like(m.jnt_actfrclimited)))
+
+
+def _has_sensor(m, kind) -> bool:
+    return bool(np.any(m.sensor_type == int(kind)))
+
+
+#: bug -> where its code runs in a model
+REACHES = {
+    ray_mesh_long: lambda m: _has_sensor(m, _S.mjSENS_RANGEFINDER) and bool(np.any(m.geom_type == int(GeomType.MESH))),
+    camprojection_resolution_off: lambda m: _has_sensor(m, _S.mjSENS_CAMPROJECTION),
+    contact_sensor_high: lambda m: _has_sensor(m, _S.mjSENS_CONTACT),
+    weld_torquescale_ignored: lambda m: bool(np.any(m.eq_type == int(mujoco.mjtEq.mjEQ_WELD))) and (
+        _has_sensor(m, _S.mjSENS_FORCE) or _has_sensor(m, _S.mjSENS_TORQUE)),
+    actfrcrange_ignored: lambda m: bool(np.any(m.jnt_actfrclimited)),
+}
+
+
+@pytest.mark.parametrize("bug", list(REACHES), ids=lambda b: b.__name__)
+def test_no_other_scenario_reaches_the_code(bug):
+    assert REACHES[bug](load_model(load_scenario("sensing")))
+    others = [s.name for s in bundled_scenarios() if s.name != "sensing" and REACHES[bug](load_model(s))]
+    assert others == [], f"{bug.__name__} can show in {others} too"
+
+
+@pytest.mark.parametrize("bug", list(REACHES), ids=lambda b: b.__name__)
+def test_the_sensing_scenario_catches_it(bug, fresh_mjx, monkeypatch):
+    bug(monkeypatch)
+    result = run_scenario(load_scenario("sensing"), CONFIG)
+    assert result.status == "fail", f"{bug.__name__} not caught: {result.message}"
+    first = result.first_divergence
+    assert first["field"] in ("qpos", "qvel", "sensordata") and first["step"] >= 0
