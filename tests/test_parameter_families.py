@@ -1,5 +1,6 @@
 """Bugs that only matter away from a parameter's default are caught by the scenarios that move
-it (joint_parameters, contact_parameters), and provably by none of the scenarios before them:
+it (joint_parameters, contact_parameters, muscles_and_limits), and provably by none of the
+scenarios before them:
 in every other bundled scenario the parameter sits where the buggy term vanishes.
 
 Each bug is a monkeypatch of one function inside mujoco.mjx._src that ignores one parameter
@@ -9,6 +10,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from mujoco.mjx._src import collision_driver as mjx_collision_driver
 from mujoco.mjx._src import constraint as mjx_constraint
 from mujoco.mjx._src import forward as mjx_forward
 from mujoco.mjx._src import passive as mjx_passive
@@ -92,6 +94,24 @@ def impratio_ignored(monkeypatch):
                   lambda m: m.replace(opt=m.opt.replace(impratio=1.0)))
 
 
+def tendon_friction_solref_ignored(monkeypatch):
+    """Tendon friction loss rows use the default solref (0.02, 1) instead of the tendon's."""
+    _model_edited(monkeypatch, mjx_constraint, "_efc_friction",
+                  lambda m: m.replace(tendon_solref_fri=jnp.ones_like(m.tendon_solref_fri) * jnp.array([0.02, 1.0])))
+
+
+def pair_solreffriction_ignored(monkeypatch):
+    """Explicit contact pairs drop their solreffriction (friction rows fall back to solref)."""
+    _model_edited(monkeypatch, mjx_collision_driver, "collision",
+                  lambda m: m.replace(pair_solreffriction=jnp.zeros_like(m.pair_solreffriction)))
+
+
+def tendon_actfrcrange_ignored(monkeypatch):
+    """Actuator forces through a tendon are not clamped to the tendon's actuatorfrcrange."""
+    _model_edited(monkeypatch, mjx_forward, "fwd_actuation",
+                  lambda m: m.replace(tendon_actfrclimited=np.zeros_like(m.tendon_actfrclimited)))
+
+
 _GAIN = lambda m, t: m.actuator_gaintype == int(t)
 _BIAS = lambda m, t: m.actuator_biastype == int(t)
 #: bug -> (scenario that catches it, where its term is non-zero in a model)
@@ -109,6 +129,10 @@ FAMILIES = {
     filterexact_as_filter: ("joint_parameters", lambda m: bool(np.any(
         m.actuator_dyntype == int(mujoco.mjtDyn.mjDYN_FILTEREXACT)))),
     fluid_force_high: ("joint_parameters", lambda m: bool(m.opt.density > 0 or m.opt.viscosity > 0)),
+    tendon_friction_solref_ignored: ("muscles_and_limits", lambda m: bool(np.any(
+        (m.tendon_frictionloss > 0) & np.any(m.tendon_solref_fri != [0.02, 1.0], axis=1)))),
+    pair_solreffriction_ignored: ("contact_parameters", lambda m: bool(np.any(m.pair_solreffriction != 0))),
+    tendon_actfrcrange_ignored: ("muscles_and_limits", lambda m: bool(np.any(m.tendon_actfrclimited))),
     impratio_ignored: ("contact_parameters", lambda m: bool(
         m.opt.cone == int(mujoco.mjtCone.mjCONE_ELLIPTIC) and m.opt.impratio != 1)),
 }
