@@ -21,7 +21,7 @@ CONTACT_SENSOR_WITH_PAIR = """<mujoco>
 </mujoco>"""
 
 
-@pytest.mark.xfail(strict=True, reason="MJX 3.17: with an explicit <pair> in the model, a geom-matched contact "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="MJX 3.17: with an explicit <pair> in the model, a geom-matched contact "
                                        "sensor reads the pair's contact (force 49.3, dist -0.01 instead of 7.50, "
                                        "-0.002); found while adding a contact sensor to contact_parameters")
 def test_contact_sensor_reads_its_own_contact_when_the_model_has_an_explicit_pair():
@@ -43,7 +43,7 @@ ACCELEROMETER_WITHOUT_CONSTRAINTS = """<mujoco>
 </mujoco>"""
 
 
-@pytest.mark.xfail(strict=True, reason="MJX 3.17: forward() returns right after the smooth dynamics when the "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="MJX 3.17: forward() returns right after the smooth dynamics when the "
                                        "model has no constraint rows (efc_J empty), before sensor_acc, so "
                                        "accelerometer, force, torque, framelinacc/angacc read 0 (C: -0.0234 "
                                        "here); found by fuzzing 64 variants per structure")
@@ -58,7 +58,7 @@ def test_acceleration_sensors_are_computed_in_a_model_without_constraints():
     np.testing.assert_allclose(np.asarray(dx.sensordata), d.sensordata, atol=1e-9, err_msg="accelerometer")
 
 
-@pytest.mark.xfail(strict=True, reason="MJX 3.17: the solver's context starts with prev_cost = 0, so when the "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="MJX 3.17: the solver's context starts with prev_cost = 0, so when the "
                                        "warm start's cost is positive the first convergence test sees a "
                                        "negative improvement and stops at 0 iterations; qacc is then the warm "
                                        "start (here off by 2.85 at step 25, C converges in 3); found by fuzz "
@@ -84,6 +84,20 @@ def test_the_solver_iterates_when_the_warm_start_cost_is_positive():
                                err_msg=f"qacc after {int(dx._impl.solver_niter)} MJX solver iterations")
 
 
+def _forward_both(xml: str, **state):
+    """(m, C's data, MJX's data) after ``mj_forward`` and ``mjx.forward`` from the same state
+    (``qpos``/``qvel`` entries set by index: ``qvel={3: 1.0}``). MJX starts from fresh data, not
+    put_data, which would carry C's results over."""
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    for field, values in state.items():
+        for i, v in values.items():
+            getattr(d, field)[i] = v
+    mujoco.mj_forward(m, d)
+    dx = engines.forward(mjx.put_model(m), mjx.make_data(m).replace(qpos=d.qpos.copy(), qvel=d.qvel.copy()))
+    return m, d, dx
+
+
 POLYNOMIAL_SPRING_DAMPER = """<mujoco>
   <worldbody><body>
     <joint type="hinge" axis="0 1 0" damping="0.05 0.5 0.3" stiffness="1 2 4"/>
@@ -92,17 +106,13 @@ POLYNOMIAL_SPRING_DAMPER = """<mujoco>
 </mujoco>"""
 
 
-@pytest.mark.xfail(strict=True, reason="MJX 3.17 ignores polynomial joint springs and dampers (jnt_stiffnesspoly, "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="MJX 3.17 ignores polynomial joint springs and dampers (jnt_stiffnesspoly, "
                                        "dof_dampingpoly: the 2nd and 3rd values of stiffness=/damping=); at qpos "
                                        "0.3, qvel 1 the passive force is -1.438 in C, -0.35 in MJX. put_model "
                                        "accepts the model silently; a sweep of it fails at step 0 (qvel 0.78 off)")
 def test_polynomial_springs_and_dampers_act():
-    m = mujoco.MjModel.from_xml_string(POLYNOMIAL_SPRING_DAMPER)
-    d = mujoco.MjData(m)
-    d.qpos[0], d.qvel[0] = 0.3, 1.0
-    mujoco.mj_forward(m, d)
+    m, d, dx = _forward_both(POLYNOMIAL_SPRING_DAMPER, qpos={0: 0.3}, qvel={0: 1.0})
     assert abs(m.jnt_stiffnesspoly).sum() > 0 and abs(m.dof_dampingpoly).sum() > 0
-    dx = engines.forward(mjx.put_model(m), mjx.make_data(m).replace(qpos=d.qpos.copy(), qvel=d.qvel.copy()))
     np.testing.assert_allclose(np.asarray(dx.qfrc_passive), d.qfrc_passive, atol=1e-9, err_msg="qfrc_passive")
 
 
@@ -116,18 +126,15 @@ SPHERE_IN_HFIELD_VALLEY = """<mujoco>
 </mujoco>"""
 
 
-@pytest.mark.xfail(strict=True, reason="MJX 3.17's hfield_sphere keeps only the contacts within 1 mm of the "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="MJX 3.17's hfield_sphere keeps only the contacts within 1 mm of the "
                                        "deepest (a manifold of at most 4); C keeps one per prism the sphere "
                                        "penetrates. A sphere across a valley: C 2 contacts (-12.3, -17.6 mm), "
                                        "MJX 1 (-17.6 mm), qacc 16.4 apart. Found writing a terrain scenario "
                                        "(sphere, capsule, box, mesh on a heightfield), which fails on unmodified "
                                        "MJX and is therefore not bundled; MJX's hfield code stays untraced")
 def test_a_sphere_across_a_heightfield_crease_gets_every_contact():
-    m = mujoco.MjModel.from_xml_string(SPHERE_IN_HFIELD_VALLEY)
-    d = mujoco.MjData(m)
-    mujoco.mj_forward(m, d)
+    _, d, dx = _forward_both(SPHERE_IN_HFIELD_VALLEY)
     assert d.ncon == 2
-    dx = engines.forward(mjx.put_model(m), mjx.make_data(m).replace(qpos=d.qpos.copy()))
     np.testing.assert_allclose(np.asarray(dx.qacc), d.qacc, atol=1e-6, err_msg="qacc")
 
 
@@ -139,17 +146,13 @@ ELLIPSOID_FLUID_MODEL = """<mujoco>
 </mujoco>"""
 
 
-@pytest.mark.xfail(strict=True, reason="MJX 3.17 ignores fluidshape='ellipsoid' (geom_fluid) and applies the "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="MJX 3.17 ignores fluidshape='ellipsoid' (geom_fluid) and applies the "
                                        "inertia-box fluid model to every body, silently: a falling plate's fluid "
                                        "force on z is 0.0158 in C, 0.0120 in MJX (C's own inertia-box value); "
                                        "a sweep of it fails at step 0")
 def test_the_ellipsoid_fluid_model_is_used_where_a_geom_asks_for_it():
-    m = mujoco.MjModel.from_xml_string(ELLIPSOID_FLUID_MODEL)
-    d = mujoco.MjData(m)
-    d.qvel[:] = [0.5, 0.2, -1, 1, 2, 0.5]
-    mujoco.mj_forward(m, d)
+    m, d, dx = _forward_both(ELLIPSOID_FLUID_MODEL, qvel=dict(enumerate([0.5, 0.2, -1, 1, 2, 0.5])))
     assert m.geom_fluid[0, 0] == 1, "the geom asks for the ellipsoid model"
-    dx = engines.forward(mjx.put_model(m), mjx.make_data(m).replace(qpos=d.qpos.copy(), qvel=d.qvel.copy()))
     np.testing.assert_allclose(np.asarray(dx.qfrc_passive), d.qfrc_passive, atol=1e-9, err_msg="qfrc_passive")
 
 
@@ -163,17 +166,13 @@ CONNECT_OFF_THE_BODY_ORIGIN = """<mujoco>
 </mujoco>"""
 
 
-@pytest.mark.xfail(strict=True, reason="MJX 3.17 vs MuJoCo 4.0: a connect constraint whose anchor is off the "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="MJX 3.17 vs MuJoCo 4.0: a connect constraint whose anchor is off the "
                                        "body's origin, on a spinning body, gets a different force: spinning at "
                                        "1 rad/s about x with the anchor 0.2 m up, qfrc_constraint z is 1.8018 in "
                                        "C, 1.7658 in MJX (the anchor's centripetal acceleration, m w^2 r = 0.04, "
                                        "times the impedance); with the anchor at the origin they agree. Found "
                                        "adding a connect to the sensing scenario, which now anchors at the origin")
 def test_a_connect_anchored_off_the_origin_of_a_spinning_body():
-    m = mujoco.MjModel.from_xml_string(CONNECT_OFF_THE_BODY_ORIGIN)
-    d = mujoco.MjData(m)
-    d.qvel[3] = 1.0
-    mujoco.mj_forward(m, d)
-    dx = engines.forward(mjx.put_model(m), mjx.make_data(m).replace(qpos=d.qpos.copy(), qvel=d.qvel.copy()))
+    _, d, dx = _forward_both(CONNECT_OFF_THE_BODY_ORIGIN, qvel={3: 1.0})
     np.testing.assert_allclose(np.asarray(dx.qfrc_constraint), d.qfrc_constraint, atol=1e-6,
                                err_msg="qfrc_constraint")
