@@ -12,11 +12,12 @@ A cache is only as good as its key. Artifacts live in a directory keyed on the
 tree structure of the arguments (which holds an ``mjx.Model``'s static fields),
 each leaf's shape, dtype and sharding, the static arguments, the versions of jax,
 jaxlib, mujoco and mujoco-mjx, and the JAX and XLA settings that change
-compilation. Each artifact there is valid for the code its trace ran
-(:func:`dependencies`): every function of ``mujoco.mjx`` and ``mjxdiff.engines``
-the trace called or whose lines emitted an operation, each digested by bytecode,
-constants and nested code, default arguments, closure contents and the globals it
-reads. It is loaded only while all of them have the same digest. MJX edited in
+compilation. Each artifact there is valid for the code its trace could have run
+(:func:`dependencies`): every function of ``mujoco.mjx`` and ``mjxdiff.engines`` on
+the call stack of an operation it emitted, and every function those can call by
+name, each digested by bytecode, constants and nested code, default arguments,
+closure contents and the globals it reads. It is loaded only while all of them have
+the same digest. MJX edited in
 place, patched at run time or rebuilt under the same version number is therefore
 traced again wherever the change reaches a function the rollout ran, and only there.
 """
@@ -344,13 +345,14 @@ def fresh_digest() -> str:
 
 # --- what one trace depended on -------------------------------------------------------------
 #
-# An artifact is valid for exactly the code its trace ran. The trace records every function of
-# TRACED_MODULES it called (sys.settrace) and every function whose lines emitted an operation
-# (the StableHLO's locations, which a sub-trace JAX took from its caches keeps): its
-# dependencies. Each is digested "shallowly": its code (nested functions included), defaults,
-# closure and the globals it reads, where a function of TRACED_MODULES stands for itself by name
-# (its own code counts only if it ran, and then it is a dependency). An edit of one collision
-# function therefore retraces only the rollouts that ran it.
+# An artifact is valid for the code its trace ran. Its dependencies are the functions of
+# TRACED_MODULES on the call stack of every operation it emitted (the StableHLO's locations,
+# which a sub-trace JAX took from its caches keeps) and those they can call by name
+# (dependency_mode() "functions"), or those sys.settrace saw run ("traced"). Each is digested
+# "shallowly": its code (nested functions included), defaults, closure and the globals it reads,
+# where a function of TRACED_MODULES stands for itself by name (its own code counts only where
+# it is a dependency). An edit of one collision function therefore retraces only the rollouts
+# that can reach it.
 
 _FUNCTION_DIGESTS: dict[tuple[str, str], str] = {}  # (module, qualname) -> shallow digest; cleared on a code change
 _LOCATION = __import__("re").compile(r'loc\("([^"]+)":(\d+):')
