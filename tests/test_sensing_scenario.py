@@ -79,6 +79,12 @@ def camera_target_ignored(monkeypatch):
                   lambda m: m.replace(cam_targetbodyid=np.zeros_like(m.cam_targetbodyid)))
 
 
+def velocity_reference_frame_ignored(monkeypatch):
+    """Frame velocity sensors with a reference frame report world-frame values."""
+    _model_edited(monkeypatch, mjx_sensor, "sensor_vel",
+                  lambda m: m.replace(sensor_refid=np.full_like(m.sensor_refid, -1)))
+
+
 _EULERDAMP = int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
 
 
@@ -104,6 +110,8 @@ REACHES = {
         (m.actuator_trntype == int(mujoco.mjtTrn.mjTRN_SITE)) & np.any(m.actuator_gear[:, 3:] != 0, axis=1))),
     camera_target_ignored: lambda m: _has_sensor(m, _S.mjSENS_CAMPROJECTION) and bool(np.any(np.isin(
         m.cam_mode, [int(mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODY), int(mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODYCOM)]))),
+    velocity_reference_frame_ignored: lambda m: bool(np.any(np.isin(
+        m.sensor_type, [int(_S.mjSENS_FRAMELINVEL), int(_S.mjSENS_FRAMEANGVEL)]) & (m.sensor_refid > -1))),
     eulerdamp_flag_ignored: lambda m: bool(m.opt.disableflags & _EULERDAMP) and bool(np.any(m.dof_damping > 0))
     and m.opt.integrator == int(mujoco.mjtIntegrator.mjINT_EULER),
 }
