@@ -160,3 +160,38 @@ def test_contact_count_mismatches_start_the_rerun(tmp_path, monkeypatch):
     assert runs["on-demand"].info["noise_floor_members"] == 4
     _same_verdict(runs["on-demand"], runs["always"])
     assert runs["on-demand"].field("contacts").envelope == runs["always"].field("contacts").envelope
+
+
+def test_scenarios_side_by_side_judge_as_one_after_another_each_in_its_own_precision():
+    """Workers run whole scenarios at once, each setting jax_enable_x64 for its own thread only:
+    a float32 sweep on two workers, next to a float64 thread, judges exactly as one after another."""
+    import jax
+    import numpy as np
+
+    from mjxdiff.sweep import _precision, sweep
+
+    scenarios = [load_scenario(n) for n in ("pendulum", "cartpole", "double_pendulum")]
+    config = SweepConfig(seed=1, batch=2, steps=40, diagnose="none", precision="float32")
+    before = jax.config.jax_enable_x64
+    stop = threading.Event()
+
+    def other_precision():  # a thread busy in float64 all along
+        with _precision("float64"):
+            while not stop.is_set():
+                assert jax.numpy.zeros(1).dtype == np.float64
+                time.sleep(0.001)
+
+    neighbour = threading.Thread(target=other_precision)
+    neighbour.start()
+    try:
+        side_by_side = sweep(scenarios, dataclasses.replace(config, compile_workers=2))
+    finally:
+        stop.set()
+        neighbour.join()
+    one_by_one = sweep(scenarios, dataclasses.replace(config, compile_workers=0))
+    assert jax.config.jax_enable_x64 == before, "the process-wide setting is left as it was"
+    assert [r.name for r in side_by_side] == [s.name for s in scenarios]
+    for a, b in zip(side_by_side, one_by_one, strict=True):
+        assert a.status == b.status == "pass", (a.name, a.message)
+        assert [f.max_error for f in a.fields] == [f.max_error for f in b.fields], a.name
+        assert a.tolerances == b.tolerances and a.tolerances["qpos"] > 1e-5, "float32 tolerances"
