@@ -135,7 +135,7 @@ class _Digest:
         self.h, self.seen, self.modules = hashlib.sha256(), {}, modules
 
     def _ours(self, module: str | None) -> bool:
-        return bool(module) and any(module == m or module.startswith(m + ".") for m in self.modules)
+        return _under(module, self.modules)
 
     def feed(self, value: Any, depth: int = 0) -> None:
         h = self.h
@@ -235,12 +235,16 @@ def _is_test(name: str) -> bool:
     return leaf.startswith("test_") or leaf.endswith("_test")
 
 
+def _under(module: str | None, prefixes: tuple[str, ...]) -> bool:
+    """Whether the module named ``module`` is one of ``prefixes`` or inside one of them."""
+    return bool(module) and any(module == p or module.startswith(p + ".") for p in prefixes)
+
+
 def _modules(prefixes: tuple[str, ...]) -> list[tuple[str, types.ModuleType]]:
     """Imported modules under ``prefixes``, test helpers aside (never traced by a rollout;
     pytest rewrites them, so their code differs between a test run and the CLI)."""
     return sorted((name, module) for name, module in list(sys.modules.items())
-                  if module is not None and any(name == p or name.startswith(p + ".") for p in prefixes)
-                  and not _is_test(name))
+                  if module is not None and _under(name, prefixes) and not _is_test(name))
 
 
 def code_digest(modules: tuple[str, ...] = ("mujoco.mjx",)) -> str:
@@ -466,16 +470,19 @@ _REFERENCES: dict[tuple[str, str], tuple[tuple[tuple[str, str], bool], ...]] = {
 
 
 def _ours(value: Any) -> bool:
-    name = getattr(value, "__module__", None) or ""
-    return any(name == p or name.startswith(p + ".") for p in TRACED_MODULES)
+    return _under(getattr(value, "__module__", None), TRACED_MODULES)
+
+
+def _as_dependency(module: str, qualname: str) -> tuple[str, str]:
+    """(module, qualname) code of ``module.qualname`` is a dependency as: its outermost enclosing
+    function's name (a nested function's code is part of it), or ``*`` (the whole module) when
+    that cannot be found again by name (a lambda in a dict)."""
+    qualname = qualname.split(".<locals>")[0]
+    return (module, qualname if qualname != "*" and _resolve(module, qualname) is not None else "*")
 
 
 def _name_of(fn: types.FunctionType) -> tuple[str, str]:
-    """(module, qualname) a function is a dependency as: its outermost enclosing function's name
-    (a nested function's code is part of it), or ``*`` (the whole module) when that cannot be
-    found again by name."""
-    module, qualname = fn.__module__, fn.__code__.co_qualname.split(".<locals>")[0]
-    return (module, qualname if _resolve(module, qualname) is not None else "*")
+    return _as_dependency(fn.__module__, fn.__code__.co_qualname)
 
 
 def _code_names(code: types.CodeType) -> set[str]:
@@ -529,7 +536,7 @@ def _references(module: str, qualname: str) -> tuple[tuple[tuple[str, str], bool
     if fn is not None:
         names = _code_names(fn.__code__)
         spaces = [fn.__globals__] + [vars(v) for v in list(fn.__globals__.values())
-                                     if isinstance(v, types.ModuleType) and _ours_module(v.__name__)]
+                                     if isinstance(v, types.ModuleType) and _under(v.__name__, TRACED_MODULES)]
         candidates = [space[n] for n in names for space in spaces if n in space]
         candidates += [method for n in names for method in _methods().get(n, ())]  # x.method() on our objects
         for cell in fn.__closure__ or ():
@@ -572,10 +579,6 @@ def _methods() -> dict[str, list]:
 ALWAYS_DEPENDED_ON = ("mujoco.mjx._src.dataclasses",)
 
 
-def _ours_module(name: str) -> bool:
-    return any(name == p or name.startswith(p + ".") for p in TRACED_MODULES)
-
-
 def _closure(found: set[tuple[str, str]]) -> set[tuple[str, str]]:
     """``found`` and every function of TRACED_MODULES it can reach by name (:func:`_references`)."""
     out, todo = set(found), [f for f in found if f[1] != "*"]
@@ -599,7 +602,7 @@ def dependencies(called: set[types.CodeType], mlir_text: str, follow: bool = Tru
     for code in called:
         module = files.get(os.path.realpath(code.co_filename))
         if module is not None:
-            found.add((module, code.co_qualname.split(".<locals>")[0]))
+            found.add(_as_dependency(module, code.co_qualname))
     by_file: dict[str, set[int]] = {}
     for file, line in _LOCATION.findall(mlir_text):
         by_file.setdefault(file, set()).add(int(line))
@@ -610,12 +613,10 @@ def dependencies(called: set[types.CodeType], mlir_text: str, follow: bool = Tru
         index = _line_index(module)
         for line in lines:
             spans = [(last - first, q) for first, last, q in index if first <= line <= last]
-            if spans:
+            if spans:  # a function _line_index found by name: resolvable again
                 found.add((module, min(spans)[1]))
             else:  # a line of no function (module level): depend on the whole module
                 found.add((module, "*"))
-    # a function that cannot be found again by name (a lambda in a dict): the whole module counts
-    found = {(m, q if q == "*" or _resolve(m, q) is not None else "*") for m, q in found}
     if follow:
         found = _closure(found) | {(m, "*") for m in ALWAYS_DEPENDED_ON if m in sys.modules}
     return {f"{m}:{q}": (code_digest((m,)) if q == "*" else function_digest(m, q)) for m, q in sorted(found)}
