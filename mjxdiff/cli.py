@@ -132,6 +132,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="remove geom pairs MJX cannot collide (e.g. cylinder-box) from the model both engines "
                          "step and test the rest; changes the dynamics, so it is never the default and every "
                          "dropped pair is listed in the result")
+    sw.add_argument("--transfer", action=argparse.BooleanOptionalAction, default=True,
+                    help="also check MJX's host interface against C at two C states of each scenario "
+                         "(default): get_data(put_data(d)) gives C's fields and penetrating contacts back, "
+                         "get_state/set_state/state_size match mj_getState/mj_stateSize, id2name/name2id and "
+                         "Model.bind/Data.bind read what C holds; a mismatch fails the scenario as field "
+                         "'transfer'; state elements MJX refuses are listed, not failed")
     sw.add_argument("--compile", choices=("auto", "fast", "optimized"), default="auto",
                     help="how hard XLA optimises each MJX rollout: auto (default) compiles quickly (about "
                          "60%% less compile time than XLA's defaults, 3x slower stepping) when the rollout steps "
@@ -246,7 +252,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
                          quick=args.quick, threshold=args.threshold, envelope=args.envelope,
                          noise_floor=args.noise_floor, diagnose=args.diagnose, adjust=args.adjust,
                          drop_unsupported=args.drop_unsupported, compile=args.compile,
-                         compile_workers=args.compile_workers)
+                         compile_workers=args.compile_workers, transfer=args.transfer)
     scenarios, bad = [], []
     try:
         refs = args.scenarios or [s.name for s in bundled_scenarios()]

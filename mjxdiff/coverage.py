@@ -22,6 +22,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -38,13 +41,33 @@ EXCLUDED = {
     "bvh.py": "bounding volume hierarchies for rendering: Warp backend only",
     "inverse.py": "inverse dynamics: not part of mjx.step",
     "__init__.py": "imports only",
+    "test_util.py": "MJX's own test and benchmark helpers: not simulation",
 }
+
+#: Statements no CPU sweep of a feature MJX supports can run: a regular expression (matched
+#: against each source line; a match on a block's first line leaves out the whole block, on
+#: any line of a statement the whole statement), with the reason.
+UNREACHABLE = {
+    r"\b(if|elif)\b.*\bimpl\s*==\s*(types\.)?Impl\.(WARP|CPP)\b":
+        "another backend's branch (Warp: GPU kernels; cpp: MuJoCo C's own pointers, no MJX physics)",
+    r"raise ValueError\(.*(requires|only supports) JAX backend":
+        "guard against another backend's data",
+    r"raise NotImplementedError\b":
+        "raised for a feature MJX lacks (a sweep reports it as unsupported)",
+    r"continue\s*# unsupported":
+        "skips a sensor type MJX lacks",
+    r"raise \w+Error\(\s*f?['\"](unrecognized|Unknown|Unsupported) ":
+        "defensive: a type value MuJoCo's compiler never produces",
+}
+#: Functions left out whole, by a word in their name: the Warp and cpp backends' own code.
+_OTHER_BACKENDS = ("warp", "_wp_", "_cpp")
 
 
 def _src_dir() -> Path:
-    import mujoco.mjx._src as src
+    import importlib.util
 
-    return Path(src.__path__[0])
+    # found without importing mujoco.mjx: the recording process must import it after starting
+    return Path(importlib.util.find_spec("mujoco.mjx").submodule_search_locations[0], "_src")
 
 
 def _trace_one(m: mujoco.MjModel) -> None:
@@ -57,32 +80,80 @@ def _trace_one(m: mujoco.MjModel) -> None:
     jax.make_jaxpr(mjx.step)(mx, dx)
 
 
-def code_coverage(models: Sequence[tuple[str, mujoco.MjModel]]) -> dict[str, Any]:
+def _record(folder: str) -> None:
+    """In a fresh process: records coverage from before ``mujoco.mjx`` is imported (so code MJX
+    runs at import, its decorators and dataclass machinery, counts) while tracing the models
+    ``folder`` holds (``names.json``, ``<i>.mjb``) and, where ``<i>.npz`` gives member 0's
+    inputs, running the sweep's host-interface check (:mod:`mjxdiff.transfer`) on them;
+    writes ``cov.json`` and ``errors.json`` there."""
+    import coverage
+
+    src, folder = _src_dir(), Path(folder)
+    cov = coverage.Coverage(data_file=None, branch=True, include=[str(src / "*.py")],
+                            omit=[str(src / "*_test.py")] + [str(src / f) for f in EXCLUDED])
+    for pattern in UNREACHABLE:
+        cov.exclude(pattern)
+    errors = {}
+    cov.start()
+    try:
+        import mujoco.mjx  # noqa: F401 - recorded
+
+        from mjxdiff import adjust, transfer
+
+        for i, entry in enumerate(json.loads((folder / "names.json").read_text())):
+            m = mujoco.MjModel.from_binary_path(str(folder / f"{i}.mjb"))
+            try:
+                _trace_one(m)
+                if (folder / f"{i}.npz").exists():
+                    # an MJB file does not keep the model's signature, which bind checks against
+                    # the MjSpec: the same structure compiled again runs the same code
+                    checked, _ = adjust.for_mjx(mujoco.MjSpec.from_file(entry["path"]).compile(), entry["path"])
+                    with np.load(folder / f"{i}.npz") as z:
+                        transfer.check_scenario_states(checked, z["qpos"], z["qvel"], z["act"], z["ctrl"], 0.0,
+                                                       entry["path"], entry["precision"])
+            except Exception as e:  # noqa: BLE001 - an unsupported model covers what it reached
+                errors[entry["name"]] = " ".join(f"{type(e).__name__}: {e}".split())[:300]
+    finally:
+        cov.stop()
+    cov.json_report(outfile=str(folder / "cov.json"))
+    (folder / "errors.json").write_text(json.dumps(errors))
+
+
+_RECORDER = "import sys; from mjxdiff.coverage import _record; _record(sys.argv[1])"
+
+
+def code_coverage(models: Sequence[tuple[str, mujoco.MjModel]],
+                  transfers: dict[str, tuple[Any, Any, Any, Any, str]] | None = None) -> dict[str, Any]:
     """Line and branch coverage of MJX's ``_src`` while each ``(name, model)`` is traced.
+
+    Recorded in a fresh Python process (:func:`_record`), in this process's precision.
+    ``transfers``: name -> ``(qpos, qvel, act, ctrl, model_path)`` of member 0, for the
+    sweep's host-interface check (:func:`mjxdiff.transfer.check_scenario_states`).
 
     Returns:
       ``{"totals": {...}, "modules": {file: {...}}, "functions_never_traced": [...],
       "excluded": EXCLUDED, "errors": {name: message}}``; percentages in [0, 100].
     """
-    import coverage
+    import jax
 
-    src = _src_dir()
-    cov = coverage.Coverage(data_file=None, branch=True, include=[str(src / "*.py")],
-                            omit=[str(src / "*_test.py")] + [str(src / f) for f in EXCLUDED])
-    errors = {}
-    cov.start()
-    try:
-        for name, m in models:
-            try:
-                _trace_one(m)
-            except Exception as e:  # noqa: BLE001 - an unsupported model covers what it reached
-                errors[name] = " ".join(f"{type(e).__name__}: {e}".split())[:300]
-    finally:
-        cov.stop()
+    transfers = transfers or {}
+    precision = "float64" if jax.config.jax_enable_x64 else "float32"
     with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp, "cov.json")
-        cov.json_report(outfile=str(out))
-        raw = json.loads(out.read_text())
+        entries = []
+        for i, (name, m) in enumerate(models):
+            mujoco.mj_saveModel(m, str(Path(tmp) / f"{i}.mjb"), None)
+            entries.append(dict(name=name, path=None, precision=precision))
+            if name in transfers and Path(transfers[name][-1]).suffix.lower() == ".xml":
+                qpos, qvel, act, ctrl, path = transfers[name]
+                np.savez(Path(tmp) / f"{i}.npz", qpos=qpos, qvel=qvel, act=act, ctrl=ctrl)
+                entries[-1]["path"] = str(path)
+        (Path(tmp) / "names.json").write_text(json.dumps(entries))
+        env = dict(os.environ, JAX_ENABLE_X64=str(bool(jax.config.jax_enable_x64)))
+        done = subprocess.run([sys.executable, "-c", _RECORDER, tmp], env=env, capture_output=True, text=True)
+        if done.returncode:
+            raise RuntimeError(f"recording MJX coverage failed: {done.stderr.strip()[-2000:]}")
+        raw = json.loads(Path(tmp, "cov.json").read_text())
+        errors = json.loads(Path(tmp, "errors.json").read_text())
     # Function bodies only: module-level statements ran at import, before recording started.
     modules, never, warp = {}, [], []
     totals = dict.fromkeys(("lines", "lines_covered", "branches", "branches_covered"), 0)
@@ -92,7 +163,7 @@ def code_coverage(models: Sequence[tuple[str, mujoco.MjModel]]) -> dict[str, Any
         for fn, fd in data.get("functions", {}).items():
             if not fn:
                 continue
-            if "warp" in fn.lower():  # the Warp backend's code paths cannot run in a JAX CPU sweep
+            if any(w in fn.lower() for w in _OTHER_BACKENDS):  # cannot run in a JAX CPU sweep
                 warp.append(f"{name}:{fn}")
                 continue
             s = fd["summary"]
@@ -108,7 +179,7 @@ def code_coverage(models: Sequence[tuple[str, mujoco.MjModel]]) -> dict[str, Any
             totals[k] += mod[k]
     totals["line_percent"] = round(100 * totals["lines_covered"] / max(totals["lines"], 1), 2)
     totals["branch_percent"] = round(100 * totals["branches_covered"] / max(totals["branches"], 1), 2)
-    excluded = dict(EXCLUDED, **{f: "Warp backend only" for f in warp})
+    excluded = dict(EXCLUDED, **{f: "Warp or cpp backend only" for f in warp})
     return dict(totals=totals, modules=modules, functions_never_traced=sorted(never), excluded=excluded,
                 errors=errors)
 
@@ -265,7 +336,7 @@ def measure(scenarios, seed: int = 0, batch: int = 4, code: bool = True) -> dict
     from mjxdiff.inputs import make_inputs
     from mjxdiff.scenario import ScenarioError, load_model
 
-    members, first, runs, skipped = [], [], [], {}
+    members, first, runs, skipped, transfers = [], [], [], {}, {}
     for s in scenarios:
         try:
             m = load_model(s)
@@ -276,11 +347,12 @@ def measure(scenarios, seed: int = 0, batch: int = 4, code: bool = True) -> dict
             continue
         members.append((s.name, inputs.models))
         first.append((s.name, inputs.models[0]))
+        transfers[s.name] = (inputs.qpos[0], inputs.qvel[0], inputs.act[0], inputs.ctrl[0], s.model_path)
         runs.append((s.name, inputs))
     out = dict(scenarios=[n for n, _ in members], skipped=skipped, parameters=parameter_coverage(members),
                regimes=regime_coverage(runs))
     if code:
-        out["code"] = code_coverage(first)
+        out["code"] = code_coverage(first, transfers)
     return out
 
 

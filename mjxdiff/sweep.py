@@ -20,12 +20,12 @@ from typing import Callable, Iterable, Iterator, Sequence
 import jax
 import numpy as np
 
-from mjxdiff import adjust, diagnose, engines, export_cache, report, reproducer
+from mjxdiff import adjust, diagnose, engines, export_cache, report, reproducer, transfer
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
 from mjxdiff.inputs import BatchedInputs, make_inputs
 from mjxdiff.scenario import Scenario, ScenarioError, Tolerances, load_model
 from mjxdiff.noise import SOLVER_MARGIN, NoiseFloor, combine, converged, has_constraints, perturb
-from mjxdiff.verdict import Judge, ScenarioResult, rangefinder_mask
+from mjxdiff.verdict import FieldResult, Judge, ScenarioResult, rangefinder_mask
 
 __all__ = ["SweepConfig", "run_scenario", "sweep"]
 
@@ -69,6 +69,9 @@ class SweepConfig:
       compile_workers: threads that run scenarios side by side, each from compile to
         verdict (:func:`sweep`); None: :func:`default_compile_workers`; 0: none, one
         scenario after another on the calling thread.
+      transfer: also check MJX's host interface (``put_data``, ``get_data``,
+        ``get_state``/``set_state``, names, ``bind``) against C at two C states of member 0
+        (:mod:`mjxdiff.transfer`); a mismatch fails the scenario as field ``transfer``.
     """
 
     seed: int = 0
@@ -87,6 +90,7 @@ class SweepConfig:
     drop_unsupported: bool = False
     compile: str = "auto"
     compile_workers: int | None = None
+    transfer: bool = True
 
     def __post_init__(self):
         if self.noise_floor not in NOISE_FLOOR_MODES:
@@ -202,7 +206,39 @@ def _finish(prepared: _Prepared, config: SweepConfig, mjx_engine: MJXEngine | No
             path = None
             result = dataclasses.replace(result, message=f"{result.message}; reproducer not saved: {_one_line(e)}")
         result = dataclasses.replace(result, info={**result.info, "reproducer": path})
+    if config.transfer and result.status in ("pass", "fail"):
+        result = _with_transfer(result, inputs, scenario.model_path, config.precision)
     return result
+
+
+def _with_transfer(result: ScenarioResult, inputs: BatchedInputs, model_path, precision: str) -> ScenarioResult:
+    """``result`` with :func:`mjxdiff.transfer.check_scenario_states` of member 0 in its ``info``
+    and, when MJX's host interface disagrees with C, a failing ``transfer`` field."""
+    t = time.perf_counter()
+    try:
+        with _precision(precision):
+            found = transfer.check_scenario_states(inputs.models[0], inputs.qpos[0], inputs.qvel[0], inputs.act[0],
+                                                   inputs.ctrl[0], 0.0, model_path, precision)
+    except Exception as e:  # noqa: BLE001 - the trajectory verdict stands; say why this part is missing
+        info = {**result.info, "transfer": dict(error=_one_line(e))}
+        return dataclasses.replace(result, info=info)
+    info = {**result.info, "transfer": found.as_dict()}
+    info["seconds"] = {**info.get("seconds", {}), "transfer": time.perf_counter() - t}
+    if not found.mismatches:
+        return dataclasses.replace(result, info=info)
+    worst = max(found.mismatches, key=lambda x: x.error)
+    first = found.mismatches[0]
+    field = FieldResult(field="transfer", max_error=worst.error, tolerance=transfer.RTOL[precision],
+                        first_step=first.state, member=0, object=f"{first.call}", growth_rate=0.0,
+                        ratio=float("inf") if worst.error == float("inf") else worst.error / transfer.RTOL[precision])
+    said = (f"MJX's host interface disagrees with MuJoCo C: {first.call} ({first.field}) at the C state after "
+            f"step {first.state} of member 0: {first.detail}; {len(found.mismatches)} mismatch(es)")
+    message = said if result.status == "pass" else f"{result.message}; also {said}"
+    first_divergence = result.first_divergence or dict(field="transfer", step=first.state, time=None, member=0,
+                                                        object=first.call, error=first.error,
+                                                        tolerance=transfer.RTOL[precision])
+    return dataclasses.replace(result, status="fail", message=message, fields=result.fields + (field,),
+                               first_divergence=first_divergence, info=info)
 
 
 #: Budget for the memory one piece of a rollout holds (records of C, C's perturbed rerun and
