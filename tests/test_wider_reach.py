@@ -1,0 +1,131 @@
+"""Code the bundled scenarios reach since the coverage round of 2026-11-24 (tendon pulleys and
+geom wrapping, actuators acting in a ball or free joint's parent frame, a rotated mocap body,
+a maxforce contact sensor, tendon armature with a sparse mass matrix, tendon damping under
+implicitfast, a camera in track mode): a one-line slip in each is caught by the scenario that
+now reaches it, while every other bundled model provably leaves that code out.
+
+Each bug is a monkeypatch of one function inside mujoco.mjx._src that ignores one parameter or
+mode (uses the default instead), as in test_parameter_families and test_sensing_scenario."""
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from mujoco.mjx._src import derivative as mjx_derivative
+from mujoco.mjx._src import sensor as mjx_sensor
+from mujoco.mjx._src import smooth as mjx_smooth
+from mujoco.mjx._src import support as mjx_support
+
+from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
+from mjxdiff.sweep import SweepConfig, run_scenario
+
+CONFIG = SweepConfig(seed=0, batch=2, steps=150, diagnose="none", transfer=False)
+_W, _T, _S = mujoco.mjtWrap, mujoco.mjtTrn, mujoco.mjtSensor
+
+
+def _model_edited(monkeypatch, module, name: str, edit) -> None:
+    orig = getattr(module, name)
+    monkeypatch.setattr(module, name, lambda m, d, *args: orig(edit(m), d, *args))
+
+
+def pulley_divisor_ignored(monkeypatch):
+    """Tendon branches after a pulley count in full, as if every divisor were 1."""
+    _model_edited(monkeypatch, mjx_smooth, "tendon", lambda m: m.replace(
+        wrap_prm=np.where(np.asarray(m.wrap_type) == int(_W.mjWRAP_PULLEY), 1.0, np.asarray(m.wrap_prm))))
+
+
+def wrap_radius_off(monkeypatch):
+    """Tendons wrap spheres and cylinders 1% larger than the geoms are."""
+    _model_edited(monkeypatch, mjx_smooth, "tendon", lambda m: m.replace(geom_size=m.geom_size * 1.01))
+
+
+def jointinparent_as_joint(monkeypatch):
+    """Actuators acting in a ball or free joint's parent frame act in the child frame instead."""
+    _model_edited(monkeypatch, mjx_smooth, "transmission", lambda m: m.replace(actuator_trntype=np.where(
+        np.asarray(m.actuator_trntype) == int(_T.mjTRN_JOINTINPARENT), int(_T.mjTRN_JOINT),
+        np.asarray(m.actuator_trntype))))
+
+
+def mocap_quat_ignored(monkeypatch):
+    """Mocap bodies keep the identity orientation whatever mocap_quat says."""
+    orig = mjx_smooth.kinematics
+
+    def kinematics(m, d):
+        return orig(m, d.replace(mocap_quat=jnp.zeros_like(d.mocap_quat).at[:, 0].set(1.0)))
+    monkeypatch.setattr(mjx_smooth, "kinematics", kinematics)
+
+
+def maxforce_reduction_as_mindist(monkeypatch):
+    """Contact sensors asked for the strongest contact report the deepest one."""
+    _model_edited(monkeypatch, mjx_sensor, "sensor_acc", lambda m: m.replace(sensor_intprm=np.where(
+        (np.asarray(m.sensor_type)[:, None] == int(_S.mjSENS_CONTACT)) & (np.arange(3) == 1)
+        & (np.asarray(m.sensor_intprm) == 2), 1, np.asarray(m.sensor_intprm))))
+
+
+def sparse_tendon_armature_ignored(monkeypatch):
+    """Tendon armature is lost from a sparse mass matrix (the dense one keeps it)."""
+    _model_edited(monkeypatch, mjx_smooth, "tendon_armature", lambda m: m.replace(
+        tendon_armature=jnp.zeros_like(m.tendon_armature)) if mjx_support.is_sparse(m) else m)
+
+
+def implicit_tendon_damping_ignored(monkeypatch):
+    """implicitfast leaves tendon damping out of the velocity derivative it integrates with."""
+    _model_edited(monkeypatch, mjx_derivative, "deriv_smooth_vel",
+                  lambda m: m.replace(tendon_damping=jnp.zeros_like(m.tendon_damping)))
+
+
+def track_camera_fixed(monkeypatch):
+    """Cameras in track mode stay where the model put them instead of following their body."""
+    _model_edited(monkeypatch, mjx_smooth, "camlight", lambda m: m.replace(cam_mode=np.where(
+        np.asarray(m.cam_mode) == int(mujoco.mjtCamLight.mjCAMLIGHT_TRACK), int(mujoco.mjtCamLight.mjCAMLIGHT_FIXED),
+        np.asarray(m.cam_mode))))
+
+
+def _wraps(m, *kinds) -> bool:
+    return bool(np.isin(m.wrap_type, [int(k) for k in kinds]).any())
+
+
+def _camprojection_on(m, mode) -> bool:
+    cams = m.sensor_refid[m.sensor_type == int(_S.mjSENS_CAMPROJECTION)]
+    return bool(np.any(m.cam_mode[cams] == int(mode)))
+
+
+_BALL_OR_FREE = [int(mujoco.mjtJoint.mjJNT_BALL), int(mujoco.mjtJoint.mjJNT_FREE)]
+
+#: bug -> (the scenario that catches it, the other scenarios that reach it since this round,
+#: where its code runs in a model)
+REACHES = {
+    pulley_divisor_ignored: ("tendons", (), lambda m: _wraps(m, _W.mjWRAP_PULLEY)),
+    wrap_radius_off: ("tendons", (), lambda m: _wraps(m, _W.mjWRAP_SPHERE, _W.mjWRAP_CYLINDER)),
+    jointinparent_as_joint: ("ball_joint", ("sensing",), lambda m: bool(np.any(
+        (m.actuator_trntype == int(_T.mjTRN_JOINTINPARENT))
+        & np.isin(m.jnt_type[np.clip(m.actuator_trnid[:, 0], 0, None)], _BALL_OR_FREE)))),
+    mocap_quat_ignored: ("sensing", (), lambda m: bool(np.any(
+        np.abs(m.body_quat[m.body_mocapid >= 0] - [1, 0, 0, 0]) > 1e-6))),
+    maxforce_reduction_as_mindist: ("sensing", (), lambda m: bool(np.any(
+        (m.sensor_type == int(_S.mjSENS_CONTACT)) & (m.sensor_intprm[:, 1] == 2)))),
+    sparse_tendon_armature_ignored: ("sensing", (), lambda m: bool(np.any(m.tendon_armature > 0))
+                                      and m.opt.jacobian == int(mujoco.mjtJacobian.mjJAC_SPARSE)),
+    implicit_tendon_damping_ignored: ("integrator_implicitfast", (), lambda m: bool(
+        m.opt.integrator == int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST) and np.any(m.tendon_damping > 0))),
+    track_camera_fixed: ("sensing", (), lambda m: _camprojection_on(m, mujoco.mjtCamLight.mjCAMLIGHT_TRACK)),
+}
+
+
+@pytest.mark.parametrize("bug", list(REACHES), ids=lambda b: b.__name__)
+def test_no_other_scenario_reaches_the_code(bug):
+    catcher, also, reaches = REACHES[bug]
+    assert reaches(load_model(load_scenario(catcher)))
+    others = [s.name for s in bundled_scenarios()
+              if s.name != catcher and s.name not in also and reaches(load_model(s))]
+    assert others == [], f"{bug.__name__} can show in {others} too"
+
+
+@pytest.mark.parametrize("bug", list(REACHES), ids=lambda b: b.__name__)
+def test_the_scenario_that_reaches_it_catches_it(bug, fresh_mjx, monkeypatch):
+    catcher, _, _ = REACHES[bug]
+    bug(monkeypatch)
+    result = run_scenario(load_scenario(catcher), CONFIG)
+    assert result.status == "fail", f"{bug.__name__} not caught by {catcher}: {result.message}"
+    first = result.first_divergence
+    assert first["field"] in ("qpos", "qvel", "sensordata") and first["step"] >= 0, first
