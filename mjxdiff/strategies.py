@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import itertools
+import re
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any, NamedTuple
 
@@ -293,6 +294,7 @@ class _Spec:
     actuator: list[str] = dataclasses.field(default_factory=list)
     sensor: list[str] = dataclasses.field(default_factory=list)
     fixed_tendons: list[str] = dataclasses.field(default_factory=list)
+    mocap_bodies: int = 0
     features: set[str] = dataclasses.field(default_factory=set)
     unsupported: str | None = None
 
@@ -306,6 +308,17 @@ class _Spec:
     def scalar_joints(self) -> tuple[str, ...]:
         return tuple(b.joint["name"] for b in self.bodies
                      if b.joint is not None and b.joint.get("type") in ("hinge", "slide"))
+
+    def joints_of(self, *types: str) -> tuple[str, ...]:
+        return tuple(b.joint["name"] for b in self.bodies if b.joint is not None and b.joint.get("type") in types)
+
+    def world_pos(self, b: int) -> np.ndarray:
+        """Body ``b``'s origin in the world at qpos0 (bodies are not rotated)."""
+        pos = np.zeros(3)
+        while b >= 0:
+            pos += self.bodies[b].pos
+            b = self.bodies[b].parent
+        return pos
 
     def world_geom(self, attrs: dict[str, str]) -> None:
         self.world.append(_tag("geom", attrs))
@@ -608,7 +621,7 @@ def _other_body(draw: Callable, a: int, nbody: int) -> int:
     return k + (k >= a) if k >= 0 else -1
 
 
-def _tendons(draw: Callable, spec: _Spec) -> None:
+def _tendons(draw: Callable, spec: _Spec, geom_types: tuple[str, ...] = GEOM_TYPES) -> None:
     """Fixed tendons on hinge/slide joints and spatial tendons between sites."""
     joints = spec.scalar_joints()
     for k in range(draw(_ints(1, 2))):
@@ -634,20 +647,57 @@ def _tendons(draw: Callable, spec: _Spec) -> None:
                 other = "anchor"
             else:
                 other = spec.site(b)
-            inner = _tag("site", {"site": spec.site(a)}) + _tag("site", {"site": other})
+            inner = _tag("site", {"site": spec.site(a)})
+            # MuJoCo: tendon armature does not work with geom wrapping
+            shapes = tuple(t for t in ("sphere", "cylinder") if t in geom_types)
+            wrap = None if "armature" in attrs or not shapes else draw(_optional(_sampled(shapes)))
+            if wrap is not None:
+                inner += _wrap_geom(draw, spec, a, k, wrap)
+            inner += _tag("site", {"site": other})
+            divisor = draw(_optional(_floats(1.5, 3.0)))
+            if divisor is not None:  # a second branch from a world site to the same body
+                name = f"pulley{k}"
+                spec.world.append(_tag("site", {"name": name, "pos": _vec(spec.world_pos(a) + (0.2, 0.0, 1.0))}))
+                inner += _tag("pulley", {"divisor": _f(divisor)}) + _tag("site", {"site": name})
+                inner += _tag("site", {"site": spec.site(a)})
+                spec.features.add("tendon pulley")
         spec.tendon.append(_tag(kind, attrs, inner))
         spec.features.add(f"{kind} tendon")
+
+
+def _wrap_geom(draw: Callable, spec: _Spec, a: int, k: int, shape: str) -> str:
+    """A non-colliding sphere or cylinder on body ``a``, 0.1 m above its site, for a spatial
+    tendon to wrap around (``<geom>`` element of the tendon), with a side site or not."""
+    name = f"wrap{k}"
+    radius = draw(_floats(0.02, 0.05))
+    geom = {"name": name, "type": shape, "pos": "0 0 0.1", "mass": "0.01", "contype": "0", "conaffinity": "0",
+            "size": _f(radius) if shape == "sphere" else f"{_f(radius)} 0.05"}
+    if shape == "cylinder":
+        geom["zaxis"] = "0 1 0"
+    spec.bodies[a].geoms.append(geom)
+    spec.features.add("tendon geom wrap")
+    attrs = {"geom": name}
+    if draw(st.booleans()):
+        side = f"side{k}"
+        spec.bodies[a].sites.append({"name": side, "pos": f"0 0 {_f(0.12 + radius)}", "size": "0.01"})
+        attrs["sidesite"] = side
+        spec.features.add("tendon wrap sidesite")
+    return _tag("geom", attrs)
 
 
 def _actuators(draw: Callable, spec: _Spec) -> None:
     """Motor/position/velocity/general actuators on hinge/slide joints and fixed tendons."""
     targets = tuple(("joint", j) for j in spec.scalar_joints()) + tuple(("tendon", t) for t in spec.fixed_tendons)
+    targets += tuple(("ball", j) for j in spec.joints_of("ball")) + tuple(("free", j) for j in spec.joints_of("free"))
     if not targets:
         return
-    for _ in range(draw(_ints(1, 3))):
-        kind = draw(_sampled(("motor", "position", "velocity", "general")))
+    for n in range(draw(_ints(1, 3))):
         trn, target = draw(_sampled(targets))
-        attrs: dict[str, str] = {trn: target}
+        if trn in ("ball", "free"):
+            spec.actuator.append(_rotational_actuator(draw, spec, f"a{n}", trn, target))
+            continue
+        kind = draw(_sampled(("motor", "position", "velocity", "general")))
+        attrs: dict[str, str] = {"name": f"a{n}", trn: target}
         gear = draw(_maybe(1.0, _floats(0.5, 5.0)))
         if gear != 1.0:
             attrs["gear"] = _f(gear)
@@ -683,12 +733,37 @@ def _actuators(draw: Callable, spec: _Spec) -> None:
             spec.features.add("tendon actuator")
 
 
+def _rotational_actuator(draw: Callable, spec: _Spec, name: str, jtype: str, joint: str) -> str:
+    """A motor on a ball joint (gear: a rotation axis) or a free joint (gear: force and torque),
+    acting in the joint's frame or its parent's (``jointinparent``)."""
+    trn = draw(_sampled(("joint", "jointinparent")))
+    width = 3 if jtype == "ball" else 6
+    gear = np.zeros(width)
+    gear[draw(_ints(0, width - 1))] = draw(_floats(0.2, 1.0))
+    spec.features.add(f"{jtype} joint actuator")
+    if trn == "jointinparent":
+        spec.features.add("jointinparent actuator")
+    return _tag("motor", {"name": name, trn: joint, "gear": _vec(gear), "ctrllimited": "true", "ctrlrange": "-1 1"})
+
+
 def _equalities(draw: Callable, spec: _Spec) -> None:
     """connect/weld between distinct bodies (or the world), joint between hinge/slide joints."""
     joints = spec.scalar_joints()
     nb = len(spec.bodies)
     for _ in range(draw(_ints(1, 2))):
-        kind = draw(_sampled(("connect", "weld", "joint") if joints else ("connect", "weld")))
+        kind = draw(_sampled(("connect", "weld", "joint", "mocap") if joints else ("connect", "weld", "mocap")))
+        if kind == "mocap":  # a static mocap body where body a starts, turned by a drawn angle
+            a = draw(_ints(0, nb - 1))
+            name = f"mocap{len(spec.equality)}"
+            angle = draw(_floats(0.0, 1.0))
+            quat = (np.cos(angle / 2), 0.0, np.sin(angle / 2), 0.0)
+            spec.world.append(_tag("body", {"name": name, "mocap": "true", "pos": _vec(spec.world_pos(a)),
+                                            "quat": _vec(quat)}))
+            spec.mocap_bodies += 1
+            spec.equality.append(_tag(draw(_sampled(("connect", "weld"))),
+                                      {"body1": f"b{a}", "body2": name, "anchor": "0 0 0"}))
+            spec.features.add("mocap body")
+            continue
         if kind == "joint":
             i1 = draw(_ints(0, len(joints) - 1))
             i2 = draw(_optional(_ints(0, len(joints) - 2))) if len(joints) > 1 else None
@@ -714,12 +789,21 @@ _BODY_SENSORS = ("framepos", "framequat", "subtreecom")
 
 def _sensors(draw: Callable, spec: _Spec, touch: bool) -> None:
     """Joint, frame, subtree and site sensors on existing objects (touch only when ``touch``)."""
-    joints = spec.scalar_joints()
+    joints, balls = spec.scalar_joints(), spec.joints_of("ball")
+    actuators = [a for a in (re.search(r'name="(a\d+)"', x) for x in spec.actuator) if a]
     site_sensors = tuple(k for k in _SITE_SENSORS if touch or k != "touch")
-    kinds = (("jointpos", "jointvel") if joints else ()) + _BODY_SENSORS + site_sensors
+    kinds = (("jointpos", "jointvel") if joints else ()) + _BODY_SENSORS + site_sensors + ("clock",)
+    kinds += ("ballquat", "ballangvel") if balls else ()
+    kinds += ("actuatorpos", "actuatorvel", "actuatorfrc") if actuators else ()
     for _ in range(draw(_ints(1, 4))):
         kind = draw(_sampled(kinds))
-        if kind in ("jointpos", "jointvel"):
+        if kind == "clock":
+            attrs = {}
+        elif kind in ("ballquat", "ballangvel"):
+            attrs = {"joint": draw(_sampled(balls))}
+        elif kind.startswith("actuator"):
+            attrs = {"actuator": draw(_sampled(tuple(a.group(1) for a in actuators)))}
+        elif kind in ("jointpos", "jointvel"):
             attrs = {"joint": draw(_sampled(joints))}
         else:
             b = draw(_ints(0, len(spec.bodies) - 1))
@@ -945,7 +1029,7 @@ def mjcf_models(draw: Callable, *, max_bodies: Any = 4, max_geoms_per_body: Any 
         spec.features.discard("elliptic cone")
         touch = False
     if _value(draw, tendons) and draw(st.booleans()):
-        _tendons(draw, spec)
+        _tendons(draw, spec, geom_types)
     if _value(draw, actuators) and draw(st.booleans()):
         _actuators(draw, spec)
     if _value(draw, equality) and draw(st.booleans()):
@@ -958,7 +1042,7 @@ def mjcf_models(draw: Callable, *, max_bodies: Any = 4, max_geoms_per_body: Any 
         spec.unsupported = name
         spec.features.add(name)
     ngeom = len(spec.world_geoms) + sum(len(b.geoms) for b in spec.bodies)
-    return MjcfModel(xml=spec.render(), nbody=len(spec.bodies), ngeom=ngeom,
+    return MjcfModel(xml=spec.render(), nbody=len(spec.bodies) + spec.mocap_bodies, ngeom=ngeom,
                      features=tuple(sorted(spec.features)), unsupported_feature=spec.unsupported)
 
 

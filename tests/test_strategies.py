@@ -300,7 +300,10 @@ def test_parameter_perturbations_shrink_to_ones(fixed_model):
 
 @pytest.mark.parametrize("feature", ["joint springref", "limit solref", "limit solimp", "limit margin",
                                      "affine gain", "affine bias", "filterexact dynamics", "tendon frictionloss",
-                                     "joint equality polycoef", "impratio", "fluid drag"])
+                                     "joint equality polycoef", "impratio", "fluid drag",
+                                     "tendon pulley", "tendon geom wrap", "tendon wrap sidesite",
+                                     "ball joint actuator", "free joint actuator", "jointinparent actuator",
+                                     "mocap body", "ballangvel sensor", "clock sensor", "actuatorpos sensor"])
 def test_fuzz_reaches_the_parameter_families_the_scenarios_exercise(feature):
     """The generated models move the same parameters away from their defaults as the bundled
     parameter-family scenarios, so that fuzz can find bugs there too."""
