@@ -370,7 +370,9 @@ def format_text(doc: dict[str, Any]) -> str:
         lines.append(f"  functions never traced ({len(never)}): {', '.join(never)}")
         left = doc["code"]["excluded"]
         lines.append(f"  left out ({len(left)}): " + "; ".join(f"{k} ({v})" for k, v in EXCLUDED.items())
-                     + f"; {len(left) - len(EXCLUDED)} Warp-backend functions")
+                     + f"; {len(left) - len(EXCLUDED)} Warp- or cpp-backend functions")
+        lines.append("  statements left out by pattern (mjxdiff.coverage.UNREACHABLE): "
+                     + "; ".join(UNREACHABLE.values()))
         for name, err in doc["code"]["errors"].items():
             lines.append(f"  {name}: traced until {err}")
     p = doc["parameters"]
