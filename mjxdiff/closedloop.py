@@ -1,0 +1,412 @@
+"""Closed loop: does a policy behave the same in MJX (brax) as in MuJoCo C?
+
+A policy trained in MJX acts on what the simulator shows it, so small per-step differences
+feed back through it. :func:`run` drives the same brax environment (MJX backend) with the
+same policy, initial states and policy keys three ways, in float64:
+
+* **MJX**: ``jit(vmap(scan(env.step)))`` over episodes, the policy inside the scan;
+* **C**: a :class:`mujoco.batch.Batch` of the environment's ``mj_model`` steps ``n_frames``
+  substeps per control step with the policy's action as ``ctrl``; observations, rewards and
+  terminations come from the environment's own ``reset``/``step`` code evaluated on C's
+  physics (its ``pipeline_init``/``pipeline_step`` replaced by C's state, recorded field by
+  field), and the policy is jitted over the batch of C observations;
+* **C again** from initial states moved by a few units of roundoff: the floor, how much C
+  disagrees with itself in closed loop.
+
+:func:`judge` compares per episode (paired): return, length, termination; the MJX-vs-C gap
+is judged against the C-vs-C gap (:data:`TEST`), and the first control step where the
+states separate beyond C's own separation is named, with the joints and observation
+components that separate first.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import functools
+import importlib
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+from mujoco.batch import Batch
+
+__all__ = ["Episodes", "PolicyError", "load_policy", "make_env", "run_mjx", "run_c", "run", "judge", "TEST",
+           "PERTURB_ULPS"]
+
+#: The statistical test, stated: the paired return gap (MJX - C) per episode, relative to the
+#: mean |C return|; a 95% bootstrap CI (2000 resamples) of its mean. FAIL when that CI lies
+#: wholly outside the C-vs-C band: ± the largest |paired C-vs-C gap| of any episode, or
+#: ``RETURN_FLOOR`` of the return, whichever is larger; or when MJX and C terminate at
+#: different steps in more episodes than C does against itself. Effect size: Cohen's d_z
+#: (mean paired gap / its standard deviation).
+TEST = "95% bootstrap CI of the mean paired return gap outside the C-vs-C band"
+RETURN_FLOOR = 1e-3
+#: Units of roundoff the C-vs-C rerun moves each initial qpos/qvel component by.
+PERTURB_ULPS = 4.0
+
+
+class PolicyError(ValueError):
+    """A policy spec that cannot be loaded; the message is one line that says what to do."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Episodes:
+    """Closed-loop episodes of one engine, every array ``(B, T, ...)`` over control steps.
+
+    Attributes:
+      obs: the observation the policy saw before control step t.
+      action: the action it took.
+      reward, done: after step t (``done`` as the environment reports it; episodes run
+        on to T, the return counts up to the first ``done``).
+      qpos, qvel: the state after step t.
+    """
+
+    obs: np.ndarray
+    action: np.ndarray
+    reward: np.ndarray
+    done: np.ndarray
+    qpos: np.ndarray
+    qvel: np.ndarray
+
+    @property
+    def length(self) -> np.ndarray:
+        """(B,) control steps up to and including the first ``done`` (T if none)."""
+        done = self.done > 0.5
+        return np.where(done.any(1), done.argmax(1) + 1, done.shape[1])
+
+    @property
+    def returns(self) -> np.ndarray:
+        """(B,) summed reward up to and including the first ``done``."""
+        steps = np.arange(self.reward.shape[1])[None]
+        return np.where(steps < self.length[:, None], self.reward, 0.0).sum(1)
+
+
+# ----------------------------------------------------------------------------
+# policies
+
+
+def load_policy(spec: str, env: Any | None = None) -> Callable:
+    """``policy(obs, key) -> (action, extras)`` from what users have.
+
+    * a brax PPO checkpoint directory (it holds ``ppo_network_config.json``): loaded with
+      ``brax.training.agents.ppo.checkpoint.load_policy`` (deterministic);
+    * ``PARAMS_FILE::module:factory``: parameters saved by ``brax.io.model.save_params`` and
+      a function ``factory(observation_size, action_size)`` returning brax PPO networks
+      (``make_ppo_networks``'s signature);
+    * ``module:function``: a function of ``(observation_size, action_size)`` returning
+      ``policy(obs, key) -> action`` (or ``(action, extras)``), or that policy itself when it
+      takes ``(obs, key)``.
+
+    Raises:
+      PolicyError: one line saying what is wrong.
+    """
+    if "::" in spec:
+        params_file, factory = spec.split("::", 1)
+        return _from_params(params_file, factory, env)
+    path = Path(spec)
+    if path.is_dir():
+        if not (path / "ppo_network_config.json").is_file():
+            raise PolicyError(f"{spec}: not a brax PPO checkpoint (no ppo_network_config.json in it); give a "
+                              "checkpoint directory, PARAMS_FILE::module:factory or module:function")
+        from brax.training.agents.ppo import checkpoint
+
+        try:
+            return checkpoint.load_policy(path.resolve(), deterministic=True)
+        except Exception as e:  # noqa: BLE001 - any loader failure is the user's file
+            raise PolicyError(f"{spec}: brax could not load this checkpoint: {_one_line(e)}") from None
+    if ":" in spec:
+        fn = _attribute(spec)
+        return _as_policy(fn, env, spec)
+    raise PolicyError(f"{spec}: not a checkpoint directory, PARAMS_FILE::module:factory or module:function")
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(f"{type(e).__name__}: {e}".split())[:300]
+
+
+def _attribute(ref: str) -> Any:
+    module, _, name = ref.partition(":")
+    try:
+        return functools.reduce(getattr, name.split("."), importlib.import_module(module))
+    except (ImportError, AttributeError, ValueError) as e:
+        raise PolicyError(f"{ref}: cannot import it ({_one_line(e)}); give module:function") from None
+
+
+def _as_policy(fn: Callable, env: Any, spec: str) -> Callable:
+    import inspect
+
+    try:
+        params = list(inspect.signature(fn).parameters)
+    except (TypeError, ValueError):
+        params = []
+    if params[:2] == ["observation_size", "action_size"]:
+        if env is None:
+            raise PolicyError(f"{spec}: a policy factory needs the environment's sizes")
+        fn = fn(env.observation_size, env.action_size)
+
+    def policy(obs, key):
+        out = fn(obs, key)
+        return out if isinstance(out, tuple) else (out, {})
+    return policy
+
+
+def _from_params(params_file: str, factory_ref: str, env: Any) -> Callable:
+    from brax.io import model
+    from brax.training.agents.ppo import networks as ppo_networks
+
+    if not Path(params_file).is_file():
+        raise PolicyError(f"{params_file}: no such parameters file (saved by brax.io.model.save_params)")
+    if env is None:
+        raise PolicyError(f"{params_file}: a network factory needs the environment's sizes")
+    factory = _attribute(factory_ref)
+    try:
+        params = model.load_params(params_file)
+        network = factory(env.observation_size, env.action_size)
+        return ppo_networks.make_inference_fn(network)(params, deterministic=True)
+    except Exception as e:  # noqa: BLE001 - a mismatched file or factory is the user's
+        raise PolicyError(f"{params_file} with {factory_ref}: {_one_line(e)}") from None
+
+
+# ----------------------------------------------------------------------------
+# environments
+
+
+def make_env(name: str, **kwargs) -> Any:
+    """A brax environment on the MJX backend (``brax.envs.get_environment``)."""
+    from brax import envs
+
+    if name not in envs._envs:  # noqa: SLF001 - brax lists its environments there
+        raise PolicyError(f"{name}: not a brax environment (one of {', '.join(sorted(envs._envs))})")
+    return envs.get_environment(name, backend="mjx", **kwargs)
+
+
+def _with_pipeline(env: Any, init: Any = None, step: Any = None) -> Any:
+    """A shallow copy of ``env`` whose physics is given: ``pipeline_init`` returns ``init``,
+    ``pipeline_step`` returns ``step``; everything else (observations, rewards,
+    terminations) is the environment's own code."""
+    e = copy.copy(env)
+    if init is not None:
+        e.pipeline_init = lambda *args, **kwargs: init
+    if step is not None:
+        e.pipeline_step = lambda *args, **kwargs: step
+    return e
+
+
+def _data_fields(m: mujoco.MjModel) -> tuple[str, ...]:
+    """The fields of MJX's data (public and JAX-implementation ones) that MjData holds with the
+    same shape: what C records for the environment's code to read."""
+    from mujoco.mjx._src import types
+
+    d, dx = mujoco.MjData(m), mjx.make_data(m)
+    out = []
+    for f in types.Data.fields() + types.DataJAX.fields():
+        if f.name in ("_impl", "contact") or not hasattr(d, f.name):
+            continue
+        c = getattr(d, f.name)
+        x = getattr(dx, f.name, None)
+        if x is None:
+            x = getattr(dx._impl, f.name, None)  # noqa: SLF001
+        if isinstance(c, np.ndarray) and x is not None and np.shape(x) == c.shape and c.dtype.kind == "f":
+            out.append(f.name)
+    return tuple(out)
+
+
+def _pipeline_state(env: Any, template: Any, fields: dict[str, np.ndarray]) -> Any:
+    """A batched brax MJX ``State`` holding C's values: ``template`` (one member's data from
+    ``mjx.put_data``) with ``fields`` (B, ...) replaced, and brax's ``x``/``xd`` derived as
+    ``brax.mjx.pipeline`` derives them."""
+    B = next(iter(fields.values())).shape[0]
+    data = jax.tree.map(lambda x: jnp.broadcast_to(x, (B, *jnp.shape(x))), template)
+    public = {k: v for k, v in fields.items() if hasattr(data, k) and k in data.__dataclass_fields__}
+    impl = {k: v for k, v in fields.items() if k not in public and hasattr(data._impl, k)}  # noqa: SLF001
+    data = data.replace(**{k: jnp.asarray(v) for k, v in public.items()})
+    data = data.replace(_impl=data._impl.replace(**{k: jnp.asarray(v) for k, v in impl.items()}))  # noqa: SLF001
+    return jax.vmap(functools.partial(_brax_state, env.sys))(data)
+
+
+def _brax_state(sys: Any, data: Any) -> Any:
+    from brax.base import Motion, Transform
+    from brax.mjx.base import State
+
+    x = Transform(pos=data.xpos[1:], rot=data.xquat[1:])
+    cvel = Motion(vel=data.cvel[1:, 3:], ang=data.cvel[1:, :3])
+    offset = Transform.create(pos=data.xpos[1:, :] - data.subtree_com[sys.body_rootid[1:]])
+    xd = offset.vmap().do(cvel)
+    from brax.mjx.pipeline import _reformat_contact
+
+    # contacts are member 0's at the start (not recorded per step): brax environments read
+    # positions, velocities, sensors and forces, not the contact list
+    fields = dict(data.__dict__, contact=_reformat_contact(sys, data._impl.contact))  # noqa: SLF001
+    return State(q=data.qpos, qd=data.qvel, x=x, xd=xd, **fields)
+
+
+# ----------------------------------------------------------------------------
+# the engines in closed loop
+
+
+def _keys(seed: int, episodes: int, steps: int) -> tuple[jax.Array, jax.Array]:
+    """Reset keys (B,) and policy keys (B, T) shared by every engine."""
+    reset, act = jax.random.split(jax.random.PRNGKey(seed))
+    return jax.random.split(reset, episodes), jax.vmap(lambda k: jax.random.split(k, steps))(
+        jax.random.split(act, episodes))
+
+
+def run_mjx(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.Array) -> tuple[Episodes, Any]:
+    """MJX: every episode from ``env.reset(key)``, the policy inside the scan.
+
+    Returns:
+      The episodes, and the batch of reset states (their ``q``/``qd`` start C's episodes).
+    """
+
+    def episode(reset_key, keys):
+        state = env.reset(reset_key)
+
+        def control_step(state, key):
+            action, _ = policy(state.obs, key)
+            nxt = env.step(state, action)
+            return nxt, (state.obs, action, nxt.reward, nxt.done, nxt.pipeline_state.qpos, nxt.pipeline_state.qvel)
+
+        return state, jax.lax.scan(control_step, state, keys)[1]
+
+    first, rec = jax.jit(jax.vmap(episode))(reset_keys, policy_keys)
+    return Episodes(*(np.asarray(x) for x in rec)), first
+
+
+def run_c(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.Array, qpos0: np.ndarray,
+          qvel0: np.ndarray, nthread: int = 0) -> Episodes:
+    """MuJoCo C from ``qpos0``/``qvel0`` (B, ...): a Batch steps ``n_frames`` substeps per
+    control step; the environment's code reads C's recorded fields."""
+    m = env.sys.mj_model
+    B, T = policy_keys.shape[:2]
+    fields = _data_fields(m)
+    b = Batch(m, B, nthread=nthread)
+    b.qpos[:], b.qvel[:] = qpos0, qvel0
+    b.forward()
+    d0 = b.get_data(0)
+    template = mjx.put_data(m, d0)
+    start = {f: np.stack([getattr(b.get_data(i), f) for i in range(B)]) for f in fields}
+
+    reset = jax.jit(jax.vmap(lambda key, ps: _with_pipeline(env, init=ps).reset(key)))
+    step = jax.jit(jax.vmap(lambda state, action, ps: _with_pipeline(env, step=ps).step(state, action)))
+    act = jax.jit(jax.vmap(functools.partial(_act, env, policy)))
+    state = reset(reset_keys, _pipeline_state(env, template, start))
+    rec = {k: [] for k in ("obs", "action", "reward", "done", "qpos", "qvel")}
+    n_frames = int(env._n_frames)  # noqa: SLF001 - brax's substeps per control step
+    for t in range(T):
+        action, ctrl = act(state, policy_keys[:, t])
+        action, ctrl = np.asarray(action, dtype=np.float64), np.asarray(ctrl, dtype=np.float64)
+        out = b.rollout(n_frames, control=np.repeat(ctrl[:, None], n_frames, axis=1), record=fields)
+        last = {f: out[f][:, -1] for f in fields}
+        nxt = step(state, jnp.asarray(action), _pipeline_state(env, template, last))
+        for k, v in (("obs", state.obs), ("action", action), ("reward", nxt.reward), ("done", nxt.done),
+                     ("qpos", last["qpos"]), ("qvel", last["qvel"])):
+            rec[k].append(np.asarray(v))
+        state = nxt
+    return Episodes(**{k: np.stack(v, axis=1) for k, v in rec.items()})
+
+
+def _act(env: Any, policy: Callable, state: Any, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The policy's action in ``state`` and the ``ctrl`` the environment's ``step`` hands its
+    physics for it (environments scale or clip actions in their own code): read off a
+    ``pipeline_step`` that only looks at its argument."""
+    action, _ = policy(state.obs, key)
+    seen = []
+    e = copy.copy(env)
+    e.pipeline_step = lambda pipeline_state, ctrl: (seen.append(ctrl), pipeline_state)[1]
+    e.step(state, action)
+    return action, seen[0]
+
+
+def _perturbed(x: np.ndarray, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return x + rng.choice([-1.0, 1.0], x.shape) * PERTURB_ULPS * np.finfo(np.float64).eps * np.maximum(np.abs(x), 1.0)
+
+
+def run(env: Any, policy: Callable, episodes: int, steps: int, seed: int = 0) -> dict[str, Episodes]:
+    """MJX, C and C from perturbed initial states, each ``episodes`` x ``steps`` control steps,
+    same reset and policy keys (float64: run under ``jax.enable_x64``)."""
+    reset_keys, policy_keys = _keys(seed, episodes, steps)
+    traj_mjx, first = run_mjx(env, policy, reset_keys, policy_keys)
+    q0, qd0 = np.asarray(first.pipeline_state.qpos), np.asarray(first.pipeline_state.qvel)
+    traj_c = run_c(env, policy, reset_keys, policy_keys, q0, qd0)
+    traj_cc = run_c(env, policy, reset_keys, policy_keys, _perturbed(q0, seed), _perturbed(qd0, seed + 1))
+    return {"mjx": traj_mjx, "c": traj_c, "c_perturbed": traj_cc}
+
+
+# ----------------------------------------------------------------------------
+# the verdict
+
+
+def _bootstrap_ci(x: np.ndarray, seed: int = 0, resamples: int = 2000) -> tuple[float, float]:
+    if len(x) < 2:
+        return float(x.mean()), float(x.mean())
+    rng = np.random.default_rng(seed)
+    means = x[rng.integers(0, len(x), (resamples, len(x)))].mean(1)
+    return float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))
+
+
+def _separation(a: Episodes, b: Episodes) -> np.ndarray:
+    """(B, T) largest |qpos| or |qvel| difference per control step."""
+    return np.maximum(np.abs(a.qpos - b.qpos).max(-1), np.abs(a.qvel - b.qvel).max(-1))
+
+
+def _first_separation(m: mujoco.MjModel, runs: dict[str, Episodes], tol: float) -> dict[str, Any] | None:
+    """The first control step where MJX and C separate by more than max(tol, 10 x C-vs-C)."""
+    sep = _separation(runs["mjx"], runs["c"])
+    floor = np.maximum(tol, 10 * _separation(runs["c_perturbed"], runs["c"]))
+    out = sep > floor
+    if not out.any():
+        return None
+    steps = np.where(out.any(1), out.argmax(1), out.shape[1])
+    episode = int(steps.argmin())
+    step = int(steps[episode])
+    mj, c = runs["mjx"], runs["c"]
+    dq = np.abs(mj.qpos[episode, step] - c.qpos[episode, step])
+    dv = np.abs(mj.qvel[episode, step] - c.qvel[episode, step])
+    dof = int(dv.argmax())
+    joint = int(m.dof_jntid[dof])
+    obs_step = min(step + 1, mj.obs.shape[1] - 1)  # the observation that step produces
+    dobs = np.abs(mj.obs[episode, obs_step] - c.obs[episode, obs_step])
+    return dict(episode=episode, step=step, separation=float(sep[episode, step]),
+                floor=float(floor[episode, step]),
+                joint=mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, joint) or f"#{joint}",
+                qpos_error=float(dq.max()), qvel_error=float(dv.max()),
+                observation_components=[int(i) for i in np.argsort(-dobs)[:3]])
+
+
+def judge(m: mujoco.MjModel, runs: dict[str, Episodes], tol: float = 1e-6, seed: int = 0) -> dict[str, Any]:
+    """Paired per-episode comparison of MJX and C against C-vs-C (see :data:`TEST`)."""
+    mj, c, cc = runs["mjx"], runs["c"], runs["c_perturbed"]
+    scale = max(float(np.abs(c.returns).mean()), 1e-12)
+    gap = (mj.returns - c.returns) / scale
+    gap_cc = (cc.returns - c.returns) / scale
+    band = max(float(np.abs(gap_cc).max()), RETURN_FLOOR)
+    lo, hi = _bootstrap_ci(gap, seed)
+    length_differs = float((mj.length != c.length).mean())
+    length_differs_cc = float((cc.length != c.length).mean())
+    sd = float(gap.std(ddof=1)) if len(gap) > 1 else 0.0
+    out_of_band = lo > band or hi < -band
+    fail = out_of_band or length_differs > length_differs_cc + 1e-12
+    first = _first_separation(m, runs, tol)
+
+    def mean_sd(x):
+        return float(x.mean()), float(x.std(ddof=1)) if len(x) > 1 else 0.0
+
+    (rm, rs), (rc, rcs) = mean_sd(mj.returns), mean_sd(c.returns)
+    message = (f"MJX return {rm:.4g} ± {rs:.2g}, C {rc:.4g} ± {rcs:.2g}, paired gap {100 * gap.mean():+.3g}% "
+               f"(95% CI {100 * lo:+.3g}..{100 * hi:+.3g}%), C-vs-C gap ±{100 * band:.3g}%; episode lengths "
+               f"differ in {length_differs:.0%} (C vs C {length_differs_cc:.0%}): {'FAIL' if fail else 'PASS'}")
+    if first is not None:
+        message += (f"; first separation at control step {first['step']} of episode {first['episode']}, "
+                    f"joint '{first['joint']}' (qvel {first['qvel_error']:.3g} > floor {first['floor']:.3g})")
+    return dict(status="fail" if fail else "pass", message=message, test=TEST,
+                returns=dict(mjx=mj.returns.tolist(), c=c.returns.tolist(), c_perturbed=cc.returns.tolist()),
+                lengths=dict(mjx=mj.length.tolist(), c=c.length.tolist(), c_perturbed=cc.length.tolist()),
+                gap=dict(mean=float(gap.mean()), ci95=[lo, hi], band=band, effect_size_dz=float(gap.mean() / sd)
+                         if sd > 0 else (0.0 if gap.mean() == 0 else float("inf"))),
+                length_differs=length_differs, length_differs_c_vs_c=length_differs_cc, first_separation=first)
