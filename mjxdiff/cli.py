@@ -196,6 +196,31 @@ def build_parser() -> argparse.ArgumentParser:
     bn.add_argument("--out", metavar="DIR", help="write DIR/bench.json (versions, machine, every number)")
     bn.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     bn.add_argument("--cache-dir", metavar="DIR", help="JAX persistent compilation cache (see sweep --help)")
+    po = sub.add_parser("policy", help="run a policy in closed loop on MJX and on MuJoCo C and compare episodes",
+                        description="Drive the same environment with the same policy, initial states and policy "
+                                    "keys on MJX (vmapped episodes, the policy inside the scan), on MuJoCo C (a "
+                                    "mujoco.batch.Batch, the policy jitted over the batch of C observations each "
+                                    "control step) and on C again from initial states moved by a few units of "
+                                    "roundoff (C's own closed-loop floor), all in float64. Episodes are compared "
+                                    "paired: return, length, termination; FAIL when the 95%% bootstrap CI of the "
+                                    "mean return gap lies outside the C-vs-C band or lengths differ more often "
+                                    "than C against itself. Names the first control step where the states "
+                                    "separate beyond C's own separation. Exit 0 pass, 1 fail, 2 bad input.")
+    po.add_argument("target", metavar="MODEL_OR_ENV",
+                    help="a brax environment name (MJX backend, e.g. inverted_pendulum), a bundled scenario, "
+                         "a scenario .toml or an MJCF .xml (observations qpos, qvel, sensordata; actions in "
+                         "[-1, 1] onto ctrlrange; no reward: compare states)")
+    po.add_argument("--policy", required=True, metavar="SPEC",
+                    help="a brax PPO checkpoint directory, PARAMS_FILE::module:factory (brax.io.model.save_params "
+                         "and a make_ppo_networks-like factory), or module:function (a policy(obs, key), or a "
+                         "factory of the observation and action sizes returning one)")
+    po.add_argument("--episodes", type=_positive, default=16, help="episodes per engine (default 16)")
+    po.add_argument("--steps", type=_positive, default=200, help="control steps per episode (default 200)")
+    po.add_argument("--n-frames", type=_positive, default=1,
+                    help="substeps per control step for an MJCF (brax environments bring their own)")
+    po.add_argument("--seed", type=int, default=0, help="seed of resets and policy keys (default 0)")
+    po.add_argument("--out", metavar="DIR", help="write DIR/policy-report.json")
+    po.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     cv = sub.add_parser("coverage", help="measure which MJX code and which model parameters the scenarios exercise",
                         description="Trace MJX (put_model, make_data, one mjx.step) for every scenario under "
                                     "coverage.py and report line and branch coverage of mujoco/mjx/_src per module, "
@@ -397,6 +422,28 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
     return 1
 
 
+def _cmd_policy(args: argparse.Namespace) -> int:
+    from mjxdiff import closedloop, engines, report
+
+    engines.configure_jax("float64", None)
+    try:
+        env = closedloop.resolve_env(args.target, args.n_frames)
+        policy = closedloop.load_policy(args.policy, env)
+    except closedloop.PolicyError as e:
+        print(f"mjxdiff policy: {e}", file=sys.stderr)
+        return 2
+    runs = closedloop.run(env, policy, args.episodes, args.steps, args.seed)
+    result = closedloop.judge(env.sys.mj_model, runs, seed=args.seed)
+    doc = dict(kind="policy", versions=report.versions(), target=args.target, policy=args.policy,
+               config=dict(episodes=args.episodes, steps=args.steps, seed=args.seed), **result)
+    if args.out:
+        path = report.write_report(args.out, doc, "policy-report.json")
+        print(f"report written to {path}", file=sys.stderr)
+    print(json.dumps(doc, indent=2) if args.format == "json" else f"{result['status'].upper():6} {args.target}  "
+          f"{result['message']}")
+    return 0 if result["status"] == "pass" else 1
+
+
 def _cmd_coverage(args: argparse.Namespace) -> int:
     from mjxdiff import coverage, engines, report
 
@@ -418,6 +465,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _cmd_list()
     if args.command == "coverage":
         return _cmd_coverage(args)
+    if args.command == "policy":
+        return _cmd_policy(args)
     if args.command == "fuzz":
         return _cmd_fuzz(args)
     if args.command == "bench":

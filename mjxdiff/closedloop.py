@@ -35,15 +35,16 @@ import numpy as np
 from mujoco import mjx
 from mujoco.batch import Batch
 
-__all__ = ["Episodes", "PolicyError", "load_policy", "make_env", "run_mjx", "run_c", "run", "judge", "TEST",
-           "PERTURB_ULPS"]
+__all__ = ["Episodes", "PolicyError", "load_policy", "make_env", "mjcf_env", "resolve_env", "run_mjx", "run_c",
+           "run", "judge", "TEST", "PERTURB_ULPS"]
 
 #: The statistical test, stated: the paired return gap (MJX - C) per episode, relative to the
 #: mean |C return|; a 95% bootstrap CI (2000 resamples) of its mean. FAIL when that CI lies
 #: wholly outside the C-vs-C band: ± the largest |paired C-vs-C gap| of any episode, or
 #: ``RETURN_FLOOR`` of the return, whichever is larger; or when MJX and C terminate at
-#: different steps in more episodes than C does against itself. Effect size: Cohen's d_z
-#: (mean paired gap / its standard deviation).
+#: different steps in more episodes than C does against itself; or when the states separate
+#: by more than max(``tol``, 10 x the C-vs-C separation) at some control step, returns agreeing
+#: or not. Effect size: Cohen's d_z (mean paired gap / its standard deviation).
 TEST = "95% bootstrap CI of the mean paired return gap outside the C-vs-C band"
 RETURN_FLOOR = 1e-3
 #: Units of roundoff the C-vs-C rerun moves each initial qpos/qvel component by.
@@ -113,16 +114,40 @@ def load_policy(spec: str, env: Any | None = None) -> Callable:
         if not (path / "ppo_network_config.json").is_file():
             raise PolicyError(f"{spec}: not a brax PPO checkpoint (no ppo_network_config.json in it); give a "
                               "checkpoint directory, PARAMS_FILE::module:factory or module:function")
-        from brax.training.agents.ppo import checkpoint
-
         try:
-            return checkpoint.load_policy(path.resolve(), deterministic=True)
+            return _load_checkpoint(path.resolve())
         except Exception as e:  # noqa: BLE001 - any loader failure is the user's file
             raise PolicyError(f"{spec}: brax could not load this checkpoint: {_one_line(e)}") from None
     if ":" in spec:
         fn = _attribute(spec)
         return _as_policy(fn, env, spec)
     raise PolicyError(f"{spec}: not a checkpoint directory, PARAMS_FILE::module:factory or module:function")
+
+
+def _load_checkpoint(path: Path) -> Callable:
+    """brax's ``ppo.checkpoint.load_policy``, reading the network config itself: brax 0.14.2
+    writes ``null`` for a kernel initialiser left at its default (``mean_kernel_init_fn``)
+    and then fails to read it back (``KeyError: None``); here such keys keep the factory's
+    default."""
+    import json
+
+    from brax.training import checkpoint as brax_checkpoint
+    from brax.training import networks
+    from brax.training.agents.ppo import checkpoint
+    from brax.training.agents.ppo import networks as ppo_networks
+    from ml_collections import config_dict
+
+    loaded = json.loads((path / "ppo_network_config.json").read_text())
+    kwargs = loaded["network_factory_kwargs"]
+    for key in list(kwargs):
+        if key.endswith("_init_fn") and kwargs[key] is None:
+            del kwargs[key]
+        elif key.endswith("_init_fn"):
+            kwargs[key] = networks.KERNEL_INITIALIZER[kwargs[key]]
+    if "activation" in kwargs:
+        kwargs["activation"] = networks.ACTIVATION[kwargs["activation"]]
+    network = brax_checkpoint.get_network(config_dict.create(**loaded), ppo_networks.make_ppo_networks)
+    return ppo_networks.make_inference_fn(network)(checkpoint.load(path), deterministic=True)
 
 
 def _one_line(e: BaseException) -> str:
@@ -183,6 +208,71 @@ def make_env(name: str, **kwargs) -> Any:
     if name not in envs._envs:  # noqa: SLF001 - brax lists its environments there
         raise PolicyError(f"{name}: not a brax environment (one of {', '.join(sorted(envs._envs))})")
     return envs.get_environment(name, backend="mjx", **kwargs)
+
+
+def resolve_env(target: str, n_frames: int = 1) -> Any:
+    """A brax environment name, a bundled scenario name or scenario ``.toml``, or an MJCF path.
+
+    Raises:
+      PolicyError: one line, when it is none of them.
+    """
+    from brax import envs
+
+    if target in envs._envs:  # noqa: SLF001
+        return make_env(target)
+    from mjxdiff.scenario import ScenarioError, load_model, load_scenario
+
+    try:
+        m = load_model(load_scenario(target))
+    except ScenarioError as e:
+        raise PolicyError(f"{target}: not a brax environment ({', '.join(sorted(envs._envs))}) and {e}") from None
+    return mjcf_env(m, n_frames=n_frames)
+
+
+def mjcf_env(m: mujoco.MjModel, n_frames: int = 1, qpos_noise: float = 0.01, qvel_noise: float = 0.01) -> Any:
+    """A brax environment (MJX backend) around any model: observations ``qpos``, ``qvel``,
+    ``sensordata``; actions in [-1, 1] mapped onto each limited actuator's ``ctrlrange`` (as
+    they are for an unlimited one); reward 0 and no termination (compare behaviour and
+    states); ``reset`` draws ``qpos0`` plus uniform noise of ``qpos_noise`` (rad or m) and
+    velocities of ``qvel_noise``; ``n_frames`` substeps per control step."""
+    from brax.envs.base import PipelineEnv, State
+    from brax.io import mjcf
+
+    noisy = np.ones(m.nq, bool)  # no noise on quaternions: they stay normalised
+    for j in range(m.njnt):
+        adr, jtype = m.jnt_qposadr[j], m.jnt_type[j]
+        if jtype == mujoco.mjtJoint.mjJNT_FREE:
+            noisy[adr + 3:adr + 7] = False
+        elif jtype == mujoco.mjtJoint.mjJNT_BALL:
+            noisy[adr:adr + 4] = False
+    limited = np.asarray(m.actuator_ctrllimited, bool)
+    lo = np.where(limited, m.actuator_ctrlrange[:, 0], -1.0)
+    hi = np.where(limited, m.actuator_ctrlrange[:, 1], 1.0)
+
+    class MjcfEnv(PipelineEnv):
+        def __init__(self):
+            super().__init__(sys=mjcf.load_model(m), backend="mjx", n_frames=n_frames)
+
+        def reset(self, rng):
+            k1, k2 = jax.random.split(rng)
+            q = jnp.asarray(m.qpos0) + noisy * jax.random.uniform(k1, (m.nq,), minval=-qpos_noise, maxval=qpos_noise)
+            qd = jax.random.uniform(k2, (m.nv,), minval=-qvel_noise, maxval=qvel_noise)
+            ps = self.pipeline_init(q, qd)
+            return State(ps, self._obs(ps), jnp.zeros(()), jnp.zeros(()), {}, {})
+
+        def step(self, state, action):
+            ctrl = lo + (jnp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (hi - lo)
+            ps = self.pipeline_step(state.pipeline_state, ctrl)
+            return state.replace(pipeline_state=ps, obs=self._obs(ps), reward=jnp.zeros(()), done=jnp.zeros(()))
+
+        @property
+        def action_size(self):
+            return m.nu
+
+        def _obs(self, ps):
+            return jnp.concatenate([ps.qpos, ps.qvel, ps.sensordata])
+
+    return MjcfEnv()
 
 
 def _with_pipeline(env: Any, init: Any = None, step: Any = None) -> Any:
@@ -391,8 +481,10 @@ def judge(m: mujoco.MjModel, runs: dict[str, Episodes], tol: float = 1e-6, seed:
     length_differs_cc = float((cc.length != c.length).mean())
     sd = float(gap.std(ddof=1)) if len(gap) > 1 else 0.0
     out_of_band = lo > band or hi < -band
-    fail = out_of_band or length_differs > length_differs_cc + 1e-12
     first = _first_separation(m, runs, tol)
+    # behaviour first (what a user sees), then the states: separating beyond C's own floor is
+    # a divergence even while returns still agree
+    fail = out_of_band or length_differs > length_differs_cc + 1e-12 or first is not None
 
     def mean_sd(x):
         return float(x.mean()), float(x.std(ddof=1)) if len(x) > 1 else 0.0

@@ -1,0 +1,129 @@
+"""Closed loop (mjxdiff.closedloop): a brax environment on the MJX backend driven by a real,
+randomly initialised brax PPO network, on MJX and on MuJoCo C. Unmodified MJX gives the same
+episodes as C; a 2% actuator gain slip in MJX fails, with the first separation named; the
+three policy forms load; a bad spec is one line and exit 2."""
+
+import json
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from brax.io import model as brax_model
+from brax.training.acme import running_statistics
+from brax.training.agents.ppo import checkpoint as ppo_checkpoint
+from brax.training.agents.ppo import networks as ppo_networks
+from mujoco.mjx._src import forward as mjx_forward
+
+from mjxdiff import closedloop
+from mjxdiff.cli import main
+
+EPISODES, STEPS = 4, 40
+
+
+@pytest.fixture(scope="module")
+def x64():
+    with jax.enable_x64(True):
+        yield
+
+
+@pytest.fixture(scope="module")
+def env(x64):
+    return closedloop.make_env("inverted_pendulum")
+
+
+@pytest.fixture(scope="module")
+def params(env):
+    """A randomly initialised brax PPO network (the architecture brax trains), seed 0."""
+    network = ppo_networks.make_ppo_networks(env.observation_size, env.action_size)
+    key = jax.random.PRNGKey(0)
+    normalizer = running_statistics.init_state(jax.ShapeDtypeStruct((env.observation_size,), jnp.float64))
+    return network, (normalizer, network.policy_network.init(key), network.value_network.init(key))
+
+
+@pytest.fixture(scope="module")
+def checkpoint_dir(env, params, tmp_path_factory):
+    """Written by brax's own PPO checkpoint code, as its training loop writes it."""
+    path = tmp_path_factory.mktemp("ckpt")
+    config = ppo_checkpoint.network_config(env.observation_size, env.action_size, True,
+                                           ppo_networks.make_ppo_networks)
+    ppo_checkpoint.save(str(path), 0, params[1], config)
+    return next(p for p in path.iterdir() if p.is_dir())
+
+
+@pytest.fixture(scope="module")
+def clean(env, checkpoint_dir):
+    policy = closedloop.load_policy(str(checkpoint_dir), env)
+    runs = closedloop.run(env, policy, EPISODES, STEPS, seed=0)
+    return runs, closedloop.judge(env.sys.mj_model, runs)
+
+
+def test_unmodified_mjx_gives_c_s_episodes(clean):
+    runs, result = clean
+    assert result["status"] == "pass", result["message"]
+    np.testing.assert_array_equal(runs["mjx"].length, runs["c"].length)
+    assert np.abs(runs["mjx"].qvel - runs["c"].qvel).max() < 1e-9
+    assert result["first_separation"] is None
+    assert np.isfinite(result["gap"]["ci95"]).all() and result["test"] == closedloop.TEST
+
+
+def test_a_two_percent_gain_slip_fails_and_names_the_first_separation(env, checkpoint_dir, monkeypatch, clean):
+    orig = mjx_forward.fwd_actuation
+    monkeypatch.setattr(mjx_forward, "fwd_actuation",
+                        lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
+    policy = closedloop.load_policy(str(checkpoint_dir), env)
+    runs = closedloop.run(env, policy, EPISODES, STEPS, seed=0)
+    result = closedloop.judge(env.sys.mj_model, runs)
+    assert result["status"] == "fail", result["message"]
+    first = result["first_separation"]
+    assert first is not None and first["step"] == 0 and first["joint"] in ("slider", "hinge")
+    assert "first separation at control step 0" in result["message"]
+    # C and its perturbed rerun did not change: the slip is MJX's alone
+    np.testing.assert_array_equal(runs["c"].returns, clean[0]["c"].returns)
+
+
+def test_the_three_policy_forms_load_and_act(env, params, checkpoint_dir, tmp_path, monkeypatch):
+    obs, key = jnp.zeros(env.observation_size), jax.random.PRNGKey(1)
+    from_checkpoint = closedloop.load_policy(str(checkpoint_dir), env)
+    params_file = tmp_path / "params.pkl"
+    brax_model.save_params(str(params_file), params[1])
+    from_params = closedloop.load_policy(f"{params_file}::brax.training.agents.ppo.networks:make_ppo_networks", env)
+    (tmp_path / "my_policy.py").write_text(textwrap.dedent("""
+        import jax.numpy as jnp
+
+        def policy(obs, key):
+            return jnp.tanh(-obs[:1] - obs[1:2])
+    """))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    from_function = closedloop.load_policy("my_policy:policy", env)
+    a1, a2, a3 = (np.asarray(p(obs, key)[0]) for p in (from_checkpoint, from_params, from_function))
+    assert a1.shape == a2.shape == a3.shape == (env.action_size,)
+    np.testing.assert_allclose(a1, a2)  # the same network and parameters
+
+
+@pytest.mark.parametrize("target, spec, says", [
+    ("inverted_pendulum", "no/such/dir", "not a checkpoint directory"),
+    ("inverted_pendulum", "no_such_module:policy", "cannot import"),
+    ("inverted_pendulum", "missing.pkl::brax.training.agents.ppo.networks:make_ppo_networks", "no such parameters"),
+    ("no_such_env", "mjxdiff:x", "not a brax environment"),
+])
+def test_a_bad_spec_is_one_line_and_exit_2(target, spec, says, capsys):
+    assert main(["policy", target, "--policy", spec]) == 2
+    err = capsys.readouterr().err.strip()
+    assert says in err and "\n" not in err and "Traceback" not in err
+
+
+def test_cli_on_a_bundled_scenario_writes_the_report(tmp_path, capsys, x64):
+    (tmp_path / "zero.py").write_text("import jax.numpy as jnp\n\n"
+                                      "def policy(obs, key):\n    return -jnp.tanh(obs[:1])\n")
+    import sys
+    sys.path.insert(0, str(tmp_path))
+    try:
+        rc = main(["policy", "cartpole", "--policy", "zero:policy", "--episodes", "2", "--steps", "30",
+                   "--out", str(tmp_path)])
+    finally:
+        sys.path.remove(str(tmp_path))
+    assert rc == 0, capsys.readouterr().out
+    doc = json.loads((tmp_path / "policy-report.json").read_text())
+    assert doc["kind"] == "policy" and doc["status"] == "pass" and len(doc["returns"]["c"]) == 2
