@@ -353,6 +353,12 @@ def run_mjx(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.
       The episodes, and the batch of reset states (their ``q``/``qd`` start C's episodes).
     """
 
+    first, rec = _mjx_episodes(env, policy)(reset_keys, policy_keys)
+    return Episodes(*(np.asarray(x) for x in rec)), first
+
+
+@functools.lru_cache(maxsize=8)  # one compiled function per (environment, policy) object
+def _mjx_episodes(env: Any, policy: Callable) -> Callable:
     def episode(reset_key, keys):
         state = env.reset(reset_key)
 
@@ -363,14 +369,27 @@ def run_mjx(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.
 
         return state, jax.lax.scan(control_step, state, keys)[1]
 
-    first, rec = jax.jit(jax.vmap(episode))(reset_keys, policy_keys)
-    return Episodes(*(np.asarray(x) for x in rec)), first
+    return jax.jit(jax.vmap(episode))
+
+
+@functools.lru_cache(maxsize=8)
+def _c_functions(env: Any, policy: Callable) -> tuple[Callable, Callable, Callable]:
+    """Jitted, over the batch: reset and step of the environment's code on given physics, and
+    the policy's action with the ctrl it becomes."""
+    reset = jax.jit(jax.vmap(lambda key, ps: _with_pipeline(env, init=ps).reset(key)))
+    step = jax.jit(jax.vmap(lambda state, action, ps: _with_pipeline(env, step=ps).step(state, action)))
+    act = jax.jit(jax.vmap(functools.partial(_act, env, policy)))
+    return reset, step, act
 
 
 def run_c(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.Array, qpos0: np.ndarray,
-          qvel0: np.ndarray, nthread: int = 0) -> Episodes:
+          qvel0: np.ndarray, nthread: int = 0, seconds: dict[str, float] | None = None) -> Episodes:
     """MuJoCo C from ``qpos0``/``qvel0`` (B, ...): a Batch steps ``n_frames`` substeps per
-    control step; the environment's code reads C's recorded fields."""
+    control step; the environment's code reads C's recorded fields. ``seconds`` gains the wall
+    time spent stepping C (``c``) and in the policy and the environment's code (``policy``)."""
+    import time
+
+    seconds = {} if seconds is None else seconds
     m = env.sys.mj_model
     B, T = policy_keys.shape[:2]
     fields = _data_fields(m)
@@ -381,22 +400,25 @@ def run_c(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.Ar
     template = mjx.put_data(m, d0)
     start = {f: np.stack([getattr(b.get_data(i), f) for i in range(B)]) for f in fields}
 
-    reset = jax.jit(jax.vmap(lambda key, ps: _with_pipeline(env, init=ps).reset(key)))
-    step = jax.jit(jax.vmap(lambda state, action, ps: _with_pipeline(env, step=ps).step(state, action)))
-    act = jax.jit(jax.vmap(functools.partial(_act, env, policy)))
+    reset, step, act = _c_functions(env, policy)
     state = reset(reset_keys, _pipeline_state(env, template, start))
     rec = {k: [] for k in ("obs", "action", "reward", "done", "qpos", "qvel")}
     n_frames = int(env._n_frames)  # noqa: SLF001 - brax's substeps per control step
     for t in range(T):
+        t0 = time.perf_counter()
         action, ctrl = act(state, policy_keys[:, t])
         action, ctrl = np.asarray(action, dtype=np.float64), np.asarray(ctrl, dtype=np.float64)
+        t1 = time.perf_counter()
         out = b.rollout(n_frames, control=np.repeat(ctrl[:, None], n_frames, axis=1), record=fields)
+        t2 = time.perf_counter()
         last = {f: out[f][:, -1] for f in fields}
         nxt = step(state, jnp.asarray(action), _pipeline_state(env, template, last))
         for k, v in (("obs", state.obs), ("action", action), ("reward", nxt.reward), ("done", nxt.done),
                      ("qpos", last["qpos"]), ("qvel", last["qvel"])):
             rec[k].append(np.asarray(v))
         state = nxt
+        seconds["c"] = seconds.get("c", 0.0) + t2 - t1
+        seconds["policy"] = seconds.get("policy", 0.0) + (t1 - t0) + (time.perf_counter() - t2)
     return Episodes(**{k: np.stack(v, axis=1) for k, v in rec.items()})
 
 
