@@ -65,6 +65,8 @@ class Episodes:
       reward, done: after step t (``done`` as the environment reports it; episodes run
         on to T, the return counts up to the first ``done``).
       qpos, qvel: the state after step t.
+      ctrl: the ``ctrl`` the physics got at step t.
+      qpos0, qvel0: (B, ...) the initial state.
     """
 
     obs: np.ndarray
@@ -73,6 +75,15 @@ class Episodes:
     done: np.ndarray
     qpos: np.ndarray
     qvel: np.ndarray
+    ctrl: np.ndarray
+    qpos0: np.ndarray
+    qvel0: np.ndarray
+
+    def state_before(self, episode: int, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """(qpos, qvel) before control step ``step`` of ``episode``."""
+        if step == 0:
+            return self.qpos0[episode], self.qvel0[episode]
+        return self.qpos[episode, step - 1], self.qvel[episode, step - 1]
 
     @property
     def length(self) -> np.ndarray:
@@ -354,7 +365,8 @@ def run_mjx(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.
     """
 
     first, rec = _mjx_episodes(env, policy)(reset_keys, policy_keys)
-    return Episodes(*(np.asarray(x) for x in rec)), first
+    return Episodes(*(np.asarray(x) for x in rec), qpos0=np.asarray(first.pipeline_state.qpos),
+                    qvel0=np.asarray(first.pipeline_state.qvel)), first
 
 
 @functools.lru_cache(maxsize=8)  # one compiled function per (environment, policy) object
@@ -365,7 +377,8 @@ def _mjx_episodes(env: Any, policy: Callable) -> Callable:
         def control_step(state, key):
             action, _ = policy(state.obs, key)
             nxt = env.step(state, action)
-            return nxt, (state.obs, action, nxt.reward, nxt.done, nxt.pipeline_state.qpos, nxt.pipeline_state.qvel)
+            return nxt, (state.obs, action, nxt.reward, nxt.done, nxt.pipeline_state.qpos, nxt.pipeline_state.qvel,
+                         nxt.pipeline_state.ctrl)
 
         return state, jax.lax.scan(control_step, state, keys)[1]
 
@@ -402,7 +415,7 @@ def run_c(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.Ar
 
     reset, step, act = _c_functions(env, policy)
     state = reset(reset_keys, _pipeline_state(env, template, start))
-    rec = {k: [] for k in ("obs", "action", "reward", "done", "qpos", "qvel")}
+    rec = {k: [] for k in ("obs", "action", "reward", "done", "qpos", "qvel", "ctrl")}
     n_frames = int(env._n_frames)  # noqa: SLF001 - brax's substeps per control step
     for t in range(T):
         t0 = time.perf_counter()
@@ -414,12 +427,13 @@ def run_c(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.Ar
         last = {f: out[f][:, -1] for f in fields}
         nxt = step(state, jnp.asarray(action), _pipeline_state(env, template, last))
         for k, v in (("obs", state.obs), ("action", action), ("reward", nxt.reward), ("done", nxt.done),
-                     ("qpos", last["qpos"]), ("qvel", last["qvel"])):
+                     ("qpos", last["qpos"]), ("qvel", last["qvel"]), ("ctrl", ctrl)):
             rec[k].append(np.asarray(v))
         state = nxt
         seconds["c"] = seconds.get("c", 0.0) + t2 - t1
         seconds["policy"] = seconds.get("policy", 0.0) + (t1 - t0) + (time.perf_counter() - t2)
-    return Episodes(**{k: np.stack(v, axis=1) for k, v in rec.items()})
+    return Episodes(**{k: np.stack(v, axis=1) for k, v in rec.items()}, qpos0=np.asarray(qpos0),
+                    qvel0=np.asarray(qvel0))
 
 
 def _act(env: Any, policy: Callable, state: Any, key: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -491,6 +505,22 @@ def _first_separation(m: mujoco.MjModel, runs: dict[str, Episodes], tol: float) 
                 observation_components=[int(i) for i in np.argsort(-dobs)[:3]])
 
 
+def _drill(m: mujoco.MjModel, c: Episodes, first: dict[str, Any]) -> dict[str, Any]:
+    """The sweep's stage drill-down (:func:`mjxdiff.diagnose.drill_down`) at C's state before the
+    first separating control step, with the ctrl C applied there (substep 1 of ``n_frames``)."""
+    from mjxdiff import diagnose
+
+    episode, step = first["episode"], first["step"]
+    qpos, qvel = c.state_before(episode, step)
+    try:
+        drill = diagnose.drill_down(m, qpos, qvel, np.zeros(m.na), c.ctrl[episode, step], 0.0,
+                                    member=episode, step=step)
+    except Exception as e:  # noqa: BLE001 - the verdict stands without its drill-down
+        return dict(error=_one_line(e))
+    return dict(first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
+                fields=[dataclasses.asdict(f) for f in drill.fields])
+
+
 def judge(m: mujoco.MjModel, runs: dict[str, Episodes], tol: float = 1e-6, seed: int = 0) -> dict[str, Any]:
     """Paired per-episode comparison of MJX and C against C-vs-C (see :data:`TEST`)."""
     mj, c, cc = runs["mjx"], runs["c"], runs["c_perturbed"]
@@ -518,6 +548,10 @@ def judge(m: mujoco.MjModel, runs: dict[str, Episodes], tol: float = 1e-6, seed:
     if first is not None:
         message += (f"; first separation at control step {first['step']} of episode {first['episode']}, "
                     f"joint '{first['joint']}' (qvel {first['qvel_error']:.3g} > floor {first['floor']:.3g})")
+        first["drill_down"] = _drill(m, c, first)
+        if first["drill_down"].get("first_stage"):
+            message += (f"; first stage to differ from C's state there: {first['drill_down']['first_stage']} "
+                        f"({first['drill_down']['first_field']}, {first['drill_down']['object']})")
     return dict(status="fail" if fail else "pass", message=message, test=TEST,
                 returns=dict(mjx=mj.returns.tolist(), c=c.returns.tolist(), c_perturbed=cc.returns.tolist()),
                 lengths=dict(mjx=mj.length.tolist(), c=c.length.tolist(), c_perturbed=cc.length.tolist()),

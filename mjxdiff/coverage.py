@@ -117,6 +117,18 @@ def _record(folder: str) -> None:
         cov.stop()
     cov.json_report(outfile=str(folder / "cov.json"))
     (folder / "errors.json").write_text(json.dumps(errors))
+    # lines left out as unreachable that ran anyway (an excluded block's own if/elif test always
+    # runs; its body must not): a pattern too wide would hide code the scenarios run
+    ran_excluded = {}
+    data = cov.get_data()
+    for path in data.measured_files():
+        excluded = set(cov.analysis2(path)[2]) & set(data.lines(path) or ())
+        source = Path(path).read_text().splitlines()
+        lines = [[n, source[n - 1].strip()] for n in sorted(excluded)
+                 if not source[n - 1].lstrip().startswith(("if ", "elif "))]
+        if lines:
+            ran_excluded[Path(path).name] = lines
+    (folder / "excluded_ran.json").write_text(json.dumps(ran_excluded))
 
 
 _RECORDER = "import sys; from mjxdiff.coverage import _record; _record(sys.argv[1])"
@@ -132,7 +144,8 @@ def code_coverage(models: Sequence[tuple[str, mujoco.MjModel]],
 
     Returns:
       ``{"totals": {...}, "modules": {file: {...}}, "functions_never_traced": [...],
-      "excluded": EXCLUDED, "errors": {name: message}}``; percentages in [0, 100].
+      "excluded": EXCLUDED, "errors": {name: message}, "excluded_but_ran": {file: [[line, source]]}}``
+      (lines :data:`UNREACHABLE` leaves out that ran all the same); percentages in [0, 100].
     """
     import jax
 
@@ -154,6 +167,7 @@ def code_coverage(models: Sequence[tuple[str, mujoco.MjModel]],
             raise RuntimeError(f"recording MJX coverage failed: {done.stderr.strip()[-2000:]}")
         raw = json.loads(Path(tmp, "cov.json").read_text())
         errors = json.loads(Path(tmp, "errors.json").read_text())
+        excluded_ran = json.loads(Path(tmp, "excluded_ran.json").read_text())
     # Function bodies only: module-level statements ran at import, before recording started.
     modules, never, warp = {}, [], []
     totals = dict.fromkeys(("lines", "lines_covered", "branches", "branches_covered"), 0)
@@ -181,7 +195,7 @@ def code_coverage(models: Sequence[tuple[str, mujoco.MjModel]],
     totals["branch_percent"] = round(100 * totals["branches_covered"] / max(totals["branches"], 1), 2)
     excluded = dict(EXCLUDED, **{f: "Warp or cpp backend only" for f in warp})
     return dict(totals=totals, modules=modules, functions_never_traced=sorted(never), excluded=excluded,
-                errors=errors)
+                errors=errors, excluded_but_ran=excluded_ran)
 
 
 #: An MJCF with one element of each kind and no attributes: its values are MuJoCo's defaults.

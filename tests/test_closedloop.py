@@ -79,6 +79,8 @@ def test_a_two_percent_gain_slip_fails_and_names_the_first_separation(env, check
     first = result["first_separation"]
     assert first is not None and first["step"] == 0 and first["joint"] in ("slider", "hinge")
     assert "first separation at control step 0" in result["message"]
+    assert first["drill_down"]["first_stage"] == "actuation", first["drill_down"]
+    assert "first stage to differ from C's state there: actuation" in result["message"]
     # C and its perturbed rerun did not change: the slip is MJX's alone
     np.testing.assert_array_equal(runs["c"].returns, clean[0]["c"].returns)
 
