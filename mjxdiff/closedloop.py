@@ -139,7 +139,8 @@ def _load_checkpoint(path: Path) -> Callable:
     """brax's ``ppo.checkpoint.load_policy``, reading the network config itself: brax 0.14.2
     writes ``null`` for a kernel initialiser left at its default (``mean_kernel_init_fn``)
     and then fails to read it back (``KeyError: None``); here such keys keep the factory's
-    default."""
+    default. Its training also writes the observation size as a serialised ShapeDtypeStruct,
+    which its loader takes for an observation dict (``KeyError: 'state'``)."""
     import json
 
     from brax.training import checkpoint as brax_checkpoint
@@ -157,8 +158,21 @@ def _load_checkpoint(path: Path) -> Callable:
             kwargs[key] = networks.KERNEL_INITIALIZER[kwargs[key]]
     if "activation" in kwargs:
         kwargs["activation"] = networks.ACTIVATION[kwargs["activation"]]
+    # training writes the observation size as brax's ShapeDtypeStruct, {"shape": [n], "dtype": ...},
+    # which reads back as an observation dict without its "state" key
+    loaded["observation_size"] = _size(loaded["observation_size"])
     network = brax_checkpoint.get_network(config_dict.create(**loaded), ppo_networks.make_ppo_networks)
     return ppo_networks.make_inference_fn(network)(checkpoint.load(path), deterministic=True)
+
+
+def _size(saved: Any) -> Any:
+    """An observation size as the network factory takes it, from its JSON in a checkpoint."""
+    if isinstance(saved, dict) and "shape" in saved:
+        shape = tuple(saved["shape"])
+        return shape[0] if len(shape) == 1 else shape
+    if isinstance(saved, dict):
+        return {k: _size(v) for k, v in saved.items()}
+    return saved
 
 
 def _one_line(e: BaseException) -> str:

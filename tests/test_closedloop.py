@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from brax.io import model as brax_model
-from brax.training.acme import running_statistics
+from brax.training.acme import running_statistics, specs
 from brax.training.agents.ppo import checkpoint as ppo_checkpoint
 from brax.training.agents.ppo import networks as ppo_networks
 from mujoco.mjx._src import forward as mjx_forward
@@ -46,8 +46,9 @@ def params(env):
 def checkpoint_dir(env, params, tmp_path_factory):
     """Written by brax's own PPO checkpoint code, as its training loop writes it."""
     path = tmp_path_factory.mktemp("ckpt")
-    config = ppo_checkpoint.network_config(env.observation_size, env.action_size, True,
-                                           ppo_networks.make_ppo_networks)
+    # the observation size as brax's PPO training passes it (a shape spec, not an int)
+    obs_spec = specs.Array((env.observation_size,), jnp.dtype("float32"))
+    config = ppo_checkpoint.network_config(obs_spec, env.action_size, True, ppo_networks.make_ppo_networks)
     ppo_checkpoint.save(str(path), 0, params[1], config)
     return next(p for p in path.iterdir() if p.is_dir())
 

@@ -25,6 +25,10 @@ def main() -> None:
     args = parser.parse_args()
 
     jax.config.update("jax_enable_x64", True)
+    # brax 0.14.2's PPO calls jax.device_put_replicated, which jax 0.10 removed: the replicated
+    # value is the value stacked once per device (pmap shards a leading axis of that size)
+    jax.device_put_replicated = lambda value, devices: jax.tree.map(
+        lambda x: jax.numpy.stack([jax.numpy.asarray(x)] * len(devices)), value)
     from brax import envs
     from brax.training.agents.ppo import train as ppo
 
