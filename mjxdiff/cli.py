@@ -433,7 +433,7 @@ def _cmd_policy(args: argparse.Namespace) -> int:
         print(f"mjxdiff policy: {e}", file=sys.stderr)
         return 2
     runs = closedloop.run(env, policy, args.episodes, args.steps, args.seed)
-    result = closedloop.judge(env.sys.mj_model, runs, seed=args.seed)
+    result = closedloop.judge(closedloop.c_model(env), runs, seed=args.seed, n_frames=int(env._n_frames))
     doc = dict(kind="policy", versions=report.versions(), target=args.target, policy=args.policy,
                config=dict(episodes=args.episodes, steps=args.steps, seed=args.seed), **result)
     if args.out:

@@ -35,6 +35,8 @@ import numpy as np
 from mujoco import mjx
 from mujoco.batch import Batch
 
+from mjxdiff.noise import converge_solver, has_constraints
+
 __all__ = ["Episodes", "PolicyError", "load_policy", "make_env", "mjcf_env", "resolve_env", "run_mjx", "run_c",
            "run", "judge", "TEST", "PERTURB_ULPS"]
 
@@ -67,6 +69,7 @@ class Episodes:
       qpos, qvel: the state after step t.
       ctrl: the ``ctrl`` the physics got at step t.
       qpos0, qvel0: (B, ...) the initial state.
+      warmstart: the solver's warm start after step t (C only; empty for MJX).
     """
 
     obs: np.ndarray
@@ -78,6 +81,7 @@ class Episodes:
     ctrl: np.ndarray
     qpos0: np.ndarray
     qvel0: np.ndarray
+    warmstart: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0, 0)))
 
     def state_before(self, episode: int, step: int) -> tuple[np.ndarray, np.ndarray]:
         """(qpos, qvel) before control step ``step`` of ``episode``."""
@@ -312,6 +316,33 @@ def _with_pipeline(env: Any, init: Any = None, step: Any = None) -> Any:
     return e
 
 
+def c_model(env: Any) -> mujoco.MjModel:
+    """The MjModel C steps for ``env``: its ``sys.mj_model`` with every option and numeric field
+    the environment changed on its MJX system (brax's ant sets Newton, 1 iteration, 4 line
+    searches and no Euler damping with ``sys.tree_replace``, which ``mj_model`` never sees)."""
+    import copy as _copy
+
+    sys, m = env.sys, _copy.copy(env.sys.mj_model)
+    plain = mjx.put_model(m)  # what MJX makes of mj_model: fields the environment left alone compare equal
+
+    def changed(a: Any, b: Any) -> bool:
+        a, b = np.asarray(a), np.asarray(b)
+        return a.shape != b.shape or not np.array_equal(a, b)
+
+    for f in dataclasses.fields(sys.opt):
+        if f.name != "_impl" and hasattr(m.opt, f.name) and changed(getattr(sys.opt, f.name),
+                                                                    getattr(plain.opt, f.name)):
+            value = np.asarray(getattr(sys.opt, f.name))
+            setattr(m.opt, f.name, value.item() if value.ndim == 0 else value)
+    for f in dataclasses.fields(sys):
+        target = getattr(m, f.name, None) if f.name not in ("opt", "stat", "_impl") else None
+        if isinstance(target, np.ndarray) and changed(getattr(sys, f.name), getattr(plain, f.name)):
+            value = np.asarray(getattr(sys, f.name))
+            if value.shape == target.shape:
+                target[...] = value
+    return m
+
+
 def _data_fields(m: mujoco.MjModel) -> tuple[str, ...]:
     """The fields of MJX's data (public and JAX-implementation ones) that MjData holds with the
     same shape: what C records for the environment's code to read."""
@@ -410,26 +441,30 @@ def _c_functions(env: Any, policy: Callable) -> tuple[Callable, Callable, Callab
 
 
 def run_c(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.Array, qpos0: np.ndarray,
-          qvel0: np.ndarray, nthread: int = 0, seconds: dict[str, float] | None = None) -> Episodes:
+          qvel0: np.ndarray, nthread: int = 0, seconds: dict[str, float] | None = None,
+          model: mujoco.MjModel | None = None) -> Episodes:
     """MuJoCo C from ``qpos0``/``qvel0`` (B, ...): a Batch steps ``n_frames`` substeps per
     control step; the environment's code reads C's recorded fields. ``seconds`` gains the wall
     time spent stepping C (``c``) and in the policy and the environment's code (``policy``)."""
     import time
 
     seconds = {} if seconds is None else seconds
-    m = env.sys.mj_model
+    m = c_model(env) if model is None else model
     B, T = policy_keys.shape[:2]
     fields = _data_fields(m)
     b = Batch(m, B, nthread=nthread)
     b.qpos[:], b.qvel[:] = qpos0, qvel0
-    b.forward()
-    d0 = b.get_data(0)
-    template = mjx.put_data(m, d0)
-    start = {f: np.stack([getattr(b.get_data(i), f) for i in range(B)]) for f in fields}
+    starts = []
+    for i in range(B):  # a Batch hands out states; the derived fields are mj_forward's
+        d = b.get_data(i)
+        mujoco.mj_forward(m, d)
+        starts.append(d)
+    template = mjx.put_data(m, starts[0])
+    start = {f: np.stack([getattr(d, f) for d in starts]) for f in fields}
 
     reset, step, act = _c_functions(env, policy)
     state = reset(reset_keys, _pipeline_state(env, template, start))
-    rec = {k: [] for k in ("obs", "action", "reward", "done", "qpos", "qvel", "ctrl")}
+    rec = {k: [] for k in ("obs", "action", "reward", "done", "qpos", "qvel", "ctrl", "warmstart")}
     n_frames = int(env._n_frames)  # noqa: SLF001 - brax's substeps per control step
     for t in range(T):
         t0 = time.perf_counter()
@@ -441,7 +476,8 @@ def run_c(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.Ar
         last = {f: out[f][:, -1] for f in fields}
         nxt = step(state, jnp.asarray(action), _pipeline_state(env, template, last))
         for k, v in (("obs", state.obs), ("action", action), ("reward", nxt.reward), ("done", nxt.done),
-                     ("qpos", last["qpos"]), ("qvel", last["qvel"]), ("ctrl", ctrl)):
+                     ("qpos", last["qpos"]), ("qvel", last["qvel"]), ("ctrl", ctrl),
+                     ("warmstart", last["qacc_warmstart"])):
             rec[k].append(np.asarray(v))
         state = nxt
         seconds["c"] = seconds.get("c", 0.0) + t2 - t1
@@ -473,9 +509,15 @@ def run(env: Any, policy: Callable, episodes: int, steps: int, seed: int = 0) ->
     reset_keys, policy_keys = _keys(seed, episodes, steps)
     traj_mjx, first = run_mjx(env, policy, reset_keys, policy_keys)
     q0, qd0 = np.asarray(first.pipeline_state.qpos), np.asarray(first.pipeline_state.qvel)
-    traj_c = run_c(env, policy, reset_keys, policy_keys, q0, qd0)
-    traj_cc = run_c(env, policy, reset_keys, policy_keys, _perturbed(q0, seed), _perturbed(qd0, seed + 1))
-    return {"mjx": traj_mjx, "c": traj_c, "c_perturbed": traj_cc}
+    m = c_model(env)
+    traj_c = run_c(env, policy, reset_keys, policy_keys, q0, qd0, model=m)
+    traj_cc = run_c(env, policy, reset_keys, policy_keys, _perturbed(q0, seed), _perturbed(qd0, seed + 1), model=m)
+    runs = {"mjx": traj_mjx, "c": traj_c, "c_perturbed": traj_cc}
+    if has_constraints(m):  # C with a converged solver: how much the solver's own stopping point moves C
+        solved = copy.copy(m)
+        converge_solver(solved)
+        runs["c_solver"] = run_c(env, policy, reset_keys, policy_keys, q0, qd0, model=solved)
+    return runs
 
 
 # ----------------------------------------------------------------------------
@@ -499,6 +541,8 @@ def _first_separation(m: mujoco.MjModel, runs: dict[str, Episodes], tol: float) 
     """The first control step where MJX and C separate by more than max(tol, 10 x C-vs-C)."""
     sep = _separation(runs["mjx"], runs["c"])
     floor = np.maximum(tol, 10 * _separation(runs["c_perturbed"], runs["c"]))
+    if "c_solver" in runs:
+        floor = np.maximum(floor, 10 * _separation(runs["c_solver"], runs["c"]))
     out = sep > floor
     if not out.any():
         return None
@@ -519,32 +563,48 @@ def _first_separation(m: mujoco.MjModel, runs: dict[str, Episodes], tol: float) 
                 observation_components=[int(i) for i in np.argsort(-dobs)[:3]])
 
 
-def _drill(m: mujoco.MjModel, c: Episodes, first: dict[str, Any]) -> dict[str, Any]:
-    """The sweep's stage drill-down (:func:`mjxdiff.diagnose.drill_down`) at C's state before the
-    first separating control step, with the ctrl C applied there (substep 1 of ``n_frames``)."""
+def _drill(m: mujoco.MjModel, c: Episodes, first: dict[str, Any], n_frames: int) -> dict[str, Any]:
+    """The sweep's stage drill-down (:func:`mjxdiff.diagnose.drill_down`) substep by substep
+    through the first separating control step, C replayed from its state (and solver warm
+    start) before it with the ctrl it applied: the first substep where a stage differs."""
     from mjxdiff import diagnose
 
     episode, step = first["episode"], first["step"]
-    qpos, qvel = c.state_before(episode, step)
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:] = c.state_before(episode, step)
+    if step > 0 and c.warmstart.size:
+        d.qacc_warmstart[:] = c.warmstart[episode, step - 1]
+    d.ctrl[:] = c.ctrl[episode, step]
     try:
-        drill = diagnose.drill_down(m, qpos, qvel, np.zeros(m.na), c.ctrl[episode, step], 0.0,
-                                    member=episode, step=step)
+        for k in range(n_frames):
+            drill = diagnose.drill_down(m, d.qpos.copy(), d.qvel.copy(), d.act.copy(), d.ctrl.copy(), d.time,
+                                        member=episode, step=step, qacc_warmstart=d.qacc_warmstart.copy())
+            if drill.first_stage:
+                break
+            mujoco.mj_step(m, d)
     except Exception as e:  # noqa: BLE001 - the verdict stands without its drill-down
         return dict(error=_one_line(e))
-    return dict(first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
+    return dict(substep=k, first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
                 fields=[dataclasses.asdict(f) for f in drill.fields])
 
 
-def judge(m: mujoco.MjModel, runs: dict[str, Episodes], tol: float = 1e-6, seed: int = 0) -> dict[str, Any]:
-    """Paired per-episode comparison of MJX and C against C-vs-C (see :data:`TEST`)."""
+def judge(m: mujoco.MjModel, runs: dict[str, Episodes], tol: float = 1e-6, seed: int = 0,
+          n_frames: int = 1) -> dict[str, Any]:
+    """Paired per-episode comparison of MJX and C against C-vs-C (see :data:`TEST`); ``m`` is
+    the model C stepped (:func:`c_model`), ``n_frames`` its substeps per control step."""
     mj, c, cc = runs["mjx"], runs["c"], runs["c_perturbed"]
     scale = max(float(np.abs(c.returns).mean()), 1e-12)
     gap = (mj.returns - c.returns) / scale
     gap_cc = (cc.returns - c.returns) / scale
     band = max(float(np.abs(gap_cc).max()), RETURN_FLOOR)
+    solver = runs.get("c_solver")
+    if solver is not None:
+        band = max(band, float(np.abs((solver.returns - c.returns) / scale).max()))
     lo, hi = _bootstrap_ci(gap, seed)
     length_differs = float((mj.length != c.length).mean())
     length_differs_cc = float((cc.length != c.length).mean())
+    if solver is not None:
+        length_differs_cc = max(length_differs_cc, float((solver.length != c.length).mean()))
     sd = float(gap.std(ddof=1)) if len(gap) > 1 else 0.0
     out_of_band = lo > band or hi < -band
     first = _first_separation(m, runs, tol)
@@ -562,10 +622,10 @@ def judge(m: mujoco.MjModel, runs: dict[str, Episodes], tol: float = 1e-6, seed:
     if first is not None:
         message += (f"; first separation at control step {first['step']} of episode {first['episode']}, "
                     f"joint '{first['joint']}' (qvel {first['qvel_error']:.3g} > floor {first['floor']:.3g})")
-        first["drill_down"] = _drill(m, c, first)
-        if first["drill_down"].get("first_stage"):
-            message += (f"; first stage to differ from C's state there: {first['drill_down']['first_stage']} "
-                        f"({first['drill_down']['first_field']}, {first['drill_down']['object']})")
+        first["drill_down"] = drill = _drill(m, c, first, n_frames)
+        if drill.get("first_stage"):
+            message += (f"; first stage to differ from C's state there (substep {drill['substep']}): "
+                        f"{drill['first_stage']} ({drill['first_field']}, {drill['object']})")
     return dict(status="fail" if fail else "pass", message=message, test=TEST,
                 returns=dict(mjx=mj.returns.tolist(), c=c.returns.tolist(), c_perturbed=cc.returns.tolist()),
                 lengths=dict(mjx=mj.length.tolist(), c=c.length.tolist(), c_perturbed=cc.length.tolist()),

@@ -137,17 +137,21 @@ def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float,
 
 
 def drill_down(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, ctrl: np.ndarray,
-               time: float, precision: str = "float64", member: int = 0, step: int = 0) -> DrillDown:
+               time: float, precision: str = "float64", member: int = 0, step: int = 0,
+               qacc_warmstart: np.ndarray | None = None) -> DrillDown:
     """Compares every stage of ``mj_forward`` and ``mjx.forward`` from one state.
 
     Args:
       m: the member's C model.
       qpos, qvel, act, ctrl, time: the state and controls before the step.
       precision: sets the relative threshold, :data:`STAGE_RTOL`.
+      qacc_warmstart: the solver's warm start there (both engines start from it); None: zero.
     """
     export_cache.fresh_digest()  # engines.forward is jitted: never its trace of code since changed
     d = mujoco.MjData(m)
     d.qpos[:], d.qvel[:], d.ctrl[:], d.time = qpos, qvel, ctrl, time
+    if qacc_warmstart is not None:
+        d.qacc_warmstart[:] = qacc_warmstart
     if m.na:
         d.act[:] = act
     mx = mjx.put_model(m)

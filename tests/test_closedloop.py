@@ -57,7 +57,7 @@ def checkpoint_dir(env, params, tmp_path_factory):
 def clean(env, checkpoint_dir):
     policy = closedloop.load_policy(str(checkpoint_dir), env)
     runs = closedloop.run(env, policy, EPISODES, STEPS, seed=0)
-    return runs, closedloop.judge(env.sys.mj_model, runs)
+    return runs, closedloop.judge(closedloop.c_model(env), runs, n_frames=env._n_frames)
 
 
 def test_unmodified_mjx_gives_c_s_episodes(clean):
@@ -75,13 +75,14 @@ def test_a_two_percent_gain_slip_fails_and_names_the_first_separation(env, check
                         lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
     policy = closedloop.load_policy(str(checkpoint_dir), env)
     runs = closedloop.run(env, policy, EPISODES, STEPS, seed=0)
-    result = closedloop.judge(env.sys.mj_model, runs)
+    result = closedloop.judge(closedloop.c_model(env), runs, n_frames=env._n_frames)
     assert result["status"] == "fail", result["message"]
     first = result["first_separation"]
     assert first is not None and first["step"] == 0 and first["joint"] in ("slider", "hinge")
     assert "first separation at control step 0" in result["message"]
     assert first["drill_down"]["first_stage"] == "actuation", first["drill_down"]
-    assert "first stage to differ from C's state there: actuation" in result["message"]
+    assert first["drill_down"]["substep"] == 0
+    assert "first stage to differ from C's state there (substep 0): actuation" in result["message"]
     # C and its perturbed rerun did not change: the slip is MJX's alone
     np.testing.assert_array_equal(runs["c"].returns, clean[0]["c"].returns)
 
