@@ -434,10 +434,17 @@ def _mjx_episodes(env: Any, policy: Callable) -> Callable:
 def _c_functions(env: Any, policy: Callable) -> tuple[Callable, Callable, Callable]:
     """Jitted, over the batch: reset and step of the environment's code on given physics, and
     the policy's action with the ctrl it becomes."""
-    reset = jax.jit(jax.vmap(lambda key, ps: _with_pipeline(env, init=ps).reset(key)))
-    step = jax.jit(jax.vmap(lambda state, action, ps: _with_pipeline(env, step=ps).step(state, action)))
+    def reset(keys, template, fields):
+        ps = _pipeline_state(env, template, fields)
+        return jax.vmap(lambda key, ps: _with_pipeline(env, init=ps).reset(key))(keys, ps)
+
+    def step(state, action, template, fields):
+        ps = _pipeline_state(env, template, fields)
+        return jax.vmap(lambda state, action, ps: _with_pipeline(env, step=ps).step(state, action))(state, action, ps)
+
+    # the brax state is built from C's recorded fields inside the compiled function: one call a step
     act = jax.jit(jax.vmap(functools.partial(_act, env, policy)))
-    return reset, step, act
+    return jax.jit(reset), jax.jit(step), act
 
 
 def run_c(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.Array, qpos0: np.ndarray,
@@ -463,7 +470,7 @@ def run_c(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.Ar
     start = {f: np.stack([getattr(d, f) for d in starts]) for f in fields}
 
     reset, step, act = _c_functions(env, policy)
-    state = reset(reset_keys, _pipeline_state(env, template, start))
+    state = reset(reset_keys, template, start)
     rec = {k: [] for k in ("obs", "action", "reward", "done", "qpos", "qvel", "ctrl", "warmstart")}
     n_frames = int(env._n_frames)  # noqa: SLF001 - brax's substeps per control step
     for t in range(T):
@@ -474,7 +481,7 @@ def run_c(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.Ar
         out = b.rollout(n_frames, control=np.repeat(ctrl[:, None], n_frames, axis=1), record=fields)
         t2 = time.perf_counter()
         last = {f: out[f][:, -1] for f in fields}
-        nxt = step(state, jnp.asarray(action), _pipeline_state(env, template, last))
+        nxt = step(state, jnp.asarray(action), template, last)
         for k, v in (("obs", state.obs), ("action", action), ("reward", nxt.reward), ("done", nxt.done),
                      ("qpos", last["qpos"]), ("qvel", last["qvel"]), ("ctrl", ctrl),
                      ("warmstart", last["qacc_warmstart"])):

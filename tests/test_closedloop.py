@@ -131,3 +131,45 @@ def test_cli_on_a_bundled_scenario_writes_the_report(tmp_path, capsys, x64):
     assert rc == 0, capsys.readouterr().out
     doc = json.loads((tmp_path / "policy-report.json").read_text())
     assert doc["kind"] == "policy" and doc["status"] == "pass" and len(doc["returns"]["c"]) == 2
+
+
+def test_c_steps_what_the_environment_changed_on_its_mjx_system(x64):
+    """brax's ant sets its solver on the MJX system with tree_replace; mj_model never sees it."""
+    env = closedloop.make_env("ant")
+    assert env.sys.mj_model.opt.iterations != 1  # the XML's
+    m = closedloop.c_model(env)
+    assert (m.opt.iterations, m.opt.ls_iterations) == (1, 4)
+    assert m.opt.disableflags == int(env.sys.opt.disableflags)
+
+
+def test_observations_from_c_s_derived_fields(x64):
+    """hopper observes the torso height from x.pos: C's side must compute it (mj_forward of the
+    Batch's start states), not read zeros."""
+    env = closedloop.make_env("hopper")
+
+    def policy(obs, key):
+        return jnp.tanh(obs[:3]), {}
+    runs = closedloop.run(env, policy, 2, 5, seed=0)
+    np.testing.assert_allclose(runs["c"].obs, runs["mjx"].obs, atol=1e-12)
+    assert runs["c"].obs[0, 0, 0] > 1.0  # the torso's height
+
+
+@pytest.mark.slow
+def test_a_policy_brax_trained_passes_and_a_gain_slip_fails(tmp_path, monkeypatch):
+    """brax's PPO trains inverted_pendulum on MJX (benchmarks/scripts/train_policy.py, about 75 s
+    here) and writes the checkpoint; unmodified MJX passes, a 2% gain slip fails at step 0."""
+    import subprocess
+    import sys
+
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    done = subprocess.run([sys.executable, str(root / "benchmarks/scripts/train_policy.py"), "--out",
+                           str(tmp_path), "--timesteps", "200000"], capture_output=True, text=True, check=True)
+    trained = json.loads(done.stdout.strip().splitlines()[-1])
+    assert trained["evals"][-1][1] > 150, trained  # it learned to balance
+    assert main(["policy", "inverted_pendulum", "--policy", trained["checkpoint"], "--episodes", "8"]) == 0
+    orig = mjx_forward.fwd_actuation
+    monkeypatch.setattr(mjx_forward, "fwd_actuation",
+                        lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
+    assert main(["policy", "inverted_pendulum", "--policy", trained["checkpoint"], "--episodes", "8"]) == 1
