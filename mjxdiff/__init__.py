@@ -24,6 +24,8 @@ _PUBLIC = {
     "Trajectory": "mjxdiff.engines",
     "UnsupportedError": "mjxdiff.engines",
     "bundled_scenarios": "mjxdiff.scenario",
+    "closedloop": None,  # the module: a policy in closed loop on MJX and on C
+    "transfer": None,  # the module: MJX's host interface checked against C
     "configure_jax": "mjxdiff.engines",
     "judge": "mjxdiff.verdict",
     "load_scenario": "mjxdiff.scenario",

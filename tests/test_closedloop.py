@@ -164,8 +164,12 @@ def test_a_policy_brax_trained_passes_and_a_gain_slip_fails(tmp_path, monkeypatc
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "PJRT_NPROC")}  # one device
     done = subprocess.run([sys.executable, str(root / "benchmarks/scripts/train_policy.py"), "--out",
-                           str(tmp_path), "--timesteps", "200000"], capture_output=True, text=True, check=True)
+                           str(tmp_path), "--timesteps", "200000"], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
     trained = json.loads(done.stdout.strip().splitlines()[-1])
     assert trained["evals"][-1][1] > 150, trained  # it learned to balance
     assert main(["policy", "inverted_pendulum", "--policy", trained["checkpoint"], "--episodes", "8"]) == 0

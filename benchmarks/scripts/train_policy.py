@@ -40,7 +40,7 @@ def main() -> None:
         ppo.train, num_timesteps=args.timesteps, episode_length=200, num_envs=128, num_eval_envs=32,
         batch_size=128, num_minibatches=4, unroll_length=10, num_updates_per_batch=4, learning_rate=3e-4,
         entropy_cost=1e-2, discounting=0.97, normalize_observations=True, reward_scaling=1.0, num_evals=4,
-        seed=args.seed, save_checkpoint_path=str(out))
+        seed=args.seed, save_checkpoint_path=str(out), max_devices_per_host=1)
     t = time.perf_counter()
     train(environment=env, progress_fn=lambda step, metrics: evals.append(
         (int(step), float(metrics.get("eval/episode_reward", float("nan"))))))
