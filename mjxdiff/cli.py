@@ -206,11 +206,14 @@ def build_parser() -> argparse.ArgumentParser:
                                     "mean return gap lies outside the C-vs-C band or lengths differ more often "
                                     "than C against itself. Names the first control step where the states "
                                     "separate beyond C's own separation. Exit 0 pass, 1 fail, 2 bad input.")
-    po.add_argument("target", metavar="MODEL_OR_ENV",
+    po.add_argument("target", metavar="MODEL_OR_ENV", nargs="?",
                     help="a brax environment name (MJX backend, e.g. inverted_pendulum), a bundled scenario, "
                          "a scenario .toml or an MJCF .xml (observations qpos, qvel, sensordata; actions in "
                          "[-1, 1] onto ctrlrange; no reward: compare states)")
-    po.add_argument("--policy", required=True, metavar="SPEC",
+    po.add_argument("--replay", metavar="FILE",
+                    help="re-run the one episode a failing run saved (DIR/policy-reproducer.json, written "
+                         "with --out): same target, policy, seed and keys")
+    po.add_argument("--policy", metavar="SPEC",
                     help="a brax PPO checkpoint directory, PARAMS_FILE::module:factory (brax.io.model.save_params "
                          "and a make_ppo_networks-like factory), or module:function (a policy(obs, key), or a "
                          "factory of the observation and action sizes returning one)")
@@ -423,8 +426,23 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
 
 
 def _cmd_policy(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from mjxdiff import closedloop, engines, report
 
+    only = None
+    if args.replay:
+        try:
+            saved = json.loads(Path(args.replay).read_text())
+            args.target, args.policy, only = saved["target"], saved["policy"], [int(saved["episode"])]
+            args.episodes, args.steps, args.seed, args.n_frames = (int(saved[k]) for k in
+                                                                   ("episodes", "steps", "seed", "n_frames"))
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            print(f"mjxdiff policy: {args.replay}: not a policy reproducer ({type(e).__name__}: {e})", file=sys.stderr)
+            return 2
+    if not args.target or not args.policy:
+        print("mjxdiff policy: give MODEL_OR_ENV and --policy SPEC, or --replay FILE", file=sys.stderr)
+        return 2
     engines.configure_jax("float64", None)
     try:
         env = closedloop.resolve_env(args.target, args.n_frames)
@@ -432,13 +450,22 @@ def _cmd_policy(args: argparse.Namespace) -> int:
     except closedloop.PolicyError as e:
         print(f"mjxdiff policy: {e}", file=sys.stderr)
         return 2
-    runs = closedloop.run(env, policy, args.episodes, args.steps, args.seed)
+    runs = closedloop.run(env, policy, args.episodes, args.steps, args.seed, only=only)
     result = closedloop.judge(closedloop.c_model(env), runs, seed=args.seed, n_frames=int(env._n_frames))
+    config = dict(episodes=args.episodes, steps=args.steps, seed=args.seed, n_frames=args.n_frames)
     doc = dict(kind="policy", versions=report.versions(), target=args.target, policy=args.policy,
-               config=dict(episodes=args.episodes, steps=args.steps, seed=args.seed), **result)
+               config=dict(config, only=only), **result)
     if args.out:
         path = report.write_report(args.out, doc, "policy-report.json")
         print(f"report written to {path}", file=sys.stderr)
+        if result["status"] == "fail" and only is None:
+            worst = result["first_separation"]["episode"] if result["first_separation"] else int(
+                np.argmax(np.abs(np.subtract(result["returns"]["mjx"], result["returns"]["c"]))))
+            path = report.write_report(args.out, dict(target=args.target, policy=args.policy, episode=worst,
+                                                      message=result["message"], **config),
+                                       "policy-reproducer.json")
+            print(f"reproducer of episode {worst} written to {path} (mjxdiff policy --replay {path})",
+                  file=sys.stderr)
     print(json.dumps(doc, indent=2) if args.format == "json" else f"{result['status'].upper():6} {args.target}  "
           f"{result['message']}")
     return 0 if result["status"] == "pass" else 1

@@ -510,10 +510,15 @@ def _perturbed(x: np.ndarray, seed: int) -> np.ndarray:
     return x + rng.choice([-1.0, 1.0], x.shape) * PERTURB_ULPS * np.finfo(np.float64).eps * np.maximum(np.abs(x), 1.0)
 
 
-def run(env: Any, policy: Callable, episodes: int, steps: int, seed: int = 0) -> dict[str, Episodes]:
+def run(env: Any, policy: Callable, episodes: int, steps: int, seed: int = 0,
+        only: list[int] | None = None) -> dict[str, Episodes]:
     """MJX, C and C from perturbed initial states, each ``episodes`` x ``steps`` control steps,
-    same reset and policy keys (float64: run under ``jax.enable_x64``)."""
+    same reset and policy keys (float64: run under ``jax.enable_x64``). ``only``: run just these
+    episodes of the ``episodes`` (their keys are the same; the perturbation of C's rerun is
+    drawn for them alone)."""
     reset_keys, policy_keys = _keys(seed, episodes, steps)
+    if only is not None:
+        reset_keys, policy_keys = reset_keys[np.asarray(only)], policy_keys[np.asarray(only)]
     traj_mjx, first = run_mjx(env, policy, reset_keys, policy_keys)
     q0, qd0 = np.asarray(first.pipeline_state.qpos), np.asarray(first.pipeline_state.qvel)
     m = c_model(env)

@@ -106,14 +106,29 @@ def test_the_three_policy_forms_load_and_act(env, params, checkpoint_dir, tmp_pa
     np.testing.assert_allclose(a1, a2)  # the same network and parameters
 
 
+def test_a_failing_run_saves_its_episode_and_replay_reruns_it(checkpoint_dir, tmp_path, monkeypatch, capsys):
+    orig = mjx_forward.fwd_actuation
+    with monkeypatch.context() as patch:
+        patch.setattr(mjx_forward, "fwd_actuation",
+                      lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
+        assert main(["policy", "inverted_pendulum", "--policy", str(checkpoint_dir), "--episodes", "3",
+                     "--steps", "20", "--out", str(tmp_path)]) == 1
+        saved = json.loads((tmp_path / "policy-reproducer.json").read_text())
+        assert saved["episode"] == 0 and saved["episodes"] == 3 and saved["policy"] == str(checkpoint_dir)
+        assert main(["policy", "--replay", str(tmp_path / "policy-reproducer.json")]) == 1
+        assert "first separation at control step 0 of episode 0" in capsys.readouterr().out
+    assert main(["policy", "--replay", str(tmp_path / "policy-reproducer.json")]) == 0  # unmodified MJX
+
+
 @pytest.mark.parametrize("target, spec, says", [
     ("inverted_pendulum", "no/such/dir", "not a checkpoint directory"),
     ("inverted_pendulum", "no_such_module:policy", "cannot import"),
     ("inverted_pendulum", "missing.pkl::brax.training.agents.ppo.networks:make_ppo_networks", "no such parameters"),
     ("no_such_env", "mjxdiff:x", "not a brax environment"),
+    (None, "no_such_reproducer.json", "not a policy reproducer"),
 ])
 def test_a_bad_spec_is_one_line_and_exit_2(target, spec, says, capsys):
-    assert main(["policy", target, "--policy", spec]) == 2
+    assert main(["policy", target, "--policy", spec] if target else ["policy", "--replay", spec]) == 2
     err = capsys.readouterr().err.strip()
     assert says in err and "\n" not in err and "Traceback" not in err
 
