@@ -1,7 +1,8 @@
 """Closed-loop throughput: episodes per second of MJX (vmapped episodes, the policy inside the
 scan) and of MuJoCo C (a Batch, the policy jitted over the batch each control step), and the
 share of C's closed loop spent outside C (the policy and the environment's own code on C's
-state). brax's inverted_pendulum (MJX backend) with a randomly initialised brax PPO network.
+state), and the peak memory of a whole streamed comparison at two episode lengths. brax's
+inverted_pendulum (MJX backend) with a randomly initialised brax PPO network.
 
 Run: ``python -m pytest benchmarks/test_closedloop.py --benchmark-only``."""
 
@@ -21,11 +22,7 @@ EPISODES, STEPS = 32, 200
 @pytest.fixture(scope="module")
 def setup():
     env = closedloop.make_env("inverted_pendulum")
-    network = ppo_networks.make_ppo_networks(env.observation_size, env.action_size)
-    key = jax.random.PRNGKey(0)
-    normalizer = running_statistics.init_state(jax.ShapeDtypeStruct((env.observation_size,), jnp.float64))
-    params = (normalizer, network.policy_network.init(key), network.value_network.init(key))
-    policy = ppo_networks.make_inference_fn(network)(params, deterministic=True)
+    policy = _random_policy(env)
     reset_keys, policy_keys = closedloop._keys(0, EPISODES, STEPS)
     return env, policy, reset_keys, policy_keys
 
@@ -49,3 +46,38 @@ def test_c_closed_loop(benchmark, setup):
     benchmark.extra_info.update(versions(), engine="c", episodes=EPISODES, steps=STEPS,
                                 episodes_per_s=EPISODES / benchmark.stats.stats.mean,
                                 outside_c_share=seconds["policy"] / (seconds["policy"] + seconds["c"]))
+
+
+_RSS = """
+import resource, sys, jax
+jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, {here!r})
+from test_closedloop import _random_policy
+from mjxdiff import closedloop
+env = closedloop.make_env("inverted_pendulum")
+closedloop.run(env, _random_policy(env), 16, {steps})
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+"""
+
+
+def _random_policy(env):
+    network = ppo_networks.make_ppo_networks(env.observation_size, env.action_size)
+    key = jax.random.PRNGKey(0)
+    normalizer = running_statistics.init_state(jax.ShapeDtypeStruct((env.observation_size,), jnp.float64))
+    params = (normalizer, network.policy_network.init(key), network.value_network.init(key))
+    return ppo_networks.make_inference_fn(network)(params, deterministic=True)
+
+
+@pytest.mark.parametrize("steps", [200, 2000])
+def test_streamed_peak_memory(benchmark, steps):
+    """Peak resident memory (MiB) of a whole closed-loop comparison (MJX, C, C perturbed; 16
+    episodes), in a fresh process: streamed in chunks, it should not grow with the length."""
+    import os
+    import subprocess
+    import sys
+
+    here = os.path.dirname(os.path.abspath(__file__))
+    out = benchmark.pedantic(lambda: subprocess.run([sys.executable, "-c", _RSS.format(here=here, steps=steps)],
+                                                    capture_output=True, text=True, check=True).stdout,
+                             rounds=1, iterations=1)
+    benchmark.extra_info.update(versions(), steps=steps, episodes=16, peak_rss_mib=float(out.split()[-1]))

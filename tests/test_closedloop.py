@@ -8,6 +8,7 @@ import textwrap
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
 from brax.io import model as brax_model
@@ -16,7 +17,7 @@ from brax.training.agents.ppo import checkpoint as ppo_checkpoint
 from brax.training.agents.ppo import networks as ppo_networks
 from mujoco.mjx._src import forward as mjx_forward
 
-from mjxdiff import closedloop
+from mjxdiff import closedloop, diagnose
 from mjxdiff.cli import main
 
 EPISODES, STEPS = 4, 40
@@ -56,26 +57,34 @@ def checkpoint_dir(env, params, tmp_path_factory):
 @pytest.fixture(scope="module")
 def clean(env, checkpoint_dir):
     policy = closedloop.load_policy(str(checkpoint_dir), env)
-    runs = closedloop.run(env, policy, EPISODES, STEPS, seed=0)
-    return runs, closedloop.judge(closedloop.c_model(env), runs, n_frames=env._n_frames)
+    comparison = closedloop.run(env, policy, EPISODES, STEPS, seed=0)
+    return comparison, closedloop.judge(closedloop.c_model(env), comparison, n_frames=env._n_frames)
 
 
 def test_unmodified_mjx_gives_c_s_episodes(clean):
-    runs, result = clean
+    comparison, result = clean
     assert result["status"] == "pass", result["message"]
-    np.testing.assert_array_equal(runs["mjx"].length, runs["c"].length)
-    assert np.abs(runs["mjx"].qvel - runs["c"].qvel).max() < 1e-9
+    s = comparison.summaries
+    np.testing.assert_array_equal(s["mjx"].length, s["c"].length)
+    assert comparison.separation["mjx"] < 1e-9 and comparison.obs_separation["mjx"] < 1e-9
     assert result["first_separation"] is None
     assert np.isfinite(result["gap"]["ci95"]).all() and result["test"] == closedloop.TEST
+    assert {"|action|", "|Δaction|", "|qvel|"} <= set(result["behaviour"])
+    assert not any(b["out_of_band"] for b in result["behaviour"].values()), result["behaviour"]
+
+
+def _slip(monkeypatch, after: float = -1.0):
+    """MJX's actuator gains 2% high once the simulation time passes ``after`` seconds."""
+    orig = mjx_forward.fwd_actuation
+    monkeypatch.setattr(mjx_forward, "fwd_actuation", lambda m, d: orig(
+        m.replace(actuator_gainprm=m.actuator_gainprm * jnp.where(d.time > after, 1.02, 1.0)), d))
 
 
 def test_a_two_percent_gain_slip_fails_and_names_the_first_separation(env, checkpoint_dir, monkeypatch, clean):
-    orig = mjx_forward.fwd_actuation
-    monkeypatch.setattr(mjx_forward, "fwd_actuation",
-                        lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
+    _slip(monkeypatch)
     policy = closedloop.load_policy(str(checkpoint_dir), env)
-    runs = closedloop.run(env, policy, EPISODES, STEPS, seed=0)
-    result = closedloop.judge(closedloop.c_model(env), runs, n_frames=env._n_frames)
+    comparison = closedloop.run(env, policy, EPISODES, STEPS, seed=0)
+    result = closedloop.judge(closedloop.c_model(env), comparison, n_frames=env._n_frames)
     assert result["status"] == "fail", result["message"]
     first = result["first_separation"]
     assert first is not None and first["step"] == 0 and first["joint"] in ("slider", "hinge")
@@ -83,8 +92,54 @@ def test_a_two_percent_gain_slip_fails_and_names_the_first_separation(env, check
     assert first["drill_down"]["first_stage"] == "actuation", first["drill_down"]
     assert first["drill_down"]["substep"] == 0
     assert "first stage to differ from C's state there (substep 0): actuation" in result["message"]
+    # one control step from C's state differs beyond the floor under every ablation: MJX's own
+    assert first["cause"]["cause"] == diagnose.GENUINE, first["cause"]
+    assert first["cause"]["local_error"] > first["cause"]["local_floor"]
     # C and its perturbed rerun did not change: the slip is MJX's alone
-    np.testing.assert_array_equal(runs["c"].returns, clean[0]["c"].returns)
+    np.testing.assert_array_equal(comparison.summaries["c"].returns, clean[0].summaries["c"].returns)
+
+
+def test_streamed_in_chunks_the_verdict_is_the_same(env, checkpoint_dir, monkeypatch):
+    """A slip that starts at t = 0.5 s separates inside the run; chunks of 7 control steps
+    (crossing it) give the same first separation, C state and summaries as one chunk."""
+    _slip(monkeypatch, after=0.5)
+    policy = closedloop.load_policy(str(checkpoint_dir), env)
+    whole, chunked = (closedloop.run(env, policy, EPISODES, STEPS, seed=0, chunk=k) for k in (STEPS, 7))
+    assert whole.first is not None and whole.first["step"] > 7, whole.first
+    assert chunked.first == whole.first
+    for name, s in whole.summaries.items():
+        np.testing.assert_array_equal(chunked.summaries[name].returns, s.returns)
+        for k, v in s.behaviour.items():
+            np.testing.assert_allclose(chunked.summaries[name].behaviour[k], v, rtol=1e-12, err_msg=k)
+
+
+def test_summaries_count_steps_up_to_the_first_done_across_chunks():
+    rng = np.random.default_rng(0)
+    B, T, nq = 3, 10, 2
+    done = np.zeros((B, T))
+    done[0, 3], done[0, 6], done[1, 9] = 1, 1, 1  # episode 0 ends at step 3, 1 at the last, 2 never
+    reward, action, qvel = rng.normal(size=(B, T)), rng.normal(size=(B, T, 1)), rng.normal(size=(B, T, nq))
+    zeros = np.zeros((B, T, nq))
+
+    def chunk(a, b):
+        return closedloop.Episodes(obs=zeros[:, a:b], action=action[:, a:b], reward=reward[:, a:b],
+                                   done=done[:, a:b], qpos=zeros[:, a:b], qvel=qvel[:, a:b], ctrl=action[:, a:b],
+                                   metrics={"speed": 2 * reward[:, a:b]}, qpos0=zeros[:, 0], qvel0=zeros[:, 0],
+                                   obs0=zeros[:, 0])
+
+    m = mujoco.MjModel.from_xml_string("<mujoco><worldbody><body><joint/><geom size='.1'/></body>"
+                                       "<body pos='1 0 0'><joint/><geom size='.1'/></body></worldbody></mujoco>")
+    for cuts in ([0, T], [0, 2, 5, 6, T]):
+        tally = closedloop._Tally(m, ["mjx", "c", "c_perturbed"], 1e-6)
+        for a, b in zip(cuts, cuts[1:]):
+            tally.add({k: chunk(a, b) for k in ("mjx", "c", "c_perturbed")})
+        s = tally.result().summaries["c"]
+        np.testing.assert_array_equal(s.length, [4, 10, 10])
+        np.testing.assert_array_equal(s.terminated, [True, True, False])
+        np.testing.assert_allclose(s.returns, [reward[0, :4].sum(), reward[1].sum(), reward[2].sum()])
+        np.testing.assert_allclose(s.behaviour["speed"], 2 * s.returns / s.length)
+        np.testing.assert_allclose(s.behaviour["|Δaction|"][1], np.abs(np.diff(action[1, :, 0])).sum() / T)
+        assert tally.result().first is None
 
 
 def test_the_three_policy_forms_load_and_act(env, params, checkpoint_dir, tmp_path, monkeypatch):
@@ -107,10 +162,8 @@ def test_the_three_policy_forms_load_and_act(env, params, checkpoint_dir, tmp_pa
 
 
 def test_a_failing_run_saves_its_episode_and_replay_reruns_it(checkpoint_dir, tmp_path, monkeypatch, capsys):
-    orig = mjx_forward.fwd_actuation
     with monkeypatch.context() as patch:
-        patch.setattr(mjx_forward, "fwd_actuation",
-                      lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
+        _slip(patch)
         assert main(["policy", "inverted_pendulum", "--policy", str(checkpoint_dir), "--episodes", "3",
                      "--steps", "20", "--out", str(tmp_path)]) == 1
         saved = json.loads((tmp_path / "policy-reproducer.json").read_text())
@@ -164,9 +217,14 @@ def test_observations_from_c_s_derived_fields(x64):
 
     def policy(obs, key):
         return jnp.tanh(obs[:3]), {}
-    runs = closedloop.run(env, policy, 2, 5, seed=0)
-    np.testing.assert_allclose(runs["c"].obs, runs["mjx"].obs, atol=1e-12)
-    assert runs["c"].obs[0, 0, 0] > 1.0  # the torso's height
+    reset_keys, policy_keys = closedloop._keys(0, 2, 5)
+    first, chunks = closedloop.mjx_stream(env, policy, reset_keys, policy_keys)
+    mj = next(chunks)
+    c = next(closedloop.c_stream(env, policy, reset_keys, policy_keys, np.asarray(first.pipeline_state.qpos),
+                                 np.asarray(first.pipeline_state.qvel)))
+    np.testing.assert_allclose(c.obs0, mj.obs0, atol=1e-12)
+    np.testing.assert_allclose(c.obs, mj.obs, atol=1e-12)
+    assert c.obs0[0, 0] > 1.0  # the torso's height
 
 
 @pytest.mark.slow
@@ -188,7 +246,5 @@ def test_a_policy_brax_trained_passes_and_a_gain_slip_fails(tmp_path, monkeypatc
     trained = json.loads(done.stdout.strip().splitlines()[-1])
     assert trained["evals"][-1][1] > 150, trained  # it learned to balance
     assert main(["policy", "inverted_pendulum", "--policy", trained["checkpoint"], "--episodes", "8"]) == 0
-    orig = mjx_forward.fwd_actuation
-    monkeypatch.setattr(mjx_forward, "fwd_actuation",
-                        lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
+    _slip(monkeypatch)
     assert main(["policy", "inverted_pendulum", "--policy", trained["checkpoint"], "--episodes", "8"]) == 1
