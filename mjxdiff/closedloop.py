@@ -794,7 +794,7 @@ def _mjx_local(m: mujoco.MjModel, state: dict[str, Any], n_frames: int) -> np.nd
     if state["qacc_warmstart"] is not None:
         d.qacc_warmstart[:] = state["qacc_warmstart"]
     mx, dx = mjx.put_model(m), mjx.put_data(m, d)
-    step = jax.jit(mjx.step)
+    step = jax.jit(lambda mx, dx: mjx.step(mx, dx))  # a fresh function: no trace cached under a patched MJX
     for _ in range(n_frames):
         dx = step(mx, dx)
     return np.concatenate([np.asarray(dx.qpos), np.asarray(dx.qvel)])

@@ -99,6 +99,16 @@ def test_a_two_percent_gain_slip_fails_and_names_the_first_separation(env, check
     np.testing.assert_array_equal(comparison.summaries["c"].returns, clean[0].summaries["c"].returns)
 
 
+def test_where_one_control_step_agrees_the_cause_is_accumulation(env):
+    """Unmodified MJX from a C state agrees within the one-step floor: a separation found
+    there grew over earlier steps, and attribution says so instead of blaming a stage."""
+    m = closedloop.c_model(env)
+    state = dict(qpos=m.qpos0 + 0.05, qvel=np.full(m.nv, 0.3), qacc_warmstart=None, ctrl=np.full(m.nu, 0.5))
+    cause = closedloop.attribute(m, dict(c_state=state), n_frames=env._n_frames)
+    assert cause["cause"] == closedloop.ACCUMULATED, cause
+    assert cause["local_error"] <= cause["local_floor"] and cause["local_error"] < 1e-12
+
+
 def test_streamed_in_chunks_the_verdict_is_the_same(env, checkpoint_dir, monkeypatch):
     """A slip that starts at t = 0.5 s separates inside the run; chunks of 7 control steps
     (crossing it) give the same first separation, C state and summaries as one chunk."""
