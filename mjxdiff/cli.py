@@ -8,6 +8,7 @@ usage or input.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -147,7 +148,26 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--compile-workers", type=_non_negative, metavar="N",
                     help="scenarios run side by side, each on its own thread from compile to verdict; results "
                          "are reported in order (default: one per core, at most 4; 0: one after another)")
-    sw.add_argument("--out", metavar="DIR", help="write DIR/report.json (versions, config, per-scenario metrics)")
+    sw.add_argument("--out", metavar="DIR", help="write DIR/report.json (versions, config, per-scenario metrics) "
+                                                  "and DIR/report.html (one self-contained page with plots)")
+    sw.add_argument("--plots", choices=("failing", "all", "none"), default="failing",
+                    help="report.html's error-vs-time plots: of failing scenarios (default), of all, or none")
+    sw.add_argument("--history", metavar="DIR",
+                    help="append this run (one row per scenario x field) to the Parquet history in DIR and flag "
+                         "errors that moved outside their own history (default $MJXDIFF_HISTORY, else "
+                         "$XDG_DATA_HOME/mjxdiff/history or ~/.local/share/mjxdiff/history; see 'mjxdiff history')")
+    sw.add_argument("--no-history", action="store_true", help="do not read or append the run history")
+    sw.add_argument("--history-keep", type=_positive, default=500, metavar="N",
+                    help="runs kept in the history; older ones are deleted (default 500)")
+    sw.add_argument("--baseline", metavar="REF",
+                    help="compare with a trusted run: a report.json, a directory holding one, or a history run "
+                         "id; each scenario is 'same', 'new failure', 'fixed', 'error grew' or 'error shrank'")
+    sw.add_argument("--fail-on", choices=("any", "new"), default="any",
+                    help="exit 1 on any divergence (default), or only on new failures against --baseline that "
+                         "no accepted --known entry explains")
+    sw.add_argument("--known", metavar="FILE",
+                    help="your own known divergences ([[known]] tables, see mjxdiff.known), tried before the "
+                         "catalogue shipped with mjxdiff")
     sw.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     sw.add_argument("--quick", action="store_true", help="smoke run: batch <= 4, steps <= 50")
     sw.add_argument("--cache-dir", metavar="DIR",
@@ -239,6 +259,22 @@ def build_parser() -> argparse.ArgumentParser:
     cv.add_argument("--seed", type=int, default=0, help="seed of the randomized members (default 0)")
     cv.add_argument("--out", metavar="DIR", help="write DIR/coverage.json")
     cv.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
+    hi = sub.add_parser("history", help="query the run history sweeps append to (DuckDB over Parquet)",
+                        description="Trends per scenario and field over the runs the sweeps appended (runs, "
+                                    "passes, median/min/max error, the last status and ratio to bound), runs "
+                                    "compared by MuJoCo/MJX version and MJX code digest (--by-version), or the "
+                                    "runs themselves (--runs). The history is a directory of Parquet files, one "
+                                    "per run; any DuckDB or Parquet reader can read it too.")
+    hi.add_argument("--dir", metavar="DIR", help="history directory (default: as sweep --history)")
+    hi.add_argument("--scenario", metavar="S", help="only this scenario")
+    hi.add_argument("--field", metavar="F", help="only this field (qpos, qvel, act, sensordata, contacts, ...)")
+    hi.add_argument("--since", metavar="WHEN", type=_since,
+                    help="only runs since WHEN: an ISO date or time (2026-11-01, 2026-11-01T12:00) or an age "
+                         "(7d, 12h, 30m)")
+    view = hi.add_mutually_exclusive_group()
+    view.add_argument("--by-version", action="store_true", help="compare runs by MuJoCo/MJX version and code digest")
+    view.add_argument("--runs", action="store_true", help="list the runs (id, time, versions, passes, failures)")
+    hi.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     sub.add_parser("list", help="list bundled scenarios and what each exercises",
                    description="List bundled scenarios with their model, size and what they exercise.")
     return parser
@@ -277,6 +313,20 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     from mjxdiff.sweep import SweepConfig, exit_code, sweep
     from mjxdiff.verdict import ScenarioResult
 
+    from mjxdiff import baseline, known
+
+    entries = known.CATALOGUE
+    try:
+        if args.known:
+            entries = known.load_entries(args.known) + entries
+        base = baseline.load(args.baseline, None if args.no_history else args.history) if args.baseline else None
+    except (known.KnownError, baseline.BaselineError) as e:
+        print(f"mjxdiff: error: {e}", file=sys.stderr)
+        return 2
+    if args.fail_on == "new" and base is None:
+        print("mjxdiff: error: --fail-on new needs --baseline REF (the run whose failures are accepted)",
+              file=sys.stderr)
+        return 2
     engines.configure_jax(args.precision, args.cache_dir)
     reproducers = str(Path(args.out) / "reproducers") if args.out else None
     config = SweepConfig(seed=args.seed, batch=args.batch, steps=args.steps, precision=args.precision,
@@ -304,21 +354,65 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
 
     def show(r: ScenarioResult) -> None:
         if args.format == "text":
-            print(report.format_line(r), flush=True)
+            entry = known.match(report.result_dict(r), entries)
+            print(report.format_line(r) + (f" [known: {entry.id}]" if entry else ""), flush=True)
 
     t0 = time.perf_counter()
     results = bad + sweep(scenarios, config, progress=args.progress, on_result=show)
     seconds = time.perf_counter() - t0
     doc = report.to_json(results, dict(vars(args), threshold=args.threshold, seconds=seconds,
                                        mjx_compiles=engines.compile_count()))
+    accepted = set()
+    for sc in doc["scenarios"]:
+        entry = known.match(sc, entries)
+        if entry:
+            sc["known"] = dataclasses.asdict(entry)
+            if entry.accepted:
+                accepted.add(sc["name"])
+    _with_history(args, doc)
+    if base is not None:
+        changes = baseline.compare(base, doc)
+        doc["baseline"] = dict(ref=args.baseline, changes=changes)
+        if args.format == "text":
+            print(baseline.format_text(changes, args.baseline))
     if args.out:
         path = report.write_report(args.out, doc)
         print(f"report written to {path}", file=sys.stderr)
+        try:
+            from mjxdiff import html_report
+
+            print(f"page written to {html_report.write(args.out, doc, args.plots)}", file=sys.stderr)
+        except Exception as e:  # noqa: BLE001 - the verdicts stand without their page
+            print(f"mjxdiff: warning: report.html not written: {type(e).__name__}: {e}", file=sys.stderr)
     if args.format == "json":
         print(json.dumps(doc, indent=2))
     else:
         print(report.format_text(results, args.threshold, seconds).splitlines()[-1])
-    return exit_code(results)
+    code = exit_code(results)
+    if args.fail_on == "new" and code == 1:
+        new = [n for n in baseline.new_failures(doc["baseline"]["changes"]) if n not in accepted]
+        code = 1 if new else 0
+    return code
+
+
+def _with_history(args: argparse.Namespace, doc: dict) -> None:
+    """Flags anomalies against the history, then appends this run to it (``doc["history"]``).
+    A history that cannot be read or written is a warning: the verdicts stand."""
+    if args.no_history:
+        return
+    from mjxdiff import history
+
+    directory = Path(args.history) if args.history else history.default_dir()
+    try:
+        found = history.anomalies(history.open_history(directory), doc)
+        doc["history"] = dict(dir=str(directory), anomalies=found)
+        doc["history"]["run_file"] = str(history.append(directory, doc, keep=args.history_keep))
+    except Exception as e:  # noqa: BLE001 - never lose the verdicts to the history
+        print(f"mjxdiff: warning: history {directory}: {type(e).__name__}: {e}", file=sys.stderr)
+        return
+    if args.format == "text":
+        for a in found:
+            print(f"ANOMALY {a['message']}", flush=True)
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
@@ -472,6 +566,51 @@ def _cmd_policy(args: argparse.Namespace) -> int:
     return 0 if result["status"] == "pass" else 1
 
 
+def _since(text: str):
+    import datetime as dt
+    import re
+
+    m = re.fullmatch(r"(\d+(?:\.\d+)?)([dhm])", text.strip())
+    if m:
+        unit = {"d": "days", "h": "hours", "m": "minutes"}[m.group(2)]
+        return dt.datetime.now(dt.timezone.utc).replace(tzinfo=None) - dt.timedelta(**{unit: float(m.group(1))})
+    try:
+        return dt.datetime.fromisoformat(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a date, time or age: {text!r} (e.g. 2026-11-01 or 7d)") from None
+
+
+def _cmd_history(args: argparse.Namespace) -> int:
+    from mjxdiff import history
+
+    h = history.open_history(args.dir)
+    for name in h.skipped:
+        print(f"mjxdiff history: warning: {name} cannot be read; skipped", file=sys.stderr)
+    if args.runs:
+        where, params = history._filters(args.scenario, args.field, args.since)  # noqa: SLF001
+        rows = h.sql(f"""SELECT run_id, min(time) AS time, any_value(mujoco) AS mujoco, any_value(mjx) AS mjx,
+                                any_value(mjx_digest) AS mjx_digest, any_value(seed) AS seed,
+                                count(DISTINCT CASE WHEN status = 'pass' THEN scenario END) AS passed,
+                                count(DISTINCT CASE WHEN status = 'fail' THEN scenario END) AS failed
+                         FROM history {where} GROUP BY run_id ORDER BY time""", params)
+    elif args.by_version:
+        rows = h.by_version(args.scenario, args.field, args.since)
+    else:
+        rows = h.trends(args.scenario, args.field, args.since)
+    if args.format == "json":
+        print(json.dumps(dict(dir=str(h.directory), runs=h.runs, rows=rows), indent=2, default=str))
+        return 0
+    print(f"{h.runs} runs in {h.directory}")
+    if rows:
+        keys = list(rows[0])
+        text = [[f"{v:.3g}" if isinstance(v, float) else str(v)[:19] for v in r.values()] for r in rows]
+        widths = [max(len(k), *(len(t[i]) for t in text)) for i, k in enumerate(keys)]
+        print("  ".join(k.ljust(w) for k, w in zip(keys, widths)))
+        for t in text:
+            print("  ".join(v.ljust(w) for v, w in zip(t, widths)))
+    return 0
+
+
 def _cmd_coverage(args: argparse.Namespace) -> int:
     from mjxdiff import coverage, engines, report
 
@@ -493,6 +632,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _cmd_list()
     if args.command == "coverage":
         return _cmd_coverage(args)
+    if args.command == "history":
+        return _cmd_history(args)
     if args.command == "policy":
         return _cmd_policy(args)
     if args.command == "fuzz":

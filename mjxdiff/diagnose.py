@@ -96,7 +96,8 @@ def _object(m: mujoco.MjModel, field: str, index: int) -> str:
         return f"actuator '{_name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, index)}'"
     if field == "sensordata":
         s = int(np.searchsorted(m.sensor_adr, index, side="right") - 1)
-        return f"sensor '{_name(m, mujoco.mjtObj.mjOBJ_SENSOR, s)}'"
+        kind = mujoco.mjtSensor(m.sensor_type[s]).name[len("mjSENS_"):].lower()
+        return f"sensor '{_name(m, mujoco.mjtObj.mjOBJ_SENSOR, s)}' ({kind})"
     return ""
 
 
@@ -132,7 +133,8 @@ def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float,
         err = np.inf if len(a) != len(b) else float(np.max(np.abs(np.subtract(a, b)), initial=0.0))
         if err > worst:
             names = " / ".join(_name(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in pair)
-            worst, obj = err, f"geoms {names} (C {len(a)}, MJX {len(b)} contacts)"
+            kinds = "-".join(mujoco.mjtGeom(t).name[len("mjGEOM_"):].lower() for t in sorted(m.geom_type[list(pair)]))
+            worst, obj = err, f"geoms {names} ({kinds}: C {len(a)}, MJX {len(b)} contacts)"
     return worst, obj
 
 

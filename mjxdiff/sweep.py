@@ -18,6 +18,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable, Iterable, Iterator, Sequence
 
 import jax
+import mujoco
 import numpy as np
 
 from mjxdiff import adjust, diagnose, engines, export_cache, report, reproducer, transfer
@@ -554,7 +555,8 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     if counts.get("xla") is not None:
         info["xla"] = counts.pop("xla")
     info.update(mjx_code=export_cache.code_digest(),
-                nq=m.nq, nv=m.nv, nu=m.nu,
+                integrator=mujoco.mjtIntegrator(m.opt.integrator).name[len("mjINT_"):].lower(),
+                nq=m.nq, nv=m.nv, nu=m.nu, neq=m.neq,
                 nsensordata=m.nsensordata, **counts)
     return dataclasses.replace(result, info=info)
 

@@ -33,7 +33,8 @@ from mjxdiff.engines import Trajectory, first_diverged
 from mjxdiff.noise import FLOORS, NoiseFloor, noise_floor
 from mjxdiff.scenario import Tolerances
 
-__all__ = ["FieldResult", "Judge", "ScenarioResult", "judge", "error_series", "OUTLIER_RATIO", "STATUSES"]
+__all__ = ["FieldResult", "Judge", "ScenarioResult", "judge", "error_series", "downsample", "OUTLIER_RATIO", "SERIES_POINTS",
+           "STATUSES"]
 
 STATUSES = ("pass", "fail", "unsupported", "error")
 #: A healthy member whose error exceeds its bound by more than this factor fails the scenario
@@ -41,6 +42,19 @@ STATUSES = ("pass", "fail", "unsupported", "error")
 #: scatter like noisy platforms, so one member that far out is a bug in the code it reached.
 #: Unmodified MJX keeps every member of every bundled scenario within its bound (ratio <= 1).
 OUTLIER_RATIO = 100.0
+#: Most rows of a field's kept error series (:attr:`FieldResult.series`).
+SERIES_POINTS = 256
+
+
+def downsample(error: np.ndarray, bound: np.ndarray, most: int = SERIES_POINTS) -> tuple[tuple[int, float, float], ...]:
+    """(T,) error and bound series as at most ``most`` rows (first step, max error, max bound)
+    over consecutive windows of steps."""
+    T = len(error)
+    if T == 0:
+        return ()
+    starts = np.unique(np.linspace(0, T, min(most, T) + 1).astype(int)[:-1])
+    return tuple((int(k), float(e), float(b)) for k, e, b in
+                 zip(starts, np.maximum.reduceat(error, starts), np.maximum.reduceat(bound, starts)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +78,10 @@ class FieldResult:
       floor: which bound held the field where it came closest to it (at ``first_step``
         when exceeded): ``tolerance``, ``rounding`` (the chaos envelope) or ``solver``
         (C's freedom under its own solver settings), see :data:`mjxdiff.noise.FLOORS`.
+      series: the streamed per-step series the verdict kept, at most :data:`SERIES_POINTS`
+        rows ``(step, batch-max error, batch-max bound)``; each row covers the steps from its
+        own to the next row's, error and bound taken as their maxima there (peaks survive).
+        Empty for fraction fields (``contacts``, ``rangefinder``).
     """
 
     field: str
@@ -76,6 +94,7 @@ class FieldResult:
     envelope: float = 0.0
     ratio: float = 0.0
     floor: str = "tolerance"
+    series: tuple[tuple[int, float, float], ...] = ()
 
     @property
     def ok(self) -> bool:
@@ -170,6 +189,7 @@ class _FieldTrack:
         self.first_floor = np.zeros(batch, int)
         self.last_bound = np.full(batch, tol)
         self.batch_max = np.zeros(steps)
+        self.batch_bound = np.zeros(steps)
 
     def update(self, err: np.ndarray, bound: np.ndarray, time: np.ndarray, start: int, members: np.ndarray,
                healthy: np.ndarray, floor: np.ndarray | None = None) -> None:
@@ -202,6 +222,8 @@ class _FieldTrack:
         window = slice(start, start + K)
         self.batch_max[window] = np.maximum(self.batch_max[window],
                                             np.where(healthy[:, None], per_step, 0.0).max(axis=0))
+        self.batch_bound[window] = np.maximum(self.batch_bound[window],
+                                              np.where(healthy[:, None], bound, 0.0).max(axis=0))
 
     def result(self, field: str, healthy: np.ndarray, objects: list[str], dt: float) -> FieldResult:
         if self.width == 0 or not healthy.any():
@@ -219,7 +241,8 @@ class _FieldTrack:
         envelope = float(np.where(healthy, self.last_bound, 0.0).max()) if self.above_tol else 0.0
         return FieldResult(field, float(np.where(healthy, self.max_error, 0.0).max()), self.tol, step, member,
                            objects[comp] if objects else "", float(growth.rate), envelope,
-                           float(np.where(healthy, self.max_ratio, 0.0).max()), FLOORS[floor])
+                           float(np.where(healthy, self.max_ratio, 0.0).max()), FLOORS[floor],
+                           downsample(self.batch_max, self.batch_bound))
 
 
 class _FractionTrack:

@@ -1,6 +1,7 @@
 """Shared test settings: float64 JAX, a persistent compile cache, Hypothesis profiles."""
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -22,6 +23,8 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "dev"))
 # compiles are shared; monkeypatched MJX traces to other HLO and never hits it.
 os.environ.setdefault("MJXDIFF_CACHE", str(ROOT / ".jax_cache"))
 configure_jax("float64")
+# Sweeps run by tests append to a throwaway history, never the user's.
+os.environ["MJXDIFF_HISTORY"] = tempfile.mkdtemp(prefix="mjxdiff-test-history-")
 
 
 @pytest.fixture(scope="session")
