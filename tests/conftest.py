@@ -38,3 +38,33 @@ def fresh_mjx():
     engines.clear_compiled()
     yield
     engines.clear_compiled()
+
+
+#: Scenarios of the report tests: the gain slip of :func:`two_sweeps` breaks the first two
+#: (actuated), not the third (no actuators).
+REPORT_SCENARIOS = ("pendulum", "cartpole", "double_pendulum")
+
+
+@pytest.fixture(scope="session")
+def two_sweeps(tmp_path_factory):
+    """A clean quick sweep of :data:`REPORT_SCENARIOS` (``clean/report.json``), then the same
+    with MJX's actuator gains 2% high, against the clean one as baseline, with report.html
+    (``bugged/``); both append to one history. Returns (directory, bugged exit code)."""
+    from mujoco.mjx._src import forward as mjx_forward
+
+    from mjxdiff.cli import main
+
+    root = tmp_path_factory.mktemp("sweeps")
+    common = ["--quick", "--history", str(root / "history"), "--cache-dir", ""]
+    assert main(["sweep", *REPORT_SCENARIOS, *common, "--out", str(root / "clean")]) == 0
+    orig = mjx_forward.fwd_actuation
+    mp = pytest.MonkeyPatch()
+    mp.setattr(mjx_forward, "fwd_actuation", lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
+    engines.clear_compiled()
+    try:
+        code = main(["sweep", *REPORT_SCENARIOS, *common, "--out", str(root / "bugged"), "--baseline",
+                     str(root / "clean"), "--plots", "failing"])
+    finally:
+        mp.undo()
+        engines.clear_compiled()
+    return root, code

@@ -1,0 +1,61 @@
+"""report.html: one self-contained page, every image decodes, a failing scenario has its
+error-vs-time plot; drawn from the verdict's kept series, not by re-running."""
+
+import base64
+import io
+import re
+from html.parser import HTMLParser
+
+import matplotlib.image
+import numpy as np
+
+from mjxdiff import verdict
+
+
+class _Page(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.images, self.links, self.ids = [], [], set()
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag == "img":
+            self.images.append(a)
+        if tag in ("a", "link", "script") and (a.get("href") or a.get("src")):
+            self.links.append(a.get("href") or a.get("src"))
+        if "id" in a:
+            self.ids.add(a["id"])
+
+
+def test_the_page_is_self_contained_and_every_image_decodes(two_sweeps):
+    root, _ = two_sweeps
+    page = _Page()
+    page.feed((root / "bugged" / "report.html").read_text())
+    assert page.images, "no images"
+    for img in page.images:
+        assert img["src"].startswith("data:image/png;base64,"), img["src"][:40]  # nothing to fetch
+        pixels = matplotlib.image.imread(io.BytesIO(base64.b64decode(img["src"].split(",", 1)[1])), format="png")
+        assert pixels.shape[0] > 50 and pixels.shape[1] > 50 and np.ptp(pixels) > 0  # drawn, not blank
+    # links go to anchors in the page or to files beside it, never to a server
+    assert all(not re.match(r"[a-z]+://", href) for href in page.links), page.links
+
+
+def test_each_failing_field_has_its_error_vs_time_plot(two_sweeps):
+    root, _ = two_sweeps
+    page = _Page()
+    page.feed((root / "bugged" / "report.html").read_text())
+    alts = {img["alt"] for img in page.images}
+    assert "pass rate per scenario" in alts
+    for name in ("pendulum", "cartpole"):  # the two the gain slip breaks
+        assert f"{name} qpos error vs time" in alts and f"{name} qvel error vs time" in alts
+        assert name in page.ids
+    assert not any(a.startswith("double_pendulum ") for a in alts)  # passing: plots only on request
+
+
+def test_the_kept_series_is_the_batch_max_error_with_its_bound():
+    err = np.array([0.0, 1.0, 5.0, 2.0, 3.0, 9.0, 1.0])
+    bound = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 4.0])
+    rows = verdict.downsample(err, bound, most=3)
+    assert [r[0] for r in rows] == [0, 2, 4]  # windows [0, 2), [2, 4), [4, 7)
+    assert [r[1] for r in rows] == [1.0, 5.0, 9.0] and [r[2] for r in rows] == [1.0, 2.0, 4.0]
+    assert verdict.downsample(err, bound) == tuple((k, float(e), float(b)) for k, (e, b) in enumerate(zip(err, bound)))

@@ -1,0 +1,44 @@
+"""The known-divergence catalogue: a tilted box landing on a plane (MJX's plane_convex corner
+rule) is labelled with its entry in text and JSON; it still fails unless an accepted entry
+and a baseline say otherwise."""
+
+import json
+
+import pytest
+
+from mjxdiff import known
+from mjxdiff.cli import main
+
+
+@pytest.fixture(scope="module")
+def box(repo_root):
+    return str(repo_root / "tests" / "data" / "tilted_box_on_plane.xml")
+
+
+def test_a_tilted_box_on_a_plane_is_labelled_known(box, tmp_path, capsys):
+    assert main(["sweep", box, "--batch", "4", "--steps", "300", "--no-history", "--out", str(tmp_path)]) == 1
+    out = capsys.readouterr().out
+    assert "[known: plane-box-corners]" in out, out
+    doc = json.loads((tmp_path / "report.json").read_text())
+    assert doc["scenarios"][0]["known"]["id"] == "plane-box-corners"
+    assert "known" in (tmp_path / "report.html").read_text()
+
+
+def test_an_accepted_entry_of_the_user_passes_fail_on_new(box, tmp_path, capsys):
+    (tmp_path / "empty.json").write_text(json.dumps(dict(scenarios=[])))
+    (tmp_path / "ours.toml").write_text('[[known]]\nid = "our-box"\ntitle = "our tilted box"\n'
+                                        'evidence = "measured"\nscenario = "tilted_box.*"\nstage = "collision"\n'
+                                        'accepted = true\n')
+    argv = ["sweep", box, "--batch", "4", "--steps", "300", "--no-history", "--baseline", str(tmp_path / "empty.json"),
+            "--fail-on", "new"]
+    assert main(argv) == 1  # a new failure, explained by the catalogue but not accepted
+    assert main([*argv, "--known", str(tmp_path / "ours.toml")]) == 0
+    assert "[known: our-box]" in capsys.readouterr().out
+
+
+def test_entries_match_on_what_the_diagnosis_says():
+    failing = dict(name="s", status="fail", message="first field to differ: contact (collision, geoms a / b "
+                   "(box-box: C 2, MJX 4 contacts))", diagnosis=dict(drill_down=dict(first_stage="collision")))
+    assert known.match(failing).id == "box-box-manifold"
+    assert known.match(dict(failing, status="pass")) is None
+    assert known.match(dict(failing, message="qvel of joint 'a' leaves its bound")) is None
