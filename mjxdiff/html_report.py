@@ -52,9 +52,11 @@ def pass_rate_chart(scenarios: list[dict[str, Any]], threshold: float) -> str:
     colours = {"pass": "#3a7d44", "fail": "#c0392b"}
     ax.bar(range(len(shown)), [_num(s["pass_rate"]) for s in shown],
            color=[colours.get(s["status"], "#888888") for s in shown])
+    for i, sc in enumerate(shown):  # the rate over each bar: a failing scenario's may be 0
+        ax.text(i, min(_num(sc["pass_rate"]), 1.0) + 0.02, f"{_num(sc['pass_rate']):.0%}", ha="center", fontsize=6)
     ax.axhline(threshold, color="black", linestyle="--", linewidth=1, label=f"threshold {threshold:.0%}")
     ax.set_xticks(range(len(shown)), [s["name"] for s in shown], rotation=60, ha="right", fontsize=8)
-    ax.set_ylim(0, 1.05)
+    ax.set_ylim(0, 1.12)
     ax.set_ylabel("members within bound")
     ax.legend(loc="lower left", fontsize=8)
     return _png(fig)
