@@ -214,15 +214,18 @@ def anomalies(history: History, doc: dict[str, Any], runs: int = ANOMALY_RUNS) -
     tolerance and the history has :data:`ANOMALY_MIN_RUNS` runs or more. Flags passing
     scenarios too: the error need not exceed its bound to have moved."""
     key = config_key(doc.get("config", {}))
+    recent: dict[tuple[str, str], list[float]] = {}
+    for r in history.sql(  # one scan of the history: the last `runs` errors of every scenario x field
+            "SELECT scenario, field, max_error FROM history WHERE config_key = ? AND max_error IS NOT NULL "
+            "AND isfinite(max_error) QUALIFY row_number() OVER (PARTITION BY scenario, field ORDER BY time DESC) <= ?",
+            (key, runs)):
+        recent.setdefault((r["scenario"], r["field"]), []).append(r["max_error"])
     out = []
     for row in rows(doc):
         e, tol = row["max_error"], row["tolerance"]
         if not row["field"] or e is None or tol is None or not math.isfinite(e):
             continue
-        past = [r["max_error"] for r in history.sql(
-            "SELECT max_error FROM history WHERE scenario = ? AND field = ? AND config_key = ? "
-            "AND max_error IS NOT NULL AND isfinite(max_error) ORDER BY time DESC LIMIT ?",
-            (row["scenario"], row["field"], key, runs))]
+        past = recent.get((row["scenario"], row["field"]), [])
         if len(past) < ANOMALY_MIN_RUNS:
             continue
         logs = sorted(math.log10(max(x, 1e-300)) for x in past)
