@@ -58,7 +58,7 @@ def pass_rate_chart(scenarios: list[dict[str, Any]], threshold: float) -> str:
     ax.set_xticks(range(len(shown)), [s["name"] for s in shown], rotation=60, ha="right", fontsize=8)
     ax.set_ylim(0, 1.12)
     ax.set_ylabel("members within bound")
-    ax.legend(loc="lower left", fontsize=8)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)
     return _png(fig)
 
 
@@ -70,7 +70,7 @@ def error_plot(name: str, field: str, f: dict[str, Any]) -> str:
     rows = f.get("series") or []
     steps = [r[0] for r in rows]
     x = steps  # members' timesteps may be randomized: steps, not seconds
-    err = [max(_num(r[1]), 1e-300) for r in rows]
+    err = [e if e > 0 else float("nan") for e in (_num(r[1]) for r in rows)]  # exact agreement: no point on a log axis
     bound = [_num(r[2]) for r in rows]
     tol = _num(f.get("tolerance"))
     fig, ax = plt.subplots(figsize=(6.4, 2.8))
@@ -85,7 +85,7 @@ def error_plot(name: str, field: str, f: dict[str, Any]) -> str:
     ax.set_xlabel("step")
     ax.set_ylabel(f"{field} error")
     ax.set_title(f"{name}: {field}", fontsize=10)
-    ax.legend(fontsize=7, loc="best")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     return _png(fig)
 
 

@@ -8,6 +8,7 @@ from html.parser import HTMLParser
 
 import matplotlib.image
 import numpy as np
+import pytest
 
 from mjxdiff import verdict
 
@@ -59,3 +60,25 @@ def test_the_kept_series_is_the_batch_max_error_with_its_bound():
     assert [r[0] for r in rows] == [0, 2, 4]  # windows [0, 2), [2, 4), [4, 7)
     assert [r[1] for r in rows] == [1.0, 5.0, 9.0] and [r[2] for r in rows] == [1.0, 2.0, 4.0]
     assert verdict.downsample(err, bound) == tuple((k, float(e), float(b)) for k, (e, b) in enumerate(zip(err, bound)))
+
+
+def _browser():
+    import shutil
+
+    return next((shutil.which(b) for b in ("chromium", "chromium-browser", "google-chrome") if shutil.which(b)), None)
+
+
+@pytest.mark.skipif(_browser() is None, reason="no headless Chromium here (.ci/run installs it where apt can)")
+def test_a_real_browser_shows_the_plots(two_sweeps, tmp_path):
+    """Headless Chromium renders the page offline: the first-exceedance line's orange, drawn
+    only inside the embedded plots, is on screen."""
+    import subprocess
+
+    root, _ = two_sweeps
+    shot = tmp_path / "shot.png"
+    subprocess.run([_browser(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                    f"--screenshot={shot}", "--window-size=1100,2400", (root / "bugged" / "report.html").as_uri()],
+                   check=True, capture_output=True, timeout=120)
+    rgb = (matplotlib.image.imread(shot)[..., :3] * 255).round().astype(int)
+    orange = np.all(np.abs(rgb - [0xE6, 0x7E, 0x22]) <= 2, axis=-1)
+    assert orange.sum() > 50, "no plot on screen"
