@@ -150,6 +150,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "are reported in order (default: one per core, at most 4; 0: one after another)")
     sw.add_argument("--out", metavar="DIR", help="write DIR/report.json (versions, config, per-scenario metrics) "
                                                   "and DIR/report.html (one self-contained page with plots)")
+    sw.add_argument("--impl", choices=("mjx", "warp", "both"), default="mjx",
+                    help="what is judged against MuJoCo C: MJX (default), MuJoCo Warp on Warp's CPU device "
+                         "(float32, so float32 tolerance floors; needs pip install 'mjxdiff[warp]'; kernels "
+                         "compile on first use, ~30 s, then load from the cache), or both, one verdict each "
+                         "(the MJWarp lines read 'NAME@warp')")
     sw.add_argument("--plots", choices=("failing", "all", "none"), default="failing",
                     help="report.html's error-vs-time plots: of failing scenarios (default), of all, or none")
     sw.add_argument("--history", metavar="DIR",
@@ -327,6 +332,13 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         print("mjxdiff: error: --fail-on new needs --baseline REF (the run whose failures are accepted)",
               file=sys.stderr)
         return 2
+    if args.impl in ("warp", "both"):
+        from mjxdiff import mjwarp
+
+        why = mjwarp.available()
+        if why:
+            print(f"mjxdiff: error: --impl {args.impl}: {why}", file=sys.stderr)
+            return 2
     engines.configure_jax(args.precision, args.cache_dir)
     reproducers = str(Path(args.out) / "reproducers") if args.out else None
     config = SweepConfig(seed=args.seed, batch=args.batch, steps=args.steps, precision=args.precision,
@@ -358,7 +370,18 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
             print(report.format_line(r) + (f" [known: {entry.id}]" if entry else ""), flush=True)
 
     t0 = time.perf_counter()
-    results = bad + sweep(scenarios, config, progress=args.progress, on_result=show)
+    results = list(bad)
+    if args.impl in ("mjx", "both"):
+        results += sweep(scenarios, config, progress=args.progress, on_result=show)
+    if args.impl in ("warp", "both"):
+        suffix = "@warp" if args.impl == "both" else ""  # a scenario's name seeds its inputs: results renamed
+
+        def show_warp(r: ScenarioResult) -> None:
+            show(dataclasses.replace(r, name=r.name + suffix))
+        warp = dataclasses.replace(config, impl="warp",
+                                   reproducers=config.reproducers and str(Path(config.reproducers) / "warp"))
+        results += [dataclasses.replace(r, name=r.name + suffix) for r in
+                    sweep(scenarios, warp, progress=args.progress, on_result=show_warp)]
     seconds = time.perf_counter() - t0
     doc = report.to_json(results, dict(vars(args), threshold=args.threshold, seconds=seconds,
                                        mjx_compiles=engines.compile_count()))

@@ -33,6 +33,8 @@ __all__ = ["SweepConfig", "run_scenario", "sweep"]
 
 #: When C's perturbed rerun runs (:attr:`SweepConfig.noise_floor`).
 NOISE_FLOOR_MODES = ("on-demand", "always")
+#: Implementations a sweep can judge against MuJoCo C.
+IMPLS = ("mjx", "warp")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,6 +75,10 @@ class SweepConfig:
       transfer: also check MJX's host interface (``put_data``, ``get_data``,
         ``get_state``/``set_state``, names, ``bind``) against C at two C states of member 0
         (:mod:`mjxdiff.transfer`); a mismatch fails the scenario as field ``transfer``.
+      impl: the implementation judged against C: ``mjx`` or ``warp`` (MuJoCo Warp on the
+        CPU, :mod:`mjxdiff.mjwarp`; float32, so ``precision`` becomes ``float32``: tolerance
+        floors, the perturbation of C's rerun and the metrics are float32's; no host-interface check; the drill-down and the local error are
+        MJX's and left out, cause attribution by ablations runs).
     """
 
     seed: int = 0
@@ -92,8 +98,13 @@ class SweepConfig:
     compile: str = "auto"
     compile_workers: int | None = None
     transfer: bool = True
+    impl: str = "mjx"
 
     def __post_init__(self):
+        if self.impl not in IMPLS:
+            raise ValueError(f"impl must be one of {IMPLS}, not {self.impl!r}")
+        if self.impl == "warp":  # MJWarp computes in float32: judged, perturbed and toleranced as such
+            object.__setattr__(self, "precision", "float32")
         if self.noise_floor not in NOISE_FLOOR_MODES:
             raise ValueError(f"noise_floor must be one of {NOISE_FLOOR_MODES}, not {self.noise_floor!r}")
         if self.compile not in engines.COMPILE_MODES:
@@ -207,7 +218,7 @@ def _finish(prepared: _Prepared, config: SweepConfig, mjx_engine: MJXEngine | No
             path = None
             result = dataclasses.replace(result, message=f"{result.message}; reproducer not saved: {_one_line(e)}")
         result = dataclasses.replace(result, info={**result.info, "reproducer": path})
-    if config.transfer and result.status in ("pass", "fail"):
+    if config.transfer and config.impl == "mjx" and result.status in ("pass", "fail"):
         result = _with_transfer(result, inputs, scenario.model_path, config.precision)
     return result
 
@@ -533,7 +544,8 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     info = dict(info or {}, batch=inputs.batch, steps=inputs.steps)
     seconds = info.setdefault("seconds", {})
     base = dict(name=name, tolerances=tol.as_dict(), info=info)
-    mjx_engine, c_engine = mjx_engine or MJXEngine(compile=config.compile), c_engine or CEngine()
+    mjx_engine, c_engine = mjx_engine or simulator(config), c_engine or CEngine()
+    info["impl"] = mjx_engine.name
     clock: dict[str, float] = {}
     try:
         result, counts = _verdict(name, m, inputs, tol, config, mjx_engine, c_engine, clock)
@@ -584,14 +596,18 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
     traj_c = drill = None
     try:
         traj_c = c_engine.rollout(inputs)
-        drill = _drill(result, inputs, traj_c, config.precision)
-        check = dict(first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
-                     margin=SOLVER_MARGIN, status=f"not needed: the divergence starts in the {drill.first_stage} stage")
-        # None: every stage of one forward agrees, so the difference is in what a step does with
-        # them, and under RK4 a step solves the constraints four times, from states the drill-down
-        # does not see (control-suite cartpole: 1.9e-6 at step 175, gone with a converged solver)
-        if drill.first_stage not in ("constraint", "acceleration", None):
-            return result, traj_c, drill, check
+        if isinstance(mjx_engine, MJXEngine):
+            drill = _drill(result, inputs, traj_c, config.precision)
+            check = dict(first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
+                         margin=SOLVER_MARGIN,
+                         status=f"not needed: the divergence starts in the {drill.first_stage} stage")
+            # None: every stage of one forward agrees, so the difference is in what a step does with
+            # them, and under RK4 a step solves the constraints four times, from states the drill-down
+            # does not see (control-suite cartpole: 1.9e-6 at step 175, gone with a converged solver)
+            if drill.first_stage not in ("constraint", "acceleration", None):
+                return result, traj_c, drill, check
+        else:  # no stage drill-down for this engine: the solver floor is always worth a look
+            check = dict(margin=SOLVER_MARGIN)
         second, _ = _verdict(result.name, m, inputs, tol, config, mjx_engine, c_engine, clock, solver=True)
     except Exception as e:  # noqa: BLE001 - the verdict stands
         return result, traj_c, drill, dict(status=f"could not run: {_one_line(e)}")
@@ -600,8 +616,10 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
     if second.status != "pass":
         return result, traj_c, drill, check
     held = [f.field for f in second.fields if f.floor == "solver"]
-    where = (f"starts in the {drill.first_stage} stage ({drill.first_field}, {drill.object})" if drill.first_stage
-             else "starts where every forward stage agrees (in what the step's constraint solves do)")
+    where = (f"starts in the {drill.first_stage} stage ({drill.first_field}, {drill.object})"
+             if drill is not None and drill.first_stage else
+             "starts where every forward stage agrees (in what the step's constraint solves do)" if drill is not None
+             else "(no stage drill-down for this engine)")
     message = (f"{second.message}; within C's own solver freedom: the divergence of {first['field']} at step "
                f"{first['step']} {where} and stays within {SOLVER_MARGIN:g}x C's divergence from its converged self"
                + (f" (solver floor bounds {', '.join(held)})" if held else ""))
@@ -632,7 +650,9 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
     if traj_c is None:  # whole, for the failing scenario only
         traj_c = attempt("C's full rerun", lambda: c_engine.rollout(inputs))
     local = None
-    if traj_c is not None:
+    if not isinstance(mjx_engine, MJXEngine):
+        notes.append(f"the drill-down and the local error compare MJX's stages; not run for {mjx_engine.name}")
+    elif traj_c is not None:
         if drill is None:
             drill = attempt("drill-down", lambda: _drill(result, inputs, traj_c, config.precision))
         local = attempt("local error", lambda: diagnose.local_error(
@@ -757,7 +777,7 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
     in order; results are those of running the scenarios one by one (each worker sets its own
     precision: :func:`_precision`). With no workers, the scenarios run here, one by one.
     """
-    mjx_engine, c_engine = MJXEngine(compile=config.compile), CEngine()
+    mjx_engine, c_engine = simulator(config), CEngine()
     bar = _Progress(len(scenarios), progress)
     workers = default_compile_workers() if config.compile_workers is None else config.compile_workers
     pool = ThreadPoolExecutor(workers, thread_name_prefix="mjxdiff-scenario") if workers else None
@@ -792,6 +812,16 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
     return results
+
+
+def simulator(config: SweepConfig):
+    """The engine judged against C: :class:`MJXEngine`, or MuJoCo Warp's
+    (:class:`mjxdiff.mjwarp.MJWarpEngine`) for ``impl='warp'``."""
+    if config.impl == "warp":
+        from mjxdiff.mjwarp import MJWarpEngine
+
+        return MJWarpEngine()
+    return MJXEngine(compile=config.compile)
 
 
 def exit_code(results: Iterable[ScenarioResult]) -> int:

@@ -1,0 +1,194 @@
+"""MuJoCo Warp (MJWarp) on Warp's CPU device: a third implementation behind the engine interface.
+
+:class:`MJWarpEngine` takes the same :class:`~mjxdiff.inputs.BatchedInputs` as
+:class:`~mjxdiff.engines.MJXEngine` and streams the same :class:`~mjxdiff.engines.Trajectory`
+pieces: one Warp world per member, ``mjw.step`` per step, records copied out after each step
+(``qpos``, ``qvel``, ``act``, ``sensordata``, ``time``, and the member's active contacts of that
+step). Members' model parameters go in through MJWarp's batched model fields: a field whose
+values differ between members gets one row per world, each made by ``mjw.put_model`` of that
+member's model (so every transformation MJWarp applies is its own). MJWarp computes in float32.
+
+Features MJWarp lacks (``NotImplementedError`` from ``put_model``/``make_data``) become
+:class:`~mjxdiff.engines.UnsupportedError`, the feature named, as for MJX. Warp's kernels
+compile on first use (about 30 s here) into ``<mjxdiff cache>/warp`` (beside the JAX cache),
+and load from there afterwards.
+
+Requires the ``warp`` extra: ``pip install 'mjxdiff[warp]'`` (``mujoco-warp`` and ``warp-lang``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import threading
+from pathlib import Path
+from typing import Iterator
+
+import mujoco
+import numpy as np
+
+from mjxdiff.engines import Trajectory, UnsupportedError, _first_true, _shifted, concat
+from mjxdiff.inputs import BatchedInputs
+
+__all__ = ["MJWarpEngine", "available", "INSTALL", "kernel_cache_dir"]
+
+#: What to run when MJWarp is missing.
+INSTALL = "pip install 'mjxdiff[warp]' (mujoco-warp and warp-lang)"
+
+# Warp's module build and kernel launches are not made for threads racing each other: one
+# scenario at a time steps MJWarp (the sweep's other worker keeps C and MJX busy).
+_LOCK = threading.RLock()
+_READY = False
+
+
+def available() -> str | None:
+    """None when MJWarp can be imported, else one line saying why and how to install it."""
+    try:
+        import warp
+
+        warp.config.quiet = True  # before mujoco_warp initialises it: no banner
+        warp.config.log_level = warp.LOG_WARNING  # no line per module loaded
+        import mujoco_warp  # noqa: F401
+    except Exception as e:  # noqa: BLE001 - any import failure means: not usable here
+        return f"MuJoCo Warp is not installed ({type(e).__name__}: {e}); {INSTALL}"
+    return None
+
+
+def kernel_cache_dir() -> Path:
+    """``<JAX cache>/warp``: the JAX compilation cache directory mjxdiff uses (``--cache-dir``,
+    ``$MJXDIFF_CACHE`` or ``~/.cache/mjxdiff/jax``), else ``~/.cache/mjxdiff/jax/warp``."""
+    import jax
+
+    base = jax.config.jax_compilation_cache_dir or os.environ.get("MJXDIFF_CACHE") or \
+        str(Path.home() / ".cache" / "mjxdiff" / "jax")
+    return Path(base).expanduser() / "warp"
+
+
+def _init() -> None:
+    global _READY
+    with _LOCK:
+        if _READY:
+            return
+        import warp as wp
+
+        wp.config.quiet = True
+        wp.config.kernel_cache_dir = str(kernel_cache_dir())
+        wp.init()
+        _READY = True
+
+
+@contextlib.contextmanager
+def _unsupported():
+    try:
+        yield
+    except NotImplementedError as e:
+        raise UnsupportedError(" ".join(str(e).split()) or type(e).__name__) from None
+
+
+def _batched_fields() -> dict[str, list[str]]:
+    """Model and Option fields MJWarp lets differ per world ('*' leading dimension)."""
+    import dataclasses
+
+    from mujoco_warp._src import types, warp_util
+
+    def star(cls):
+        return [f.name for f in dataclasses.fields(cls)
+                if warp_util.is_array_spec(f.type) and getattr(f.type, "shape", ())[:1] == ("*",)]
+    return {"model": star(types.Model), "opt": star(types.Option)}
+
+
+def put_models(models: tuple[mujoco.MjModel, ...]):
+    """One MJWarp model for all members: fields that differ between members batched, one row
+    per world; the rest shared."""
+    import warp as wp
+
+    import mujoco_warp as mjw
+
+    distinct: dict[int, object] = {}
+    for mi in models:
+        if id(mi) not in distinct:
+            distinct[id(mi)] = mjw.put_model(mi)
+    base = distinct[id(models[0])]
+    if len(distinct) == 1:
+        return base
+    fields = _batched_fields()
+    for owner, names in (("model", fields["model"]), ("opt", fields["opt"])):
+        target = base if owner == "model" else base.opt
+        for name in names:
+            arrays = [getattr(distinct[id(mi)] if owner == "model" else distinct[id(mi)].opt, name) for mi in models]
+            values = [a.numpy() for a in arrays]
+            if all(np.array_equal(values[0], v) for v in values[1:]):
+                continue
+            stacked = np.concatenate(values, axis=0)  # each (1, ...): one row per world
+            setattr(target, name, wp.array(stacked, dtype=arrays[0].dtype, device=arrays[0].device))
+    return base
+
+
+class MJWarpEngine:
+    """MuJoCo Warp on the CPU: same inputs and streamed trajectory pieces as MJX."""
+
+    name = "warp"
+    precision = "float32"
+
+    def __init__(self):
+        why = available()
+        if why:
+            raise RuntimeError(why)
+        _init()
+
+    def batch_cap(self) -> int:
+        return 1 << 30
+
+    def split(self, batch: int) -> int:
+        return 1
+
+    def compile_ahead(self, inputs: BatchedInputs, chunk: int) -> None:
+        """Nothing ahead: Warp compiles its kernels on the first step (once per kernel, cached)."""
+
+    def rollout(self, inputs: BatchedInputs) -> Trajectory:
+        return concat(list(self.stream(inputs, inputs.steps)))
+
+    def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
+        """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
+
+        Preparation (``put_model``/``make_data``: :class:`UnsupportedError`) happens in this
+        call; the pieces are stepped as they are taken."""
+        import warp as wp
+
+        import mujoco_warp as mjw
+
+        B, T = inputs.batch, inputs.steps
+        m = inputs.models[0]
+        with _LOCK, wp.ScopedDevice("cpu"), _unsupported():
+            mw = put_models(inputs.models)
+            mw.opt.warn_overflow = 0  # the verdict sees what a truncated solver does; no prints per step
+            d = mjw.make_data(m, nworld=B)
+            d.qpos.assign(np.asarray(inputs.qpos, np.float32))
+            d.qvel.assign(np.asarray(inputs.qvel, np.float32))
+            if m.na:
+                d.act.assign(np.asarray(inputs.act, np.float32))
+        ctrl = np.asarray(inputs.ctrl, np.float32)
+
+        def pieces() -> Iterator[Trajectory]:
+            for start in range(0, T, chunk):
+                k = min(chunk, T - start)
+                rec = {f: [] for f in ("qpos", "qvel", "act", "sensordata", "time", "ncon")}
+                with _LOCK, wp.ScopedDevice("cpu"), _unsupported():
+                    for t in range(start, start + k):
+                        if m.nu:
+                            d.ctrl.assign(ctrl[:, t])
+                        mjw.step(mw, d)
+                        for f in ("qpos", "qvel", "act", "sensordata", "time"):
+                            rec[f].append(getattr(d, f).numpy().copy())
+                        n = int(d.nacon.numpy()[0])
+                        worlds = d.contact.worldid.numpy()[:n]
+                        rec["ncon"].append(np.bincount(worlds, minlength=B)[:B])
+                out = {f: np.stack(v, axis=1).astype(np.float64) for f, v in rec.items() if f != "ncon"}
+                out["act"] = out["act"].reshape(B, k, m.na)
+                out["sensordata"] = out["sensordata"].reshape(B, k, m.nsensordata)
+                nonfinite = ~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1)
+                yield Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"], sensordata=out["sensordata"],
+                                 time=out["time"], ncon=np.stack(rec["ncon"], axis=1).astype(np.int64),
+                                 energy=np.zeros((B, k, 0)), diverged_at=_shifted(_first_true(nonfinite), start))
+
+        return pieces()
