@@ -15,7 +15,9 @@ For each scenario, :func:`bench_scenario` measures
 * the speedup of MJX's batch split over host devices against one device;
 * the tester's own cost: a warm :func:`mjxdiff.sweep.run_inputs` (both
   engines, noise floor on demand and always, metrics, verdict) against the
-  two engines alone.
+  two engines alone;
+* where MuJoCo Warp is installed (``mjxdiff[warp]``), its steps/s on the same batches, CPU,
+  memory and the first call's extra seconds (kernels compiled, or loaded from Warp's cache).
 
 :func:`recommendations` turns those numbers into plain-language advice.
 """
@@ -100,10 +102,26 @@ def _point(inputs: BatchedInputs, repeats: int) -> dict[str, Any]:
                   "loaded" if export_cache.loaded_count() > loaded else "warm")
     mjx = _best(lambda: mjx_engine.rollout(inputs), repeats)
     c = _best(lambda: c_engine.rollout(inputs), repeats)
-    return dict(batch=inputs.batch, steps=inputs.steps,
-                c_steps_per_s=steps / c.seconds, mjx_steps_per_s=steps / mjx.seconds,
-                mjx_over_c=c.seconds / mjx.seconds, compile_s=max(first.seconds - mjx.seconds, 0.0), first_call=first_call,
-                c_cpu=c.cpu, mjx_cpu=mjx.cpu, c_peak_mib=c.peak_mib, mjx_peak_mib=max(mjx.peak_mib, first.peak_mib))
+    out = dict(batch=inputs.batch, steps=inputs.steps,
+               c_steps_per_s=steps / c.seconds, mjx_steps_per_s=steps / mjx.seconds,
+               mjx_over_c=c.seconds / mjx.seconds, compile_s=max(first.seconds - mjx.seconds, 0.0), first_call=first_call,
+               c_cpu=c.cpu, mjx_cpu=mjx.cpu, c_peak_mib=c.peak_mib, mjx_peak_mib=max(mjx.peak_mib, first.peak_mib))
+    return dict(out, **_warp_point(inputs, repeats))
+
+
+def _warp_point(inputs: BatchedInputs, repeats: int) -> dict[str, Any]:
+    """MuJoCo Warp on the same batch, where it is installed: steps/s, CPU, memory, and the first
+    call's extra seconds (its kernels compiled, or loaded from Warp's cache)."""
+    from mjxdiff import mjwarp
+
+    if mjwarp.available() is not None:
+        return {}
+    engine = mjwarp.MJWarpEngine()
+    _, first = measure(lambda: engine.rollout(inputs))
+    warm = _best(lambda: engine.rollout(inputs), repeats)
+    return dict(warp_steps_per_s=inputs.batch * inputs.steps / warm.seconds,
+                warp_first_s=max(first.seconds - warm.seconds, 0.0), warp_cpu=warm.cpu,
+                warp_peak_mib=max(warm.peak_mib, first.peak_mib))
 
 
 def bench_scenario(scenario: Scenario, batches: Sequence[int] = DEFAULT_BATCHES, steps: int = 200,
@@ -226,6 +244,11 @@ def format_text(results: Sequence[dict[str, Any]]) -> str:
             lines.append(f"  {p['batch']:>6} {p['mjx_steps_per_s']:>12,.0f} {p['c_steps_per_s']:>12,.0f} "
                          f"{p['mjx_over_c']:>7.3f} {_compile_cell(p):>10} {p['mjx_cpu']:>8.0%} {p['c_cpu']:>6.0%} "
                          f"{p['mjx_peak_mib']:>8.0f} {p['c_peak_mib']:>6.0f}")
+        if "warp_steps_per_s" in r["curve"][0]:
+            lines.append(f"  {'batch':>6} {'MJWarp steps/s':>14} {'first call +s':>14} {'MJWarp cpu':>10} {'MiB':>6}")
+            for p in r["curve"]:
+                lines.append(f"  {p['batch']:>6} {p['warp_steps_per_s']:>14,.0f} {p['warp_first_s']:>14.1f} "
+                             f"{p['warp_cpu']:>10.0%} {p['warp_peak_mib']:>6.0f}")
         if any(p.get("first_call") == "loaded" for p in r["curve"]):
             lines.append("  * a saved rollout was loaded from the persistent cache: seconds of loading, not compiling")
         lines += [f"  - {text}" for text in r["recommendations"]]

@@ -124,6 +124,33 @@ def put_models(models: tuple[mujoco.MjModel, ...]):
     return base
 
 
+def capacity(inputs: BatchedInputs) -> tuple[int, int]:
+    """(nconmax, njmax) per world for these inputs: MJWarp's defaults, or more where C's own run
+    of the same members needs it (most contacts of any member at any step, x 1.5, + 8; rows: that
+    many contacts at the model's widest friction cone plus every other constraint row C had).
+    MJWarp drops contacts and rows beyond its capacity, which would read as a divergence."""
+    from mujoco.batch import Batch
+    from mujoco_warp._src import io
+
+    m, B = inputs.models[0], inputs.batch
+    b = Batch(m, B)
+    b.set_models(list(inputs.models))
+    b.qpos[:], b.qvel[:] = inputs.qpos, inputs.qvel
+    if m.na:
+        b.act[:] = inputs.act
+    try:
+        out = b.rollout(inputs.steps, control=inputs.ctrl, record=("ncon", "nefc"))
+        ncon, nefc = int(np.max(out["ncon"], initial=0)), int(np.max(out["nefc"], initial=0))
+    except Exception:  # noqa: BLE001 - C unstable here: the defaults, checked at every step anyway
+        ncon = nefc = 0
+    dims = np.concatenate([m.geom_condim, m.pair_dim]) if m.npair else m.geom_condim
+    condim = int(dims.max(initial=1))
+    rows = condim if m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC else max(2 * (condim - 1), 1)
+    nconmax = max(io._default_nconmax(m), int(1.5 * ncon) + 8)  # noqa: SLF001
+    njmax = max(io._default_njmax(m), nefc + (nconmax - ncon) * rows + 8)  # noqa: SLF001
+    return nconmax, njmax
+
+
 class MJWarpEngine:
     """MuJoCo Warp on the CPU: same inputs and streamed trajectory pieces as MJX."""
 
@@ -161,8 +188,12 @@ class MJWarpEngine:
         m = inputs.models[0]
         with _LOCK, wp.ScopedDevice("cpu"), _unsupported():
             mw = put_models(inputs.models)
-            mw.opt.warn_overflow = 0  # the verdict sees what a truncated solver does; no prints per step
-            d = mjw.make_data(m, nworld=B)
+            # the verdict sees what a truncated solver does: no print per step for that; capacity
+            # overflows cannot happen unseen (sized from C's own run, checked every step)
+            mw.opt.warn_overflow = int(mw.opt.warn_overflow) & ~int(mjw.OverflowType.ITERATIONS) & \
+                ~int(mjw.OverflowType.LS_ITERATIONS)
+            nconmax, njmax = capacity(inputs)
+            d = mjw.make_data(m, nworld=B, nconmax=nconmax, njmax=njmax)
             d.qpos.assign(np.asarray(inputs.qpos, np.float32))
             d.qvel.assign(np.asarray(inputs.qvel, np.float32))
             if m.na:
@@ -181,6 +212,10 @@ class MJWarpEngine:
                         for f in ("qpos", "qvel", "act", "sensordata", "time"):
                             rec[f].append(getattr(d, f).numpy().copy())
                         n = int(d.nacon.numpy()[0])
+                        if n >= d.naconmax or int(d.nefc.numpy().max(initial=0)) >= d.njmax:
+                            raise RuntimeError(f"MJWarp ran out of contact or constraint rows at step {t} "
+                                               f"(nconmax {nconmax}, njmax {njmax} per world): its results "
+                                               "there are not the model's")
                         worlds = d.contact.worldid.numpy()[:n]
                         rec["ncon"].append(np.bincount(worlds, minlength=B)[:B])
                 out = {f: np.stack(v, axis=1).astype(np.float64) for f, v in rec.items() if f != "ncon"}
