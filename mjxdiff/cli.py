@@ -153,8 +153,9 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--impl", choices=("mjx", "warp", "both"), default="mjx",
                     help="what is judged against MuJoCo C: MJX (default), MuJoCo Warp on Warp's CPU device "
                          "(float32, so float32 tolerance floors; needs pip install 'mjxdiff[warp]'; kernels "
-                         "compile on first use, ~30 s, then load from the cache), or both, one verdict each "
-                         "(the MJWarp lines read 'NAME@warp')")
+                         "compile on first use, ~30 s, then load from the cache), or both: one verdict per "
+                         "pair, MJX vs C ('NAME'), MJWarp vs C ('NAME@warp') and MJWarp vs MJX ('NAME@mjx-warp', "
+                         "float32, C's envelope as the floor)")
     sw.add_argument("--plots", choices=("failing", "all", "none"), default="failing",
                     help="report.html's error-vs-time plots: of failing scenarios (default), of all, or none")
     sw.add_argument("--history", metavar="DIR",
@@ -382,6 +383,12 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
                                    reproducers=config.reproducers and str(Path(config.reproducers) / "warp"))
         results += [dataclasses.replace(r, name=r.name + suffix) for r in
                     sweep(scenarios, warp, progress=args.progress, on_result=show_warp)]
+    if args.impl == "both":  # the third pair: MJWarp against MJX, C's envelope as the floor
+        def show_pair(r: ScenarioResult) -> None:
+            show(dataclasses.replace(r, name=r.name + "@mjx-warp"))
+        pair = dataclasses.replace(config, impl="warp", reference="mjx", diagnose="none", reproducers=None)
+        results += [dataclasses.replace(r, name=r.name + "@mjx-warp") for r in
+                    sweep(scenarios, pair, progress=args.progress, on_result=show_pair)]
     seconds = time.perf_counter() - t0
     doc = report.to_json(results, dict(vars(args), threshold=args.threshold, seconds=seconds,
                                        mjx_compiles=engines.compile_count()))

@@ -77,8 +77,11 @@ class SweepConfig:
         (:mod:`mjxdiff.transfer`); a mismatch fails the scenario as field ``transfer``.
       impl: the implementation judged against C: ``mjx`` or ``warp`` (MuJoCo Warp on the
         CPU, :mod:`mjxdiff.mjwarp`; float32, so ``precision`` becomes ``float32``: tolerance
-        floors, the perturbation of C's rerun and the metrics are float32's; no host-interface check; the drill-down and the local error are
-        MJX's and left out, cause attribution by ablations runs).
+        floors, the perturbation of C's rerun and the metrics are float32's; no host-interface
+        check; the drill-down and the local error are MJX's and left out, cause attribution by
+        ablations runs).
+      reference: what ``impl`` is judged against: ``c``, or ``mjx`` (with ``impl='warp'``:
+        MJWarp against MJX, in float32, still with C's own envelope and solver floor).
     """
 
     seed: int = 0
@@ -99,12 +102,15 @@ class SweepConfig:
     compile_workers: int | None = None
     transfer: bool = True
     impl: str = "mjx"
+    reference: str = "c"
 
     def __post_init__(self):
         if self.impl not in IMPLS:
             raise ValueError(f"impl must be one of {IMPLS}, not {self.impl!r}")
         if self.impl == "warp":  # MJWarp computes in float32: judged, perturbed and toleranced as such
             object.__setattr__(self, "precision", "float32")
+        if self.reference not in ("c", "mjx") or (self.reference == "mjx" and self.impl != "warp"):
+            raise ValueError(f"reference must be 'c', or 'mjx' with impl='warp', not {self.reference!r}")
         if self.noise_floor not in NOISE_FLOOR_MODES:
             raise ValueError(f"noise_floor must be one of {NOISE_FLOOR_MODES}, not {self.noise_floor!r}")
         if self.compile not in engines.COMPILE_MODES:
@@ -484,6 +490,9 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
             return combine(envelope, solver_floor and solver_floor.update(_rows(solved, n), reference, at, members))
         # MJX first: its first piece is stepping before C's thread starts
         mjx = _timed(lambda: mjx_engine.stream(group, chunk), "mjx", seconds)
+        # judged against MJX instead of C (MJX vs MJWarp): C still gives the envelope
+        ref = _timed(lambda: MJXEngine(compile=config.compile).stream(group, chunk), "reference", seconds) \
+            if config.reference == "mjx" else None
         start = 0
         # C in a thread, MJX dispatching its next piece before handing this one over: both engines
         # keep stepping while the verdict of a piece is computed
@@ -492,8 +501,9 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
                                          solver_floor is not None)) as c:
             for piece_mjx in mjx:
                 piece_c, piece_p, piece_s = next(c)
+                piece_ref = next(ref) if ref is not None else piece_c
                 t = time.perf_counter()
-                reference, simulated = _rows(piece_c, n), _rows(piece_mjx, n)
+                reference, simulated = _rows(piece_ref, n), _rows(piece_mjx, n)
                 series = judge.errors(reference, simulated)
                 if floor and not c.floor and judge.exceeds_tolerance(series):
                     t += c.start_floor(start, feed)

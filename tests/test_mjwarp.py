@@ -56,6 +56,24 @@ def test_a_gain_slip_in_mjwarp_is_caught_with_field_and_step(monkeypatch):
     assert first["field"] in ("qpos", "qvel") and 0 <= first["step"] < 50 and "hinge" in first["object"], first
 
 
+def test_both_gives_one_verdict_per_pair_and_the_pair_without_c_sees_the_slip(monkeypatch, capsys):
+    assert main(["sweep", "pendulum", "--impl", "both", "--quick", "--no-history", "--no-transfer"]) == 0
+    lines = [line.split()[:2] for line in capsys.readouterr().out.splitlines() if line.startswith(("PASS", "FAIL"))]
+    assert lines == [["PASS", "pendulum"], ["PASS", "pendulum@warp"], ["PASS", "pendulum@mjx-warp"]]
+    import warp as wp
+
+    put = mjw.put_model
+
+    def slipped(m, *args, **kwargs):
+        mw = put(m, *args, **kwargs)
+        mw.actuator_gainprm = wp.array(mw.actuator_gainprm.numpy() * 1.02, dtype=mw.actuator_gainprm.dtype)
+        return mw
+    monkeypatch.setattr(mjw, "put_model", slipped)
+    pair = SweepConfig(impl="warp", reference="mjx", quick=True, transfer=False, diagnose="none", compile_workers=0)
+    result = run_scenario(load_scenario("pendulum"), pair)
+    assert result.status == "fail" and result.first_divergence["field"] in ("qpos", "qvel"), result.message
+
+
 def test_without_the_extra_impl_warp_is_one_line_and_exit_2(monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "mujoco_warp", None)  # import fails as if not installed
     assert main(["sweep", "pendulum", "--impl", "warp", "--no-history"]) == 2
