@@ -108,7 +108,7 @@ def _contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> Contacts:
     """Active contacts by geom pair: (dist, pos x, y, z, friction[0], friction[1]) each."""
     out: Contacts = {}
     for c in d.contact[:d.ncon]:
-        key = tuple(sorted((int(c.geom1), int(c.geom2))))
+        key = tuple(sorted(int(g) for g in c.geom))  # geom1/geom2 are not filled by mujoco_warp.get_data_into
         out.setdefault(key, []).append((float(c.dist), *map(float, c.pos), float(c.friction[0]), float(c.friction[1])))
     return out
 
@@ -140,37 +140,50 @@ def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float,
 
 def drill_down(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, ctrl: np.ndarray,
                time: float, precision: str = "float64", member: int = 0, step: int = 0,
-               qacc_warmstart: np.ndarray | None = None) -> DrillDown:
-    """Compares every stage of ``mj_forward`` and ``mjx.forward`` from one state.
+               qacc_warmstart: np.ndarray | None = None, impl: str = "mjx") -> DrillDown:
+    """Compares every stage of ``mj_forward`` and the other implementation's forward from one state.
 
     Args:
       m: the member's C model.
       qpos, qvel, act, ctrl, time: the state and controls before the step.
       precision: sets the relative threshold, :data:`STAGE_RTOL`.
       qacc_warmstart: the solver's warm start there (both engines start from it); None: zero.
+      impl: ``mjx`` (``mjx.forward``) or ``warp`` (MuJoCo Warp's ``forward`` on the CPU, its
+        data read back into an MjData with ``mujoco_warp.get_data_into``).
     """
-    export_cache.fresh_digest()  # engines.forward is jitted: never its trace of code since changed
     d = mujoco.MjData(m)
     d.qpos[:], d.qvel[:], d.ctrl[:], d.time = qpos, qvel, ctrl, time
     if qacc_warmstart is not None:
         d.qacc_warmstart[:] = qacc_warmstart
     if m.na:
         d.act[:] = act
-    mx = mjx.put_model(m)
-    dx = engines.forward(mx, mjx.put_data(m, d))
+    if impl == "warp":
+        from mjxdiff import mjwarp
+
+        d_x = mjwarp.forward(m, d)
+        qm_x = np.zeros((m.nv, m.nv))
+        mujoco.mj_fullM(m, d_x, qm_x)
+        values_x = {f: np.asarray(getattr(d_x, f)).ravel() for _, fs in STAGES for f in fs if f not in ("qM", "contact")}
+        contacts_x = _contacts_c(m, d_x)
+    else:
+        export_cache.fresh_digest()  # engines.forward is jitted: never its trace of code since changed
+        mx = mjx.put_model(m)
+        dx = engines.forward(mx, mjx.put_data(m, d))
+        values_x = {f: np.asarray(getattr(dx, f)).ravel() for _, fs in STAGES for f in fs if f not in ("qM", "contact")}
+        qm_x = np.asarray(mjx.full_m(mx, dx))
+        contacts_x = _contacts_mjx(dx)
+    values_x["qM"] = np.asarray(qm_x).ravel()
     mujoco.mj_forward(m, d)
     c_qm = np.zeros((m.nv, m.nv))
     mujoco.mj_fullM(m, d, c_qm)
     values_c = {f: np.asarray(getattr(d, f)).ravel() for _, fs in STAGES for f in fs if f not in ("qM", "contact")}
     values_c["qM"] = c_qm.ravel()
-    values_x = {f: np.asarray(getattr(dx, f)).ravel() for f in values_c if f != "qM"}
-    values_x["qM"] = np.asarray(mjx.full_m(mx, dx)).ravel()
     rtol = STAGE_RTOL[precision]
     diffs = []
     for stage, fields in STAGES:
         for f in fields:
             if f == "contact":
-                err, obj = _contact_diff(m, _contacts_c(m, d), _contacts_mjx(dx))
+                err, obj = _contact_diff(m, _contacts_c(m, d), contacts_x)
                 diffs.append(StageDiff(stage, f, err, obj, err > 1e3 * rtol))
                 continue
             c, x = values_c[f], values_x[f]

@@ -69,6 +69,9 @@ def _init() -> None:
     with _LOCK:
         if _READY:
             return
+        why = available()  # sets Warp quiet before mujoco_warp is imported
+        if why:
+            raise RuntimeError(why)
         import warp as wp
 
         wp.config.quiet = True
@@ -151,6 +154,27 @@ def capacity(inputs: BatchedInputs) -> tuple[int, int]:
     return nconmax, njmax
 
 
+def forward(m: mujoco.MjModel, d: mujoco.MjData) -> mujoco.MjData:
+    """MuJoCo Warp's ``forward`` of one state (``d``'s qpos, qvel, act, ctrl, time, warm
+    start), read back into a new MjData (``mujoco_warp.get_data_into``): what the drill-down
+    compares with ``mj_forward``."""
+    _init()
+    import warp as wp
+
+    import mujoco_warp as mjw
+
+    probe = mujoco.MjData(m)
+    probe.qpos[:], probe.qvel[:] = d.qpos, d.qvel
+    mujoco.mj_forward(m, probe)
+    with _LOCK, wp.ScopedDevice("cpu"), _unsupported():
+        mw = mjw.put_model(m)
+        dw = mjw.put_data(m, d, nconmax=max(2 * probe.ncon + 8, 16), njmax=max(2 * probe.nefc + 8, 16))
+        mjw.forward(mw, dw)
+        out = mujoco.MjData(m)
+        mjw.get_data_into(out, m, dw)
+    return out
+
+
 class MJWarpEngine:
     """MuJoCo Warp on the CPU: same inputs and streamed trajectory pieces as MJX."""
 
@@ -158,9 +182,6 @@ class MJWarpEngine:
     precision = "float32"
 
     def __init__(self):
-        why = available()
-        if why:
-            raise RuntimeError(why)
         _init()
 
     def batch_cap(self) -> int:
@@ -175,17 +196,13 @@ class MJWarpEngine:
     def rollout(self, inputs: BatchedInputs) -> Trajectory:
         return concat(list(self.stream(inputs, inputs.steps)))
 
-    def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
-        """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
-
-        Preparation (``put_model``/``make_data``: :class:`UnsupportedError`) happens in this
-        call; the pieces are stepped as they are taken."""
+    def _setup(self, inputs: BatchedInputs):
+        """MJWarp model and data of the members, at their initial states (UnsupportedError)."""
         import warp as wp
 
         import mujoco_warp as mjw
 
-        B, T = inputs.batch, inputs.steps
-        m = inputs.models[0]
+        m, B = inputs.models[0], inputs.batch
         with _LOCK, wp.ScopedDevice("cpu"), _unsupported():
             mw = put_models(inputs.models)
             # the verdict sees what a truncated solver does: no print per step for that; capacity
@@ -194,36 +211,80 @@ class MJWarpEngine:
                 ~int(mjw.OverflowType.LS_ITERATIONS)
             nconmax, njmax = capacity(inputs)
             d = mjw.make_data(m, nworld=B, nconmax=nconmax, njmax=njmax)
-            d.qpos.assign(np.asarray(inputs.qpos, np.float32))
-            d.qvel.assign(np.asarray(inputs.qvel, np.float32))
-            if m.na:
-                d.act.assign(np.asarray(inputs.act, np.float32))
+            _set_state(d, m, inputs.qpos, inputs.qvel, inputs.act, np.zeros(B))
+        return mw, d
+
+    @staticmethod
+    def _step(mw, d, m: mujoco.MjModel, ctrl: np.ndarray, t: int, rec: dict[str, list]) -> None:
+        """One step of every world with ``ctrl`` (B, nu); appends the records after it."""
+        import mujoco_warp as mjw
+
+        if m.nu:
+            d.ctrl.assign(ctrl)
+        mjw.step(mw, d)
+        for f in ("qpos", "qvel", "act", "sensordata", "time"):
+            rec[f].append(getattr(d, f).numpy().copy())
+        n = int(d.nacon.numpy()[0])
+        if n >= d.naconmax or int(d.nefc.numpy().max(initial=0)) >= d.njmax:
+            raise RuntimeError(f"MJWarp ran out of contact or constraint rows at step {t} (naconmax "
+                               f"{d.naconmax}, njmax {d.njmax} per world): its results there are not the model's")
+        rec["ncon"].append(np.bincount(d.contact.worldid.numpy()[:n], minlength=d.nworld)[:d.nworld])
+
+    @staticmethod
+    def _trajectory(rec: dict[str, list], m: mujoco.MjModel, B: int, start: int) -> Trajectory:
+        k = len(rec["qpos"])
+        out = {f: np.stack(v, axis=1).astype(np.float64) for f, v in rec.items() if f != "ncon"}
+        out["act"] = out["act"].reshape(B, k, m.na)
+        out["sensordata"] = out["sensordata"].reshape(B, k, m.nsensordata)
+        nonfinite = ~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1)
+        return Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"], sensordata=out["sensordata"],
+                          time=out["time"], ncon=np.stack(rec["ncon"], axis=1).astype(np.int64),
+                          energy=np.zeros((B, k, 0)), diverged_at=_shifted(_first_true(nonfinite), start))
+
+    def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
+        """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
+
+        Preparation (``put_model``/``make_data``: :class:`UnsupportedError`) happens in this
+        call; the pieces are stepped as they are taken."""
+        import warp as wp
+
+        B, T, m = inputs.batch, inputs.steps, inputs.models[0]
+        mw, d = self._setup(inputs)
         ctrl = np.asarray(inputs.ctrl, np.float32)
 
         def pieces() -> Iterator[Trajectory]:
             for start in range(0, T, chunk):
-                k = min(chunk, T - start)
-                rec = {f: [] for f in ("qpos", "qvel", "act", "sensordata", "time", "ncon")}
+                rec: dict[str, list] = {f: [] for f in ("qpos", "qvel", "act", "sensordata", "time", "ncon")}
                 with _LOCK, wp.ScopedDevice("cpu"), _unsupported():
-                    for t in range(start, start + k):
-                        if m.nu:
-                            d.ctrl.assign(ctrl[:, t])
-                        mjw.step(mw, d)
-                        for f in ("qpos", "qvel", "act", "sensordata", "time"):
-                            rec[f].append(getattr(d, f).numpy().copy())
-                        n = int(d.nacon.numpy()[0])
-                        if n >= d.naconmax or int(d.nefc.numpy().max(initial=0)) >= d.njmax:
-                            raise RuntimeError(f"MJWarp ran out of contact or constraint rows at step {t} "
-                                               f"(nconmax {nconmax}, njmax {njmax} per world): its results "
-                                               "there are not the model's")
-                        worlds = d.contact.worldid.numpy()[:n]
-                        rec["ncon"].append(np.bincount(worlds, minlength=B)[:B])
-                out = {f: np.stack(v, axis=1).astype(np.float64) for f, v in rec.items() if f != "ncon"}
-                out["act"] = out["act"].reshape(B, k, m.na)
-                out["sensordata"] = out["sensordata"].reshape(B, k, m.nsensordata)
-                nonfinite = ~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1)
-                yield Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"], sensordata=out["sensordata"],
-                                 time=out["time"], ncon=np.stack(rec["ncon"], axis=1).astype(np.int64),
-                                 energy=np.zeros((B, k, 0)), diverged_at=_shifted(_first_true(nonfinite), start))
+                    for t in range(start, min(start + chunk, T)):
+                        self._step(mw, d, m, ctrl[:, t], t, rec)
+                yield self._trajectory(rec, m, B, start)
 
         return pieces()
+
+    def resync(self, inputs: BatchedInputs, reference: Trajectory, every: int = 1) -> Trajectory:
+        """MJWarp re-synchronised to ``reference`` (C) every ``every`` steps, as
+        :meth:`mjxdiff.engines.MJXEngine.resync`: record t is MJWarp's state after step t when
+        restarted from the reference state after step ``every * floor(t / every) - 1``."""
+        import warp as wp
+
+        B, T, m = inputs.batch, inputs.steps, inputs.models[0]
+        mw, d = self._setup(inputs)
+        ctrl = np.asarray(inputs.ctrl, np.float32)
+        rec: dict[str, list] = {f: [] for f in ("qpos", "qvel", "act", "sensordata", "time", "ncon")}
+        with _LOCK, wp.ScopedDevice("cpu"), _unsupported():
+            for t in range(T):
+                if t % every == 0 and t > 0:
+                    k = t - 1
+                    _set_state(d, m, reference.qpos[:, k], reference.qvel[:, k], reference.act[:, k],
+                               reference.time[:, k])
+                self._step(mw, d, m, ctrl[:, t], t, rec)
+        return self._trajectory(rec, m, B, 0)
+
+
+def _set_state(d, m: mujoco.MjModel, qpos, qvel, act, time) -> None:
+    d.qpos.assign(np.asarray(qpos, np.float32))
+    d.qvel.assign(np.asarray(qvel, np.float32))
+    if m.na:
+        d.act.assign(np.asarray(act, np.float32))
+    d.time.assign(np.asarray(time, np.float32))

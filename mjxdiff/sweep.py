@@ -78,8 +78,8 @@ class SweepConfig:
       impl: the implementation judged against C: ``mjx`` or ``warp`` (MuJoCo Warp on the
         CPU, :mod:`mjxdiff.mjwarp`; float32, so ``precision`` becomes ``float32``: tolerance
         floors, the perturbation of C's rerun and the metrics are float32's; no host-interface
-        check; the drill-down and the local error are MJX's and left out, cause attribution by
-        ablations runs).
+        check; the drill-down compares MJWarp's forward stages with C's, the local error
+        restarts MJWarp from C's states, the cause attribution runs its ablations on MJWarp).
       reference: what ``impl`` is judged against: ``c``, or ``mjx`` (with ``impl='warp'``:
         MJWarp against MJX, in float32, still with C's own envelope and solver floor).
     """
@@ -583,11 +583,12 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     return dataclasses.replace(result, info=info)
 
 
-def _drill(result: ScenarioResult, inputs: BatchedInputs, traj_c: Trajectory, precision: str) -> diagnose.DrillDown:
+def _drill(result: ScenarioResult, inputs: BatchedInputs, traj_c: Trajectory, precision: str,
+           impl: str = "mjx") -> diagnose.DrillDown:
     """The stage drill-down at the state before the first divergent step."""
     member, step = result.first_divergence["member"], result.first_divergence["step"]
     return diagnose.drill_down(inputs.models[member], *diagnose.state_before(inputs, traj_c, member, step),
-                               precision=precision, member=member, step=step)
+                               precision=precision, member=member, step=step, impl=impl)
 
 
 def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
@@ -606,18 +607,14 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
     traj_c = drill = None
     try:
         traj_c = c_engine.rollout(inputs)
-        if isinstance(mjx_engine, MJXEngine):
-            drill = _drill(result, inputs, traj_c, config.precision)
-            check = dict(first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
-                         margin=SOLVER_MARGIN,
-                         status=f"not needed: the divergence starts in the {drill.first_stage} stage")
-            # None: every stage of one forward agrees, so the difference is in what a step does with
-            # them, and under RK4 a step solves the constraints four times, from states the drill-down
-            # does not see (control-suite cartpole: 1.9e-6 at step 175, gone with a converged solver)
-            if drill.first_stage not in ("constraint", "acceleration", None):
-                return result, traj_c, drill, check
-        else:  # no stage drill-down for this engine: the solver floor is always worth a look
-            check = dict(margin=SOLVER_MARGIN)
+        drill = _drill(result, inputs, traj_c, config.precision, mjx_engine.name)
+        check = dict(first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
+                     margin=SOLVER_MARGIN, status=f"not needed: the divergence starts in the {drill.first_stage} stage")
+        # None: every stage of one forward agrees, so the difference is in what a step does with
+        # them, and under RK4 a step solves the constraints four times, from states the drill-down
+        # does not see (control-suite cartpole: 1.9e-6 at step 175, gone with a converged solver)
+        if drill.first_stage not in ("constraint", "acceleration", None):
+            return result, traj_c, drill, check
         second, _ = _verdict(result.name, m, inputs, tol, config, mjx_engine, c_engine, clock, solver=True)
     except Exception as e:  # noqa: BLE001 - the verdict stands
         return result, traj_c, drill, dict(status=f"could not run: {_one_line(e)}")
@@ -626,10 +623,8 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
     if second.status != "pass":
         return result, traj_c, drill, check
     held = [f.field for f in second.fields if f.floor == "solver"]
-    where = (f"starts in the {drill.first_stage} stage ({drill.first_field}, {drill.object})"
-             if drill is not None and drill.first_stage else
-             "starts where every forward stage agrees (in what the step's constraint solves do)" if drill is not None
-             else "(no stage drill-down for this engine)")
+    where = (f"starts in the {drill.first_stage} stage ({drill.first_field}, {drill.object})" if drill.first_stage
+             else "starts where every forward stage agrees (in what the step's constraint solves do)")
     message = (f"{second.message}; within C's own solver freedom: the divergence of {first['field']} at step "
                f"{first['step']} {where} and stays within {SOLVER_MARGIN:g}x C's divergence from its converged self"
                + (f" (solver floor bounds {', '.join(held)})" if held else ""))
@@ -660,11 +655,9 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
     if traj_c is None:  # whole, for the failing scenario only
         traj_c = attempt("C's full rerun", lambda: c_engine.rollout(inputs))
     local = None
-    if not isinstance(mjx_engine, MJXEngine):
-        notes.append(f"the drill-down and the local error compare MJX's stages; not run for {mjx_engine.name}")
-    elif traj_c is not None:
+    if traj_c is not None:
         if drill is None:
-            drill = attempt("drill-down", lambda: _drill(result, inputs, traj_c, config.precision))
+            drill = attempt("drill-down", lambda: _drill(result, inputs, traj_c, config.precision, mjx_engine.name))
         local = attempt("local error", lambda: diagnose.local_error(
             inputs, traj_c, m, rangefinder_mask(m), 1, mjx_engine))
     if local is not None:

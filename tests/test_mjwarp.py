@@ -1,7 +1,8 @@
 """MuJoCo Warp (mjxdiff.mjwarp) on Warp's CPU device, judged against C: unmodified MJWarp passes a
 pendulum, a cartpole and primitives resting on a plane; a 2% actuator gain slip put into
-MJWarp's model is caught, field and step named; without the extra, --impl warp is one line and
-exit 2. Kernels compile once (about 20 s here) into the test cache's warp/ directory."""
+MJWarp's model is caught, field and step named, and diagnosed on MJWarp (drill-down, local
+error); --impl both gives three pairs; without the extra, --impl warp is one line and exit 2.
+Kernels compile once (about 20 s here) into the test cache's warp/ directory."""
 
 import sys
 
@@ -54,6 +55,10 @@ def test_a_gain_slip_in_mjwarp_is_caught_with_field_and_step(monkeypatch):
     first = result.first_divergence
     # float32 floors (qpos 1e-3): the slip crosses them within the quick horizon (step 27 here)
     assert first["field"] in ("qpos", "qvel") and 0 <= first["step"] < 50 and "hinge" in first["object"], first
+    # diagnosed on MJWarp itself: its forward's stages against mj_forward, and restarted from C's states
+    drill = result.diagnosis["drill_down"]
+    assert (drill["first_stage"], drill["first_field"]) == ("actuation", "actuator_force"), drill
+    assert result.diagnosis["local_error"]["qvel"] > 1e-6
 
 
 def test_both_gives_one_verdict_per_pair_and_the_pair_without_c_sees_the_slip(monkeypatch, capsys):
