@@ -1,0 +1,339 @@
+"""Derivative consistency: are MJX's one-step Jacobians the ones MuJoCo C's dynamics imply?
+
+At states sampled from a scenario (initial states and states along C rollouts), the transition
+Jacobians of one step, A = d x' / d x and B = d x' / d u with the state x = (qpos in the
+tangent space, qvel, act) as MuJoCo's ``mjd_transitionFD`` defines it, are computed
+
+* in MJX by forward-mode autodiff (``jax.jacfwd``) of one ``mjx.step`` in float64, free and
+  ball joints perturbed and differenced in the tangent space;
+* in C by centred finite differences (``mujoco.mjd_transitionFD``) at two step sizes, ``EPS``
+  and ``EPS / 10``.
+
+**Floor.** Finite differences have their own error. Per entry, the floor is
+``3 x |A(EPS) - A(EPS/10)|`` (the truncation and solver-noise part, measured) plus roundoff,
+``1e-15 x (1 + |x'|) / (EPS/10)``, plus ``1e-9 x (1 + |A|)``; an entry fails when
+``|A_mjx - A_c(EPS/10)|`` exceeds it. **Non-smooth states**: where the constraint set (which
+contacts and limits are active, and each row's state) differs anywhere in the FD stencil, the
+dynamics are not differentiable there; such states are reported as ``non-smooth`` and not
+judged. Models with constraints are compared with a converged solver on both sides (a solver
+stopped after a few iterations is differentiated as an iteration, not as the solution).
+
+**Localise.** The worst entry is named (output and input component with their joints or
+actuators, the state) and, recomputed with constraints disabled on both sides, attributed to
+the ``smooth dynamics`` (the disagreement stays) or the ``constraint`` part (it goes).
+Sensor Jacobians (C, D) are not compared yet.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from mjxdiff.noise import converge_solver, has_constraints
+
+__all__ = ["EPS", "SMOOTH", "StateResult", "sample_states", "mjx_jacobians", "c_jacobians", "floor", "smooth_at", "judge_state",
+           "check_scenario", "format_text"]
+
+#: The larger finite-difference step; C is also differenced at EPS / 10.
+EPS = 1e-6
+#: Bundled scenarios without contacts: every sampled state is smooth (``grad``'s default).
+SMOOTH = ("pendulum", "double_pendulum", "cartpole", "actuators", "gravcomp_arm")
+
+
+@dataclasses.dataclass(frozen=True)
+class StateResult:
+    """The verdict at one state: ``pass``, ``fail`` or ``non-smooth``; for a failure the worst
+    entry (matrix ``A`` or ``B``, row, column, named), its MJX and C values, error / floor, and
+    where it sits (``smooth dynamics`` or ``constraint``)."""
+
+    index: int
+    member: int
+    step: int
+    status: str
+    ratio: float = 0.0
+    worst: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------
+# the state and its tangent space
+
+
+def _joint_slices(m: mujoco.MjModel) -> list[tuple[int, int, int]]:
+    """(type, qpos address, dof address) of every joint."""
+    return [(int(m.jnt_type[j]), int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j])) for j in range(m.njnt)]
+
+
+def _quat_mul(a, b):
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return jnp.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+
+
+def _integrate(joints, qpos, dq):
+    """qpos moved by the tangent vector dq; exact to first order at dq = 0 (all that a Jacobian
+    at dq = 0 needs): a rotation by w is the quaternion normalise(q * (1, w / 2))."""
+    out = qpos
+    for jtype, qa, da in joints:
+        if jtype == mujoco.mjtJoint.mjJNT_FREE:
+            out = out.at[qa:qa + 3].add(dq[da:da + 3])
+            q = _quat_mul(qpos[qa + 3:qa + 7], jnp.concatenate([jnp.ones(1), dq[da + 3:da + 6] / 2]))
+            out = out.at[qa + 3:qa + 7].set(q / jnp.linalg.norm(q))
+        elif jtype == mujoco.mjtJoint.mjJNT_BALL:
+            q = _quat_mul(qpos[qa:qa + 4], jnp.concatenate([jnp.ones(1), dq[da:da + 3] / 2]))
+            out = out.at[qa:qa + 4].set(q / jnp.linalg.norm(q))
+        else:
+            out = out.at[qa].add(dq[da])
+    return out
+
+
+def _difference(joints, nv, qpos, ref):
+    """The tangent vector from ``ref`` to ``qpos``; exact to first order where they coincide:
+    2 x the vector part of ref^-1 * q, signed by its scalar part."""
+    out = jnp.zeros(nv, qpos.dtype)
+    for jtype, qa, da in joints:
+        if jtype in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL):
+            p = 3 if jtype == mujoco.mjtJoint.mjJNT_FREE else 0
+            if p:
+                out = out.at[da:da + 3].set(qpos[qa:qa + 3] - ref[qa:qa + 3])
+            r = ref[qa + p:qa + p + 4]
+            rel = _quat_mul(r * jnp.array([1.0, -1.0, -1.0, -1.0]), qpos[qa + p:qa + p + 4])
+            out = out.at[da + p:da + p + 3].set(2 * rel[1:] * jnp.sign(rel[0]))
+        else:
+            out = out.at[da].set(qpos[qa] - ref[qa])
+    return out
+
+
+# ----------------------------------------------------------------------------
+# Jacobians both ways
+
+
+@functools.lru_cache(maxsize=16)
+def _jacobian_fn(joints: tuple, nv: int, na: int, code: str):
+    """jit(jacfwd) of one mjx.step around a state, for models with these joints (the model
+    itself is an argument: one compile serves every member and state) and this MJX ``code``
+    (:func:`mjxdiff.export_cache.code_digest`: an edited or patched MJX is traced anew)."""
+    def step(mx, dx, x, u):
+        qpos = _integrate(joints, dx.qpos, x[:nv])
+        d1 = mjx.step(mx, dx.replace(qpos=qpos, qvel=dx.qvel + x[nv:2 * nv], act=dx.act + x[2 * nv:], ctrl=u))
+        return d1
+
+    def f(mx, dx, ref_qpos, x, u):
+        d1 = step(mx, dx, x, u)
+        return jnp.concatenate([_difference(joints, nv, d1.qpos, ref_qpos), d1.qvel, d1.act])
+
+    def jac(mx, dx, u):
+        n = 2 * nv + na
+        ref = jax.lax.stop_gradient(step(mx, dx, jnp.zeros(n, dx.qpos.dtype), u).qpos)
+        return jax.jacfwd(f, argnums=(3, 4))(mx, dx, ref, jnp.zeros(n, dx.qpos.dtype), u)
+
+    return jax.jit(jac)
+
+
+def _data(m: mujoco.MjModel, state: dict[str, np.ndarray]) -> mujoco.MjData:
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:], d.ctrl[:] = state["qpos"], state["qvel"], state["ctrl"]
+    if m.na:
+        d.act[:] = state["act"]
+    return d
+
+
+def mjx_jacobians(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(A, B) of one ``mjx.step`` at ``state`` (qpos, qvel, act, ctrl), by ``jax.jacfwd`` in
+    float64 (run under ``jax.enable_x64``). ``code``: the MJX code digest when the caller has it
+    (:func:`mjxdiff.export_cache.code_digest`, computed here otherwise: about 0.4 s)."""
+    from mjxdiff import export_cache
+
+    d = _data(m, state)
+    fn = _jacobian_fn(tuple(_joint_slices(m)), m.nv, m.na, code or export_cache.code_digest())
+    A, B = fn(mjx.put_model(m), mjx.put_data(m, d), jnp.asarray(d.ctrl))
+    return np.asarray(A), np.asarray(B)
+
+
+def c_jacobians(m: mujoco.MjModel, state: dict[str, np.ndarray], eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """(A, B) of one ``mj_step`` at ``state`` by centred finite differences."""
+    d = _data(m, state)
+    n = 2 * m.nv + m.na
+    A, B = np.zeros((n, n)), np.zeros((n, m.nu))
+    mujoco.mjd_transitionFD(m, d, eps, True, A, B, None, None)
+    return A, B
+
+
+def floor(m: mujoco.MjModel, state: dict[str, np.ndarray], fine: np.ndarray, coarse: np.ndarray) -> np.ndarray:
+    """Per-entry error floor of the finite-difference Jacobian ``fine`` (at EPS / 10) given the
+    same at EPS: 3 x |fine - coarse| + roundoff + 1e-9 x (1 + |fine|) (see the module docstring)."""
+    d = _data(m, state)
+    mujoco.mj_step(m, d)
+    size = 1 + float(np.max(np.abs(np.concatenate([d.qpos, d.qvel, d.act]))))
+    return 3 * np.abs(fine - coarse) + 1e-15 * size / (EPS / 10) + 1e-9 * (1 + np.abs(fine))
+
+
+def _signature(m: mujoco.MjModel, d: mujoco.MjData) -> tuple:
+    mujoco.mj_forward(m, d)
+    return (tuple(d.efc_type[:d.nefc]), tuple(d.efc_id[:d.nefc]), tuple(d.efc_state[:d.nefc]))
+
+
+def smooth_at(m: mujoco.MjModel, state: dict[str, np.ndarray], eps: float = EPS) -> bool:
+    """Whether the constraint set (active rows, their ids and states) is the same at every point
+    of the finite-difference stencil: in qpos (tangent), qvel, act and ctrl, +-eps each."""
+    d = _data(m, state)
+    center = _signature(m, d)
+    for field, size in (("qpos", m.nv), ("qvel", m.nv), ("act", m.na), ("ctrl", m.nu)):
+        for i in range(size):
+            for sign in (-1.0, 1.0):
+                p = _data(m, state)
+                if field == "qpos":
+                    dq = np.zeros(m.nv)
+                    dq[i] = sign * eps
+                    mujoco.mj_integratePos(m, p.qpos, dq, 1.0)
+                else:
+                    getattr(p, field)[i] += sign * eps
+                if _signature(m, p) != center:
+                    return False
+    return True
+
+
+# ----------------------------------------------------------------------------
+# names and the verdict
+
+
+def _component(m: mujoco.MjModel, i: int, inputs: bool, control: bool = False) -> str:
+    """Name of row/column ``i`` of A (state) or of a column of B (``control``)."""
+    def joint_of(dof):
+        j = int(m.dof_jntid[dof])
+        return mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) or f"#{j}"
+    if control:
+        return f"ctrl of actuator '{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, i) or f'#{i}'}'"
+    if i < m.nv:
+        return f"qpos of joint '{joint_of(i)}'"
+    if i < 2 * m.nv:
+        return f"qvel of joint '{joint_of(i - m.nv)}'"
+    a = i - 2 * m.nv
+    return f"act of actuator '{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, int(m.actuator_actadr.tolist().index(a)) if a in m.actuator_actadr else a) or a}'"
+
+
+def _compare(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | None) -> tuple[float, dict[str, Any]]:
+    """Worst |MJX - C| / floor over A and B at one state, and that entry."""
+    A_x, B_x = mjx_jacobians(m, state, code)
+    A_f, B_f = c_jacobians(m, state, EPS / 10)
+    A_c, B_c = c_jacobians(m, state, EPS)
+    worst: tuple[float, dict[str, Any]] = (0.0, {})
+    for name, x, fine, coarse in (("A", A_x, A_f, A_c), ("B", B_x, B_f, B_c)):
+        if x.size == 0:
+            continue
+        ratio = np.abs(x - fine) / floor(m, state, fine, coarse)
+        ratio = np.where(np.isnan(ratio), np.inf, ratio)
+        i, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+        if ratio[i, j] > worst[0] or not worst[1]:
+            worst = (float(ratio[i, j]), dict(matrix=name, row=int(i), column=int(j), output=_component(m, i, False),
+                                              input=_component(m, j, True, control=name == "B"),
+                                              mjx=float(x[i, j]), c=float(fine[i, j]),
+                                              c_coarse=float(coarse[i, j])))
+    return worst
+
+
+def judge_state(m: mujoco.MjModel, state: dict[str, np.ndarray], index: int = 0, member: int = 0,
+                step: int = 0, code: str | None = None) -> StateResult:
+    """The verdict at one state (see the module docstring); ``code`` as for :func:`mjx_jacobians`."""
+    if has_constraints(m) and not smooth_at(m, state):
+        return StateResult(index, member, step, "non-smooth")
+    ratio, worst = _compare(m, state, code)
+    if not ratio > 1:
+        return StateResult(index, member, step, "pass", ratio, worst)
+    part = "smooth dynamics"
+    if has_constraints(m):
+        free = copy.copy(m)
+        free.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+        part = "constraint" if _compare(free, state, code)[0] <= 1 else "smooth dynamics"
+    return StateResult(index, member, step, "fail", ratio, dict(worst, part=part))
+
+
+def sample_states(scenario, m: mujoco.MjModel, count: int, seed: int = 0, steps: int | None = None
+                  ) -> list[tuple[mujoco.MjModel, int, int, dict[str, np.ndarray]]]:
+    """``count`` states: (member model, member, step, state); members' initial states and states
+    along their C rollouts, evenly spaced over the horizon."""
+    from mjxdiff.engines import CEngine
+    from mjxdiff.inputs import make_inputs
+
+    members = max(1, min(count, 4))
+    T = steps or min(scenario.steps, 200)
+    inputs = make_inputs(scenario, m, seed, members, T)
+    traj = CEngine().rollout(inputs)
+    per = -(-count // members)
+    out = []
+    for k in range(per):
+        step = int(round(k * (T - 1) / max(per - 1, 1))) if per > 1 else 0
+        for b in range(members):
+            if len(out) == count:
+                break
+            if step == 0:
+                q, v, a = inputs.qpos[b], inputs.qvel[b], inputs.act[b]
+            else:
+                q, v, a = traj.qpos[b, step - 1], traj.qvel[b, step - 1], traj.act[b, step - 1]
+            state = dict(qpos=np.array(q), qvel=np.array(v), act=np.array(a), ctrl=np.array(inputs.ctrl[b, step]))
+            out.append((inputs.models[b], b, step, state))
+    return out
+
+
+def check_scenario(scenario, count: int = 8, seed: int = 0) -> dict[str, Any]:
+    """Every sampled state of a scenario judged; models with constraints get a converged solver
+    on both sides. Returns a JSON-ready dict: status (``pass``/``fail``/``unsupported``/
+    ``error``), message, smooth and non-smooth counts, the worst ratio and each state's result."""
+    import time
+
+    from mjxdiff.scenario import load_model
+
+    t0 = time.perf_counter()
+    try:
+        m = load_model(scenario)
+        states = sample_states(scenario, m, count, seed)
+    except Exception as e:  # noqa: BLE001 - one scenario's trouble is its own
+        return dict(name=scenario.name, status="error", message=" ".join(f"{type(e).__name__}: {e}".split()))
+    from mjxdiff import export_cache
+
+    export_cache.fresh_digest()  # JAX's own caches forget MJX code that has changed since
+    code = export_cache.code_digest()
+    results = []
+    try:
+        with jax.enable_x64(True):
+            for i, (mi, member, step, state) in enumerate(states):
+                if has_constraints(mi):
+                    mi = copy.copy(mi)
+                    converge_solver(mi)
+                results.append(judge_state(mi, state, i, member, step, code))
+    except NotImplementedError as e:
+        return dict(name=scenario.name, status="unsupported", message=f"MJX does not support: {e}")
+    judged = [r for r in results if r.status != "non-smooth"]
+    failed = [r for r in judged if r.status == "fail"]
+    worst = max(judged, key=lambda r: r.ratio, default=None)
+    non_smooth = len(results) - len(judged)
+    if failed:
+        w = max(failed, key=lambda r: r.ratio)
+        x = w.worst
+        message = (f"{len(failed)} of {len(judged)} smooth states fail; worst at state {w.index} (member {w.member}, "
+                   f"step {w.step}): d {x['output']} / d {x['input']} ({x['matrix']}[{x['row']}, {x['column']}]) "
+                   f"MJX {x['mjx']:.6g}, C {x['c']:.6g}, {w.ratio:.3g}x its floor; in the {x['part']}")
+        status = "fail"
+    else:
+        message = (f"{len(judged)} smooth states agree (worst {worst.ratio:.2g}x the FD floor)" if worst else
+                   "no smooth state to judge")
+        status = "pass"
+    if non_smooth:
+        message += f"; {non_smooth} of {len(results)} states non-smooth (constraint set changes in the stencil)"
+    return dict(name=scenario.name, status=status, message=message, states=len(results), smooth=len(judged),
+                non_smooth=non_smooth, worst_ratio=worst.ratio if worst else None,
+                seconds=time.perf_counter() - t0, results=[dataclasses.asdict(r) for r in results])
+
+
+def format_text(rows: list[dict[str, Any]]) -> str:
+    symbol = {"pass": "PASS", "fail": "FAIL", "unsupported": "UNSUP", "error": "ERROR"}
+    return "\n".join(f"{symbol[r['status']]:<6} {r['name']:<28} {r['message']}" for r in rows)

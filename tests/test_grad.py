@@ -1,0 +1,73 @@
+"""grad: MJX's one-step Jacobians (jax.jacfwd) against C's finite differences. Smooth models agree
+at every sampled state; a derivative-only bug (stop_gradient on the actuator force: forward values
+bit-identical, the sweep passes it) fails with its block named; a forward bug fails here too;
+states whose constraint set changes inside the stencil are non-smooth, not failures."""
+
+import json
+
+import jax
+import mujoco
+import numpy as np
+import pytest
+from mujoco.mjx._src import forward as mjx_forward
+
+from mjxdiff import grad
+from mjxdiff.cli import main
+from mjxdiff.scenario import load_scenario
+from mjxdiff.sweep import SweepConfig, run_scenario
+
+
+@pytest.mark.parametrize("name", ["pendulum", "double_pendulum", "cartpole", "actuators"])
+def test_smooth_models_agree_at_every_sampled_state(name):
+    r = grad.check_scenario(load_scenario(name), count=4)
+    assert r["status"] == "pass" and r["smooth"] == 4 and r["non_smooth"] == 0, r["message"]
+    assert all(s["status"] == "pass" for s in r["results"])
+
+
+def _stop_actuator_gradient(monkeypatch):
+    orig = mjx_forward.fwd_actuation
+
+    def patched(m, d):
+        d = orig(m, d)
+        return d.replace(qfrc_actuator=jax.lax.stop_gradient(d.qfrc_actuator))
+    monkeypatch.setattr(mjx_forward, "fwd_actuation", patched)
+
+
+def test_a_derivative_only_bug_passes_the_sweep_and_fails_grad_with_its_block(monkeypatch, fresh_mjx):
+    _stop_actuator_gradient(monkeypatch)
+    scenario = load_scenario("pendulum")
+    sweep = run_scenario(scenario, SweepConfig(quick=True, transfer=False, compile_workers=0))
+    assert sweep.status == "pass", sweep.message  # forward values are bit-identical
+    r = grad.check_scenario(scenario, count=2)
+    assert r["status"] == "fail", r["message"]
+    worst = max(r["results"], key=lambda s: s["ratio"])["worst"]
+    assert worst["matrix"] == "B" and worst["input"] == "ctrl of actuator 'torque'" and worst["mjx"] == 0.0
+    assert worst["output"] == "qvel of joint 'hinge'" and worst["part"] == "smooth dynamics"
+
+
+def test_a_forward_bug_fails_grad_too(monkeypatch):
+    orig = mjx_forward.fwd_actuation
+    monkeypatch.setattr(mjx_forward, "fwd_actuation",
+                        lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
+    r = grad.check_scenario(load_scenario("pendulum"), count=2)
+    assert r["status"] == "fail" and "d qvel of joint 'hinge' / d ctrl of actuator 'torque'" in r["message"]
+
+
+def test_a_contact_switching_inside_the_stencil_is_non_smooth():
+    m = mujoco.MjModel.from_xml_string("""<mujoco><worldbody><geom type="plane" size="1 1 .1"/>
+        <body pos="0 0 0.1"><freejoint/><geom size="0.1"/></body></worldbody></mujoco>""")
+    touching = dict(qpos=m.qpos0.copy(), qvel=np.zeros(m.nv), act=np.zeros(0), ctrl=np.zeros(0))
+    assert not grad.smooth_at(m, touching)  # dist 0: a contact appears or goes at +-eps in z
+    resting = dict(touching, qpos=np.r_[0, 0, 0.099, m.qpos0[3:]])
+    assert grad.smooth_at(m, resting)
+    assert grad.judge_state(m, touching).status == "non-smooth"
+
+
+def test_the_cli_reports_and_rejects_bad_input(tmp_path, capsys):
+    assert main(["grad", "pendulum", "--states", "2", "--out", str(tmp_path)]) == 0
+    doc = json.loads((tmp_path / "grad-report.json").read_text())
+    assert doc["kind"] == "grad" and doc["scenarios"][0]["status"] == "pass" and doc["scenarios"][0]["smooth"] == 2
+    assert "PASS" in capsys.readouterr().out
+    assert main(["grad", "no_such_scenario"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no_such_scenario" in err and "\n" not in err
