@@ -15,6 +15,7 @@ __version__ = "0.1.0"
 _PUBLIC = {
     "BatchedInputs": "mjxdiff.inputs",
     "CEngine": "mjxdiff.engines",
+    "MJWarpEngine": "mjxdiff.mjwarp",  # needs the warp extra
     "MJXEngine": "mjxdiff.engines",
     "Scenario": "mjxdiff.scenario",
     "ScenarioError": "mjxdiff.scenario",
@@ -24,7 +25,11 @@ _PUBLIC = {
     "Trajectory": "mjxdiff.engines",
     "UnsupportedError": "mjxdiff.engines",
     "bundled_scenarios": "mjxdiff.scenario",
+    "baseline": None,  # the module: what changed since a trusted run
     "closedloop": None,  # the module: a policy in closed loop on MJX and on C
+    "grad": None,  # the module: MJX's one-step Jacobians against C's finite differences
+    "history": None,  # the module: the Parquet run history and its anomalies
+    "known": None,  # the module: the catalogue of known MJX-vs-C approximations
     "transfer": None,  # the module: MJX's host interface checked against C
     "configure_jax": "mjxdiff.engines",
     "judge": "mjxdiff.verdict",
