@@ -124,6 +124,12 @@ def _const(value: Any) -> str:
     return repr((type(value).__name__, value))
 
 
+#: Packages whose objects MJX's warp backend (``mujoco.mjx.warp``) holds and whose attributes
+#: change at run time (Warp's devices, kernels and modules once Warp initialises): fed by type.
+#: The JAX implementation mjxdiff traces never runs them.
+_FOREIGN_STATE = ("warp", "mujoco_warp")
+
+
 class _Digest:
     """One digest of a set of values, functions followed into their closures and globals.
 
@@ -147,6 +153,10 @@ class _Digest:
             return
         if _UNTRACED.get(id(value)) is value:
             h.update(b"untraced")
+            return
+        module = getattr(type(value), "__module__", None)
+        if _under(module, _FOREIGN_STATE):  # its run-time state is not code (warp's kernels after init)
+            h.update(f"foreign {module}.{type(value).__qualname__}".encode())
             return
         if id(value) in self.seen:
             h.update(b"ref %d" % self.seen[id(value)])
