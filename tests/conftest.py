@@ -63,7 +63,7 @@ def two_sweeps(tmp_path_factory):
     engines.clear_compiled()
     try:
         code = main(["sweep", *REPORT_SCENARIOS, *common, "--out", str(root / "bugged"), "--baseline",
-                     str(root / "clean"), "--plots", "failing"])
+                     str(root / "clean"), "--plots", "failing", "--diagnose", "basic"])
     finally:
         mp.undo()
         engines.clear_compiled()

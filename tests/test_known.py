@@ -16,7 +16,8 @@ def box(repo_root):
 
 
 def test_a_tilted_box_on_a_plane_is_labelled_known(box, tmp_path, capsys):
-    assert main(["sweep", box, "--batch", "4", "--steps", "300", "--no-history", "--out", str(tmp_path)]) == 1
+    assert main(["sweep", box, "--batch", "4", "--steps", "300", "--no-history", "--diagnose", "basic",
+                 "--out", str(tmp_path)]) == 1
     out = capsys.readouterr().out
     assert "[known: plane-box-corners]" in out, out
     doc = json.loads((tmp_path / "report.json").read_text())
@@ -29,8 +30,8 @@ def test_an_accepted_entry_of_the_user_passes_fail_on_new(box, tmp_path, capsys)
     (tmp_path / "ours.toml").write_text('[[known]]\nid = "our-box"\ntitle = "our tilted box"\n'
                                         'evidence = "measured"\nscenario = "tilted_box.*"\nstage = "collision"\n'
                                         'accepted = true\n')
-    argv = ["sweep", box, "--batch", "4", "--steps", "300", "--no-history", "--baseline", str(tmp_path / "empty.json"),
-            "--fail-on", "new"]
+    argv = ["sweep", box, "--batch", "4", "--steps", "300", "--no-history", "--diagnose", "basic",
+            "--baseline", str(tmp_path / "empty.json"), "--fail-on", "new"]
     assert main(argv) == 1  # a new failure, explained by the catalogue but not accepted
     assert main([*argv, "--known", str(tmp_path / "ours.toml")]) == 0
     assert "[known: our-box]" in capsys.readouterr().out
