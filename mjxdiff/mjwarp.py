@@ -18,7 +18,6 @@ Requires the ``warp`` extra: ``pip install 'mjxdiff[warp]'`` (``mujoco-warp`` an
 
 from __future__ import annotations
 
-import contextlib
 import os
 import threading
 from pathlib import Path
@@ -27,7 +26,7 @@ from typing import Iterator
 import mujoco
 import numpy as np
 
-from mjxdiff.engines import Trajectory, UnsupportedError, _first_true, _shifted, concat
+from mjxdiff.engines import Trajectory, _first_true, _shifted, _unsupported, concat
 from mjxdiff.inputs import BatchedInputs
 
 __all__ = ["MJWarpEngine", "available", "INSTALL", "kernel_cache_dir"]
@@ -78,14 +77,6 @@ def _init() -> None:
         wp.config.kernel_cache_dir = str(kernel_cache_dir())
         wp.init()
         _READY = True
-
-
-@contextlib.contextmanager
-def _unsupported():
-    try:
-        yield
-    except NotImplementedError as e:
-        raise UnsupportedError(" ".join(str(e).split()) or type(e).__name__) from None
 
 
 def _batched_fields() -> dict[str, list[str]]:

@@ -39,7 +39,8 @@ def test_per_member_parameters_reach_mjwarp_s_worlds():
     assert np.abs(warp.qpos - c.qpos).max() < 1e-4
 
 
-def test_a_gain_slip_in_mjwarp_is_caught_with_field_and_step(monkeypatch):
+def _slip(monkeypatch):
+    """MJWarp's actuator gains 2% high: every model mujoco_warp.put_model makes gets them."""
     import warp as wp
 
     put = mjw.put_model
@@ -49,6 +50,10 @@ def test_a_gain_slip_in_mjwarp_is_caught_with_field_and_step(monkeypatch):
         mw.actuator_gainprm = wp.array(mw.actuator_gainprm.numpy() * 1.02, dtype=mw.actuator_gainprm.dtype)
         return mw
     monkeypatch.setattr(mjw, "put_model", slipped)
+
+
+def test_a_gain_slip_in_mjwarp_is_caught_with_field_and_step(monkeypatch):
+    _slip(monkeypatch)
     result = run_scenario(load_scenario("pendulum"), SweepConfig(impl="warp", quick=True, transfer=False,
                                                                  diagnose="basic", compile_workers=0))
     assert result.status == "fail", result.message
@@ -65,15 +70,7 @@ def test_both_gives_one_verdict_per_pair_and_the_pair_without_c_sees_the_slip(mo
     assert main(["sweep", "pendulum", "--impl", "both", "--quick", "--no-history", "--no-transfer"]) == 0
     lines = [line.split()[:2] for line in capsys.readouterr().out.splitlines() if line.startswith(("PASS", "FAIL"))]
     assert lines == [["PASS", "pendulum"], ["PASS", "pendulum@warp"], ["PASS", "pendulum@mjx-warp"]]
-    import warp as wp
-
-    put = mjw.put_model
-
-    def slipped(m, *args, **kwargs):
-        mw = put(m, *args, **kwargs)
-        mw.actuator_gainprm = wp.array(mw.actuator_gainprm.numpy() * 1.02, dtype=mw.actuator_gainprm.dtype)
-        return mw
-    monkeypatch.setattr(mjw, "put_model", slipped)
+    _slip(monkeypatch)
     pair = SweepConfig(impl="warp", reference="mjx", quick=True, transfer=False, diagnose="none", compile_workers=0)
     result = run_scenario(load_scenario("pendulum"), pair)
     assert result.status == "fail" and result.first_divergence["field"] in ("qpos", "qvel"), result.message
