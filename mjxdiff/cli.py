@@ -184,7 +184,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="progress lines on stderr (default: when stderr is a terminal)")
     rp = sub.add_parser("replay", help="re-run a saved reproducer of a failing scenario member",
                         description="Re-run a reproducer file (written under DIR/reproducers/ by "
-                                    "'sweep --out DIR' for each failing scenario) and print its diagnosis. "
+                                    "'sweep --out DIR' for each failing scenario, or by 'grad --out DIR' for a "
+                                    "state whose Jacobians disagree) and print its diagnosis. "
                                     "Exit 1 if it still diverges, 0 if it now passes, 2 if the file is bad.")
     rp.add_argument("file", metavar="FILE", help="reproducer .json")
     rp.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
@@ -268,11 +269,13 @@ def build_parser() -> argparse.ArgumentParser:
     gr = sub.add_parser("grad", help="compare MJX's one-step Jacobians (jax.jacfwd) with C's finite differences",
                         description="At states sampled from each scenario (initial states and states along C "
                                     "rollouts), compare the transition Jacobians of one step, A = dx'/dx and B = "
-                                    "dx'/du (x: qpos in the tangent space, qvel, act), from jax.jacfwd of mjx.step "
+                                    "dx'/du (x: qpos in the tangent space, qvel, act), and the sensors' C = ds/dx "
+                                    "and D = ds/du, from jax.jacfwd of mjx.step "
                                     "in float64 with mujoco.mjd_transitionFD (centred, at 1e-6 and 1e-7). Each entry "
                                     "is judged against the finite differences' own error floor (3x their change "
                                     "between the two steps, plus roundoff). States where the constraint set changes "
-                                    "inside the stencil are reported as non-smooth, not judged. Models with "
+                                    "inside the stencil are reported as non-smooth, not judged (a scenario with no smooth state "
+                                    "is NONSM: nothing judged). Models with "
                                     "constraints use a converged solver on both sides. A failure names the worst "
                                     "entry (d output / d input, joints and actuators) and whether it sits in the "
                                     "smooth dynamics or the constraint part. Exit 0 pass, 1 fail, 2 bad input.")
@@ -281,7 +284,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "double_pendulum, cartpole, actuators, gravcomp_arm)")
     gr.add_argument("--states", type=_positive, default=8, help="states sampled per scenario (default 8)")
     gr.add_argument("--seed", type=int, default=0, help="seed of the randomized members (default 0)")
-    gr.add_argument("--out", metavar="DIR", help="write DIR/grad-report.json")
+    gr.add_argument("--out", metavar="DIR", help="write DIR/grad-report.json and, per failing scenario, its worst "
+                                                 "state as DIR/reproducers/NAME-grad-stateI.json for 'mjxdiff replay'")
     gr.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     hi = sub.add_parser("history", help="query the run history sweeps append to (DuckDB over Parquet)",
                         description="Trends per scenario and field over the runs the sweeps appended (runs, "
@@ -469,10 +473,12 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from mjxdiff.sweep import SweepConfig, exit_code, run_inputs
 
     try:
-        rep = reproducer.load(args.file)  # checks everything replay reads below
+        rep = reproducer.load_any(args.file)  # checks everything replay reads below
     except ScenarioError as e:
         print(f"mjxdiff: error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2
+    if isinstance(rep, reproducer.GradReproducer):
+        return _replay_grad(rep, args.format)
     saved = {k: v for k, v in rep.config.items() if k in SweepConfig.__dataclass_fields__}
     config = SweepConfig(**{**saved, "reproducers": None})
     engines.configure_jax(config.precision, args.cache_dir)
@@ -491,6 +497,22 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         print("reproduced: same status, field, object and step as saved" if same else
               f"NOT reproduced: saved {rep.verdict['status']} {then}, now {doc['status']} {now}")
     return exit_code([result])
+
+
+def _replay_grad(rep, fmt: str) -> int:
+    from mjxdiff import engines, grad
+
+    engines.configure_jax("float64", None)
+    r, same = grad.replay(rep)
+    if fmt == "json":
+        print(json.dumps(dict(reproduced=same, saved=rep.verdict, replayed=dataclasses.asdict(r)), indent=2))
+    else:
+        print(f"replaying the Jacobians of {rep.scenario} at state {rep.index} (float64, saved with mujoco "
+              f"{rep.versions.get('mujoco')}, mjx {rep.versions.get('mujoco-mjx')})")
+        print(grad.format_state(r))
+        print("reproduced: same status and worst entry as saved" if same else
+              f"NOT reproduced: saved {json.dumps(rep.verdict)}")
+    return 1 if r.status == "fail" else 0
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -668,7 +690,8 @@ def _cmd_grad(args: argparse.Namespace) -> int:
     engines.configure_jax("float64", None)
     rows = []
     for scenario in scenarios:
-        rows.append(grad.check_scenario(scenario, args.states, args.seed))
+        rows.append(grad.check_scenario(scenario, args.states, args.seed,
+                                        Path(args.out) / "reproducers" if args.out else None))
         if args.format == "text":
             print(grad.format_text(rows[-1:]), flush=True)
     doc = dict(kind="grad", schema_version=report.SCHEMA_VERSION, versions=report.versions(), code=report.code(),

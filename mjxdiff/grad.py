@@ -1,7 +1,7 @@
 """Derivative consistency: are MJX's one-step Jacobians the ones MuJoCo C's dynamics imply?
 
 At states sampled from a scenario (initial states and states along C rollouts), the transition
-Jacobians of one step, A = d x' / d x and B = d x' / d u with the state x = (qpos in the
+Jacobians of one step, A = d x' / d x and B = d x' / d u (and for the sensors C and D) with the state x = (qpos in the
 tangent space, qvel, act) as MuJoCo's ``mjd_transitionFD`` defines it, are computed
 
 * in MJX by forward-mode autodiff (``jax.jacfwd``) of one ``mjx.step`` in float64, free and
@@ -21,7 +21,9 @@ stopped after a few iterations is differentiated as an iteration, not as the sol
 **Localise.** The worst entry is named (output and input component with their joints or
 actuators, the state) and, recomputed with constraints disabled on both sides, attributed to
 the ``smooth dynamics`` (the disagreement stays) or the ``constraint`` part (it goes).
-Sensor Jacobians (C, D) are not compared yet.
+The sensor Jacobians C = d sensordata / d x and D = d sensordata / d u (the sensors at the
+state, as ``mjd_transitionFD`` defines them) are judged the same way, each row's roundoff
+scaled by its sensor's largest component.
 """
 
 from __future__ import annotations
@@ -39,8 +41,8 @@ from mujoco import mjx
 
 from mjxdiff.noise import converge_solver, has_constraints
 
-__all__ = ["EPS", "SMOOTH", "StateResult", "sample_states", "mjx_jacobians", "c_jacobians", "floor", "smooth_at", "judge_state",
-           "check_scenario", "format_text"]
+__all__ = ["EPS", "SMOOTH", "MATRICES", "StateResult", "sample_states", "mjx_jacobians", "c_jacobians", "floor", "smooth_at", "judge_state",
+           "check_scenario", "replay", "format_state", "format_text"]
 
 #: The larger finite-difference step; C is also differenced at EPS / 10.
 EPS = 1e-6
@@ -127,8 +129,8 @@ def _jacobian_fn(joints: tuple, nv: int, na: int, code: str):
         return d1
 
     def f(mx, dx, ref_qpos, x, u):
-        d1 = step(mx, dx, x, u)
-        return jnp.concatenate([_difference(joints, nv, d1.qpos, ref_qpos), d1.qvel, d1.act])
+        d1 = step(mx, dx, x, u)  # its sensordata are the sensors at (x, u), as in mjd_transitionFD
+        return jnp.concatenate([_difference(joints, nv, d1.qpos, ref_qpos), d1.qvel, d1.act, d1.sensordata])
 
     def jac(mx, dx, u):
         n = 2 * nv + na
@@ -147,34 +149,55 @@ def _data(m: mujoco.MjModel, state: dict[str, np.ndarray]) -> mujoco.MjData:
 
 
 def mjx_jacobians(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | None = None
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """(A, B) of one ``mjx.step`` at ``state`` (qpos, qvel, act, ctrl), by ``jax.jacfwd`` in
-    float64 (run under ``jax.enable_x64``). ``code``: the MJX code digest when the caller has it
-    (:func:`mjxdiff.export_cache.code_digest`, computed here otherwise: about 0.4 s)."""
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(A, B, C, D) of one ``mjx.step`` at ``state`` (qpos, qvel, act, ctrl), by ``jax.jacfwd`` in
+    float64 (run under ``jax.enable_x64``): A (n, n) and B (n, nu) of the next state, C
+    (nsensordata, n) and D (nsensordata, nu) of the sensors at the state, n = 2 nv + na.
+    ``code``: the MJX code digest when the caller has it (:func:`mjxdiff.export_cache.code_digest`,
+    computed here otherwise: about 0.4 s)."""
     from mjxdiff import export_cache
 
     d = _data(m, state)
     fn = _jacobian_fn(tuple(_joint_slices(m)), m.nv, m.na, code or export_cache.code_digest())
-    A, B = fn(mjx.put_model(m), mjx.put_data(m, d), jnp.asarray(d.ctrl))
-    return np.asarray(A), np.asarray(B)
+    AC, BD = (np.asarray(j) for j in fn(mjx.put_model(m), mjx.put_data(m, d), jnp.asarray(d.ctrl)))
+    n = 2 * m.nv + m.na
+    return AC[:n], BD[:n], AC[n:], BD[n:]
 
 
-def c_jacobians(m: mujoco.MjModel, state: dict[str, np.ndarray], eps: float) -> tuple[np.ndarray, np.ndarray]:
-    """(A, B) of one ``mj_step`` at ``state`` by centred finite differences."""
+def c_jacobians(m: mujoco.MjModel, state: dict[str, np.ndarray], eps: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(A, B, C, D) of one ``mj_step`` at ``state`` by centred finite differences
+    (``mujoco.mjd_transitionFD``; shapes as :func:`mjx_jacobians`)."""
     d = _data(m, state)
     n = 2 * m.nv + m.na
     A, B = np.zeros((n, n)), np.zeros((n, m.nu))
-    mujoco.mjd_transitionFD(m, d, eps, True, A, B, None, None)
-    return A, B
+    C, D = np.zeros((m.nsensordata, n)), np.zeros((m.nsensordata, m.nu))
+    mujoco.mjd_transitionFD(m, d, eps, True, A, B, C if m.nsensordata else None, D if m.nsensordata else None)
+    return A, B, C, D
 
 
-def floor(m: mujoco.MjModel, state: dict[str, np.ndarray], fine: np.ndarray, coarse: np.ndarray) -> np.ndarray:
+def floor(m: mujoco.MjModel, state: dict[str, np.ndarray], fine: np.ndarray, coarse: np.ndarray,
+          sensors: bool = False) -> np.ndarray:
     """Per-entry error floor of the finite-difference Jacobian ``fine`` (at EPS / 10) given the
-    same at EPS: 3 x |fine - coarse| + roundoff + 1e-9 x (1 + |fine|) (see the module docstring)."""
+    same at EPS: 3 x |fine - coarse| + roundoff + 1e-9 x (1 + |fine|) (see the module docstring).
+    Roundoff scales with the largest output: the next state, or (``sensors``) per row the
+    sensor's own largest value."""
     d = _data(m, state)
     mujoco.mj_step(m, d)
-    size = 1 + float(np.max(np.abs(np.concatenate([d.qpos, d.qvel, d.act]))))
+    if sensors:
+        size = 1 + np.abs(_per_sensor_max(m, d.sensordata))[:, None]
+    else:
+        size = 1 + float(np.max(np.abs(np.concatenate([d.qpos, d.qvel, d.act]))))
     return 3 * np.abs(fine - coarse) + 1e-15 * size / (EPS / 10) + 1e-9 * (1 + np.abs(fine))
+
+
+def _per_sensor_max(m: mujoco.MjModel, sensordata: np.ndarray) -> np.ndarray:
+    """(nsensordata,): each entry replaced by the largest |value| of its sensor's components."""
+    out = np.abs(sensordata).copy()
+    for i in range(m.nsensor):
+        a, n = int(m.sensor_adr[i]), int(m.sensor_dim[i])
+        out[a:a + n] = np.max(out[a:a + n])
+    return out
 
 
 def _signature(m: mujoco.MjModel, d: mujoco.MjData) -> tuple:
@@ -221,21 +244,35 @@ def _component(m: mujoco.MjModel, i: int, inputs: bool, control: bool = False) -
     return f"act of actuator '{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, int(m.actuator_actadr.tolist().index(a)) if a in m.actuator_actadr else a) or a}'"
 
 
+def _sensor(m: mujoco.MjModel, i: int) -> str:
+    """Name of sensordata entry ``i``: the sensor, its type and (several components) which one."""
+    k = int(np.searchsorted(m.sensor_adr, i, side="right")) - 1
+    name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SENSOR, k) or f"#{k}"
+    kind = mujoco.mjtSensor(int(m.sensor_type[k])).name.removeprefix("mjSENS_").lower()
+    part = f"[{i - int(m.sensor_adr[k])}]" if m.sensor_dim[k] > 1 else ""
+    return f"sensor '{name}'{part} ({kind})"
+
+
+#: The compared matrices: name, output rows are sensors, columns are controls.
+MATRICES = (("A", False, False), ("B", False, True), ("C", True, False), ("D", True, True))
+
+
 def _compare(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | None) -> tuple[float, dict[str, Any]]:
-    """Worst |MJX - C| / floor over A and B at one state, and that entry."""
-    A_x, B_x = mjx_jacobians(m, state, code)
-    A_f, B_f = c_jacobians(m, state, EPS / 10)
-    A_c, B_c = c_jacobians(m, state, EPS)
+    """Worst |MJX - C| / floor over A, B, C and D at one state, and that entry."""
+    mjx_all = mjx_jacobians(m, state, code)
+    fine_all = c_jacobians(m, state, EPS / 10)
+    coarse_all = c_jacobians(m, state, EPS)
     worst: tuple[float, dict[str, Any]] = (0.0, {})
-    for name, x, fine, coarse in (("A", A_x, A_f, A_c), ("B", B_x, B_f, B_c)):
+    for (name, sensors, control), x, fine, coarse in zip(MATRICES, mjx_all, fine_all, coarse_all):
         if x.size == 0:
             continue
-        ratio = np.abs(x - fine) / floor(m, state, fine, coarse)
+        ratio = np.abs(x - fine) / floor(m, state, fine, coarse, sensors)
         ratio = np.where(np.isnan(ratio), np.inf, ratio)
         i, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
         if ratio[i, j] > worst[0] or not worst[1]:
-            worst = (float(ratio[i, j]), dict(matrix=name, row=int(i), column=int(j), output=_component(m, i, False),
-                                              input=_component(m, j, True, control=name == "B"),
+            worst = (float(ratio[i, j]), dict(matrix=name, row=int(i), column=int(j),
+                                              output=_sensor(m, i) if sensors else _component(m, i, False),
+                                              input=_component(m, j, True, control=control),
                                               mjx=float(x[i, j]), c=float(fine[i, j]),
                                               c_coarse=float(coarse[i, j])))
     return worst
@@ -284,10 +321,12 @@ def sample_states(scenario, m: mujoco.MjModel, count: int, seed: int = 0, steps:
     return out
 
 
-def check_scenario(scenario, count: int = 8, seed: int = 0) -> dict[str, Any]:
+def check_scenario(scenario, count: int = 8, seed: int = 0, reproducers=None) -> dict[str, Any]:
     """Every sampled state of a scenario judged; models with constraints get a converged solver
-    on both sides. Returns a JSON-ready dict: status (``pass``/``fail``/``unsupported``/
-    ``error``), message, smooth and non-smooth counts, the worst ratio and each state's result."""
+    on both sides. Returns a JSON-ready dict: status (``pass``/``fail``/``non-smooth`` (no state
+    was smooth: nothing judged)/``unsupported``/``error``), message, smooth and non-smooth counts,
+    the worst ratio and each state's result. ``reproducers``: a directory where the worst failing
+    state is saved for ``mjxdiff replay`` (``reproducer`` in the dict: its path)."""
     import time
 
     from mjxdiff.scenario import load_model
@@ -302,7 +341,7 @@ def check_scenario(scenario, count: int = 8, seed: int = 0) -> dict[str, Any]:
 
     export_cache.fresh_digest()  # JAX's own caches forget MJX code that has changed since
     code = export_cache.code_digest()
-    results = []
+    results, judged_at = [], []
     try:
         with jax.enable_x64(True):
             for i, (mi, member, step, state) in enumerate(states):
@@ -310,6 +349,7 @@ def check_scenario(scenario, count: int = 8, seed: int = 0) -> dict[str, Any]:
                     mi = copy.copy(mi)
                     converge_solver(mi)
                 results.append(judge_state(mi, state, i, member, step, code))
+                judged_at.append((mi, state))
     except NotImplementedError as e:
         return dict(name=scenario.name, status="unsupported", message=f"MJX does not support: {e}")
     judged = [r for r in results if r.status != "non-smooth"]
@@ -318,22 +358,66 @@ def check_scenario(scenario, count: int = 8, seed: int = 0) -> dict[str, Any]:
     non_smooth = len(results) - len(judged)
     if failed:
         w = max(failed, key=lambda r: r.ratio)
-        x = w.worst
         message = (f"{len(failed)} of {len(judged)} smooth states fail; worst at state {w.index} (member {w.member}, "
-                   f"step {w.step}): d {x['output']} / d {x['input']} ({x['matrix']}[{x['row']}, {x['column']}]) "
-                   f"MJX {x['mjx']:.6g}, C {x['c']:.6g}, {w.ratio:.3g}x its floor; in the {x['part']}")
+                   f"step {w.step}): {_entry(w)}")
         status = "fail"
-    else:
-        message = (f"{len(judged)} smooth states agree (worst {worst.ratio:.2g}x the FD floor)" if worst else
-                   "no smooth state to judge")
+    elif worst:
+        message = f"{len(judged)} smooth states agree (worst {worst.ratio:.2g}x the FD floor)"
         status = "pass"
+    else:  # judged nothing: neither a pass nor a failure
+        message = "no smooth state to judge: sample more states (--states) or states away from contact changes"
+        status = "non-smooth"
     if non_smooth:
         message += f"; {non_smooth} of {len(results)} states non-smooth (constraint set changes in the stencil)"
+    path = None
+    if failed and reproducers is not None:
+        path = _save_reproducer(reproducers, scenario, max(failed, key=lambda r: r.ratio), judged_at)
     return dict(name=scenario.name, status=status, message=message, states=len(results), smooth=len(judged),
                 non_smooth=non_smooth, worst_ratio=worst.ratio if worst else None,
-                seconds=time.perf_counter() - t0, results=[dataclasses.asdict(r) for r in results])
+                seconds=time.perf_counter() - t0, results=[dataclasses.asdict(r) for r in results], reproducer=path)
+
+
+def _save_reproducer(directory, scenario, result: StateResult, judged_at) -> str | None:
+    """The failing state ``result`` saved under ``directory`` for ``mjxdiff replay``; its path."""
+    from mjxdiff import report, reproducer
+
+    m, state = judged_at[result.index]
+    file = f"{report.safe_filename(scenario.name)}-grad-state{result.index}.json"
+    return str(reproducer.save_grad(report.path_under(directory, file), scenario.name, result.index, m,
+                                    scenario.model_path.read_text(), state, dataclasses.asdict(result),
+                                    report.versions()))
+
+
+def replay(rep) -> tuple[StateResult, bool]:
+    """A derivative reproducer (:class:`mjxdiff.reproducer.GradReproducer`) judged again: the
+    result, and whether it has the saved status and worst entry (matrix, row, column)."""
+    from mjxdiff import export_cache
+
+    export_cache.fresh_digest()
+    with jax.enable_x64(True):
+        r = judge_state(rep.model, rep.state, rep.index, rep.verdict.get("member", 0), rep.verdict.get("step", 0),
+                        export_cache.code_digest())
+    then = rep.verdict.get("worst") or {}
+    same = r.status == rep.verdict["status"] and (
+        r.status != "fail" or all(then.get(k) == r.worst.get(k) for k in ("matrix", "row", "column")))
+    return r, same
+
+
+def _entry(r: StateResult) -> str:
+    """A failing state's worst entry, in words."""
+    x = r.worst
+    return (f"d {x['output']} / d {x['input']} ({x['matrix']}[{x['row']}, {x['column']}]) MJX {x['mjx']:.6g}, "
+            f"C {x['c']:.6g}, {r.ratio:.3g}x its floor; in the {x['part']}")
+
+
+def format_state(r: StateResult) -> str:
+    """One line for one state's verdict."""
+    head = f"state {r.index} (member {r.member}, step {r.step}): {r.status}"
+    if r.status == "fail":
+        return f"{head}: {_entry(r)}"
+    return head + (f", worst {r.ratio:.2g}x the FD floor" if r.status == "pass" else "")
 
 
 def format_text(rows: list[dict[str, Any]]) -> str:
-    symbol = {"pass": "PASS", "fail": "FAIL", "unsupported": "UNSUP", "error": "ERROR"}
+    symbol = {"pass": "PASS", "fail": "FAIL", "non-smooth": "NONSM", "unsupported": "UNSUP", "error": "ERROR"}
     return "\n".join(f"{symbol[r['status']]:<6} {r['name']:<28} {r['message']}" for r in rows)

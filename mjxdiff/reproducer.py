@@ -8,6 +8,9 @@ initial state, the controls, the seed, tolerances, the configuration, the
 versions, and the verdict it produced. ``python -m mjxdiff replay FILE`` runs
 it again; both engines are deterministic on the CPU, so the replay prints the
 same diagnosis every time.
+
+A derivative reproducer (format ``mjxdiff-grad-reproducer/1``, written by ``mjxdiff grad --out``)
+holds one state of a model whose MJX Jacobians disagree with C's: replay judges that state again.
 """
 
 from __future__ import annotations
@@ -28,9 +31,11 @@ import numpy as np
 from mjxdiff.inputs import FACTOR_SHAPES, BatchedInputs
 from mjxdiff.scenario import ScenarioError, Tolerances
 
-__all__ = ["FORMAT", "Reproducer", "save", "load", "member_inputs"]
+__all__ = ["FORMAT", "GRAD_FORMAT", "Reproducer", "GradReproducer", "save", "load", "save_grad", "load_any",
+           "member_inputs"]
 
 FORMAT = "mjxdiff-reproducer/1"
+GRAD_FORMAT = "mjxdiff-grad-reproducer/1"
 _VERSION = 1  # the format version this mjxdiff reads and writes
 
 
@@ -179,19 +184,20 @@ def _config(doc: dict) -> dict[str, Any]:
     return config
 
 
-def _format_problem(doc: Any) -> str | None:
-    """Why ``doc`` is not a reproducer this mjxdiff reads, or None."""
+def _format_problem(doc: Any, formats: tuple[str, ...] = (FORMAT,)) -> str | None:
+    """Why ``doc`` is not a reproducer in one of ``formats`` that this mjxdiff reads, or None."""
+    expected = " or ".join(repr(f) for f in formats)
     if not isinstance(doc, dict):
-        return f"not a reproducer (a JSON {type(doc).__name__}, expected an object with format {FORMAT!r})"
+        return f"not a reproducer (a JSON {type(doc).__name__}, expected an object with format {expected})"
     fmt = doc.get("format")
-    version = re.fullmatch(r"mjxdiff-reproducer/(\d+)", fmt) if isinstance(fmt, str) else None
-    if version is None:
-        return f"not a reproducer (format {fmt!r}, expected {FORMAT!r})"
-    if int(version.group(1)) > _VERSION:
+    version = re.fullmatch(r"(mjxdiff-(?:grad-)?reproducer)/(\d+)", fmt) if isinstance(fmt, str) else None
+    if version is None or not any(f.startswith(version.group(1) + "/") for f in formats):
+        return f"not a reproducer (format {fmt!r}, expected {expected})"
+    if int(version.group(2)) > _VERSION:
         return (f"reproducer written by a newer mjxdiff (format {fmt!r}); this mjxdiff reads version "
-                f"{_VERSION} ({FORMAT!r}): upgrade mjxdiff to replay it")
-    if fmt != FORMAT:
-        return f"unsupported reproducer format {fmt!r}, expected {FORMAT!r}"
+                f"{_VERSION} ({expected}): upgrade mjxdiff to replay it")
+    if fmt not in formats:
+        return f"unsupported reproducer format {fmt!r}, expected {expected}"
     return None
 
 
@@ -234,16 +240,8 @@ def _parse(doc: dict) -> Reproducer:
                       tolerances=tolerances, config=config, verdict=verdict, versions=versions)
 
 
-def load(path: str | Path) -> Reproducer:
-    """Reads and checks a reproducer.
-
-    Raises:
-      ScenarioError: in one line naming the file and what is wrong: unreadable,
-        not JSON or cut short, not a reproducer, written by a newer mjxdiff
-        (format version above 1), a key missing or of the wrong type, a model
-        that does not decode, or arrays whose lengths do not fit the model
-        (``nq``, ``nv``, ``na``, ``nu``) and ``steps``.
-    """
+def _read(path: str | Path, formats: tuple[str, ...]) -> dict:
+    """The JSON document of a reproducer file in one of ``formats`` (ScenarioError otherwise)."""
     try:
         text = Path(path).read_text()
     except FileNotFoundError:
@@ -260,10 +258,81 @@ def load(path: str | Path) -> Reproducer:
         raise ScenarioError(f"{path}: not a reproducer (invalid JSON{cut}: {_one_line(e)})") from None
     except RecursionError:
         raise ScenarioError(f"{path}: not a reproducer (JSON nested too deeply)") from None
-    problem = _format_problem(doc)
+    problem = _format_problem(doc, formats)
     if problem is not None:
         raise ScenarioError(f"{path}: {_one_line(problem)}")
+    return doc
+
+
+def load(path: str | Path) -> Reproducer:
+    """Reads and checks a reproducer.
+
+    Raises:
+      ScenarioError: in one line naming the file and what is wrong: unreadable,
+        not JSON or cut short, not a reproducer, written by a newer mjxdiff
+        (format version above 1), a key missing or of the wrong type, a model
+        that does not decode, or arrays whose lengths do not fit the model
+        (``nq``, ``nv``, ``na``, ``nu``) and ``steps``.
+    """
+    doc = _read(path, (FORMAT,))
     try:
         return _parse(doc)
+    except _Bad as e:
+        raise ScenarioError(f"{path}: bad reproducer: {_one_line(e)}") from None
+
+
+# ----------------------------------------------------------------------------
+# derivative reproducers (``mjxdiff grad``)
+
+
+@dataclasses.dataclass(frozen=True)
+class GradReproducer:
+    """One state whose MJX Jacobians disagree with C's finite differences: the model as judged
+    (converged solver included), the state (qpos, qvel, act, ctrl) and the verdict it gave."""
+
+    scenario: str
+    index: int
+    model: mujoco.MjModel
+    model_xml: str
+    state: dict[str, np.ndarray]
+    verdict: dict[str, Any]
+    versions: dict[str, str]
+
+
+def save_grad(path: str | Path, scenario: str, index: int, m: mujoco.MjModel, model_xml: str,
+              state: dict[str, np.ndarray], verdict: dict[str, Any], versions: dict[str, str]) -> Path:
+    """Writes the ``index``-th sampled state of ``scenario`` as a derivative reproducer."""
+    doc = dict(format=GRAD_FORMAT, scenario=scenario, index=index, versions=versions, verdict=verdict,
+               model_mjb_base64=_model_to_b64(m), model_xml=model_xml,
+               **{k: np.asarray(state[k], np.float64).tolist() for k in ("qpos", "qvel", "act", "ctrl")})
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=1) + "\n")
+    return path
+
+
+def _parse_grad(doc: dict) -> GradReproducer:
+    scenario = _get(doc, "scenario", str, "a string")
+    index = _get(doc, "index", int, "an integer")
+    verdict = _get(doc, "verdict", dict, "an object")
+    _get(verdict, "status", str, "a string", "verdict")
+    versions = _get(doc, "versions", dict, "an object")
+    model_xml = _get(doc, "model_xml", str, "a string")
+    try:
+        m = _model_from_b64(_get(doc, "model_mjb_base64", str, "a string"))
+    except ValueError as e:
+        raise _Bad(f"the model does not decode ({_one_line(e)})") from None
+    state = {k: _array(doc, k, (n,), f"the model's {size} = {n}")
+             for k, size, n in (("qpos", "nq", m.nq), ("qvel", "nv", m.nv), ("act", "na", m.na), ("ctrl", "nu", m.nu))}
+    return GradReproducer(scenario=scenario, index=index, model=m, model_xml=model_xml, state=state,
+                          verdict=verdict, versions=versions)
+
+
+def load_any(path: str | Path) -> Reproducer | GradReproducer:
+    """A sweep reproducer (:func:`load`) or a derivative one (``mjxdiff grad``), by its format;
+    ScenarioError as :func:`load`."""
+    doc = _read(path, (FORMAT, GRAD_FORMAT))
+    try:
+        return _parse(doc) if doc["format"] == FORMAT else _parse_grad(doc)
     except _Bad as e:
         raise ScenarioError(f"{path}: bad reproducer: {_one_line(e)}") from None

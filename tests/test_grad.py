@@ -13,7 +13,7 @@ from mujoco.mjx._src import forward as mjx_forward
 
 from mjxdiff import grad
 from mjxdiff.cli import main
-from mjxdiff.scenario import load_scenario
+from mjxdiff.scenario import load_model, load_scenario
 from mjxdiff.sweep import SweepConfig, run_scenario
 
 
@@ -71,3 +71,54 @@ def test_the_cli_reports_and_rejects_bad_input(tmp_path, capsys):
     assert main(["grad", "no_such_scenario"]) == 2
     err = capsys.readouterr().err.strip()
     assert "no_such_scenario" in err and "\n" not in err
+
+
+def test_sensor_jacobians_are_compared_and_a_sensor_gradient_bug_is_named(monkeypatch, fresh_mjx):
+    from mujoco.mjx._src import sensor as mjx_sensor
+
+    scenario = load_scenario("pendulum")
+    model, _, _, state = grad.sample_states(scenario, load_model(scenario), 1)[0]
+    with jax.enable_x64(True):
+        A, B, C, D = grad.mjx_jacobians(model, state)
+    assert C.shape == (5, 2) and D.shape == (5, 1)  # angle, angvel, tip_pos[3] by (qpos, qvel) and ctrl
+    assert C[0, 0] == pytest.approx(1.0) and C[1, 1] == pytest.approx(1.0)
+    orig = mjx_sensor.sensor_pos
+
+    def patched(m, d):  # forward values bit-identical, the position sensors' gradient gone
+        out = orig(m, d)
+        return out.replace(sensordata=jax.lax.stop_gradient(out.sensordata))
+    monkeypatch.setattr(mjx_sensor, "sensor_pos", patched)
+    r = grad.check_scenario(scenario, count=1)
+    assert r["status"] == "fail", r["message"]
+    worst = r["results"][0]["worst"]
+    assert worst["matrix"] == "C" and worst["output"].startswith("sensor '") and worst["mjx"] == 0.0
+
+
+def test_a_failing_state_is_saved_and_replays_to_the_same_entry(monkeypatch, tmp_path, capsys):
+    orig = mjx_forward.fwd_actuation
+    monkeypatch.setattr(mjx_forward, "fwd_actuation",
+                        lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
+    assert main(["grad", "pendulum", "--states", "1", "--out", str(tmp_path), "--format", "json"]) == 1
+    row = json.loads(capsys.readouterr().out)["scenarios"][0]
+    path = tmp_path / "reproducers" / "pendulum-grad-state0.json"
+    assert row["reproducer"] == str(path) and path.is_file()
+    assert main(["replay", str(path)]) == 1  # still wrong: the same entry
+    out = capsys.readouterr().out
+    assert "reproduced: same status and worst entry" in out and "B[1, 0]" in out
+    monkeypatch.undo()  # MJX mended: the saved state passes
+    assert main(["replay", str(path), "--format", "json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["replayed"]["status"] == "pass" and doc["reproduced"] is False
+
+
+def test_a_scenario_with_no_smooth_state_is_not_a_pass(monkeypatch, tmp_path):
+    xml = tmp_path / "touching.xml"
+    xml.write_text("""<mujoco><worldbody><geom type="plane" size="1 1 .1"/>
+        <body pos="0 0 0.1"><freejoint/><geom size="0.1"/></body></worldbody></mujoco>""")
+    m = mujoco.MjModel.from_xml_path(str(xml))
+    touching = dict(qpos=m.qpos0.copy(), qvel=np.zeros(m.nv), act=np.zeros(0), ctrl=np.zeros(0))
+    monkeypatch.setattr(grad, "sample_states", lambda *a, **k: [(m, 0, 0, touching), (m, 1, 0, touching)])
+    r = grad.check_scenario(load_scenario(str(xml)), count=2)
+    assert r["status"] == "non-smooth" and r["smooth"] == 0 and r["non_smooth"] == 2, r
+    assert "no smooth state to judge" in r["message"]
+    assert grad.format_text([r]).startswith("NONSM")
