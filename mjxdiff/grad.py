@@ -10,7 +10,8 @@ tangent space, qvel, act) as MuJoCo's ``mjd_transitionFD`` defines it, are compu
   and ``EPS / 10``.
 
 **Floor.** Finite differences have their own error. Per entry, the floor is
-``3 x |A(EPS) - A(EPS/10)|`` (the truncation and solver-noise part, measured) plus roundoff,
+``3 x |A(EPS) - A(EPS/10)|`` (the truncation and solver-noise part, measured; at least 3 x the
+largest such change in the same row, that output's noise) plus roundoff,
 ``1e-15 x (1 + |x'|) / (EPS/10)``, plus ``1e-9 x (1 + |A|)``; an entry fails when
 ``|A_mjx - A_c(EPS/10)|`` exceeds it. **Non-smooth states**: where the constraint set (which
 contacts and limits are active, and each row's state) differs anywhere in the FD stencil, the
@@ -41,7 +42,7 @@ from mujoco import mjx
 
 from mjxdiff.noise import converge_solver, has_constraints
 
-__all__ = ["EPS", "SMOOTH", "MATRICES", "StateResult", "sample_states", "mjx_jacobians", "c_jacobians", "floor", "smooth_at", "judge_state",
+__all__ = ["EPS", "SMOOTH", "MATRICES", "StateResult", "sample_states", "mjx_jacobians", "mjx_fd", "c_jacobians", "floor", "smooth_at", "judge_state",
            "check_scenario", "replay", "format_state", "format_text"]
 
 #: The larger finite-difference step; C is also differenced at EPS / 10.
@@ -118,26 +119,42 @@ def _difference(joints, nv, qpos, ref):
 # Jacobians both ways
 
 
+def _next(joints: tuple, nv: int):
+    """f(mx, dx, ref_qpos, x, u): the next state (qpos as a tangent vector from ``ref_qpos``, qvel,
+    act) and the sensors after one ``mjx.step`` from ``dx`` moved by the state tangent ``x``,
+    with controls ``u``."""
+    def f(mx, dx, ref_qpos, x, u):
+        qpos = _integrate(joints, dx.qpos, x[:nv])
+        d1 = mjx.step(mx, dx.replace(qpos=qpos, qvel=dx.qvel + x[nv:2 * nv], act=dx.act + x[2 * nv:], ctrl=u))
+        # its sensordata are the sensors at (x, u), as in mjd_transitionFD
+        return jnp.concatenate([_difference(joints, nv, d1.qpos, ref_qpos), d1.qvel, d1.act, d1.sensordata])
+    return f
+
+
+def _reference(mx, dx, u):
+    """qpos after one step from ``dx`` with ``u``: the point the tangent differences are taken at."""
+    return jax.lax.stop_gradient(mjx.step(mx, dx.replace(ctrl=u)).qpos)
+
+
 @functools.lru_cache(maxsize=16)
 def _jacobian_fn(joints: tuple, nv: int, na: int, code: str):
     """jit(jacfwd) of one mjx.step around a state, for models with these joints (the model
     itself is an argument: one compile serves every member and state) and this MJX ``code``
     (:func:`mjxdiff.export_cache.code_digest`: an edited or patched MJX is traced anew)."""
-    def step(mx, dx, x, u):
-        qpos = _integrate(joints, dx.qpos, x[:nv])
-        d1 = mjx.step(mx, dx.replace(qpos=qpos, qvel=dx.qvel + x[nv:2 * nv], act=dx.act + x[2 * nv:], ctrl=u))
-        return d1
-
-    def f(mx, dx, ref_qpos, x, u):
-        d1 = step(mx, dx, x, u)  # its sensordata are the sensors at (x, u), as in mjd_transitionFD
-        return jnp.concatenate([_difference(joints, nv, d1.qpos, ref_qpos), d1.qvel, d1.act, d1.sensordata])
+    f = _next(joints, nv)
 
     def jac(mx, dx, u):
-        n = 2 * nv + na
-        ref = jax.lax.stop_gradient(step(mx, dx, jnp.zeros(n, dx.qpos.dtype), u).qpos)
-        return jax.jacfwd(f, argnums=(3, 4))(mx, dx, ref, jnp.zeros(n, dx.qpos.dtype), u)
+        x = jnp.zeros(2 * nv + na, dx.qpos.dtype)
+        return jax.jacfwd(f, argnums=(3, 4))(mx, dx, _reference(mx, dx, u), x, u)
 
     return jax.jit(jac)
+
+
+@functools.lru_cache(maxsize=16)
+def _values_fn(joints: tuple, nv: int, na: int, code: str):
+    """jit(vmap) of :func:`_next` over a batch of (x, u): MJX's own finite-difference stencil."""
+    f = jax.vmap(_next(joints, nv), in_axes=(None, None, None, 0, 0))
+    return jax.jit(lambda mx, dx, u, xs, us: f(mx, dx, _reference(mx, dx, u), xs, us))
 
 
 def _data(m: mujoco.MjModel, state: dict[str, np.ndarray]) -> mujoco.MjData:
@@ -164,6 +181,30 @@ def mjx_jacobians(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | N
     return AC[:n], BD[:n], AC[n:], BD[n:]
 
 
+def mjx_fd(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | None = None
+           ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """MJX's own centred finite differences of one ``mjx.step``, per matrix of :data:`MATRICES`:
+    (at EPS / 10, at EPS), all 4 (n + nu) perturbed steps in one vmapped call. Beside its
+    ``jax.jacfwd`` they tell a derivative-only disagreement (MJX's differences agree with C's)
+    from a forward one (they agree with MJX's gradient) and from MJX's forward jumping inside
+    the stencil (its differences grow as 1 / eps)."""
+    from mjxdiff import export_cache
+
+    d = _data(m, state)
+    n, nu = 2 * m.nv + m.na, m.nu
+    fn = _values_fn(tuple(_joint_slices(m)), m.nv, m.na, code or export_cache.code_digest())
+    basis = np.eye(n + nu)
+    steps = np.concatenate([sign * eps * basis for eps in (EPS / 10, EPS) for sign in (1.0, -1.0)])
+    out = np.asarray(fn(mjx.put_model(m), mjx.put_data(m, d), jnp.asarray(d.ctrl), jnp.asarray(steps[:, :n]),
+                        jnp.asarray(d.ctrl + steps[:, n:])))
+    k = n + nu
+    fd = [(out[i * 2 * k:i * 2 * k + k] - out[i * 2 * k + k:(i + 1) * 2 * k]).T / (2 * eps)
+          for i, eps in enumerate((EPS / 10, EPS))]  # (outputs, inputs) at each step size
+    split = {"A": (slice(0, n), slice(0, n)), "B": (slice(0, n), slice(n, k)),
+             "C": (slice(n, None), slice(0, n)), "D": (slice(n, None), slice(n, k))}
+    return {name: (fd[0][split[name]], fd[1][split[name]]) for name, *_ in MATRICES}
+
+
 def c_jacobians(m: mujoco.MjModel, state: dict[str, np.ndarray], eps: float
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(A, B, C, D) of one ``mj_step`` at ``state`` by centred finite differences
@@ -179,7 +220,10 @@ def c_jacobians(m: mujoco.MjModel, state: dict[str, np.ndarray], eps: float
 def floor(m: mujoco.MjModel, state: dict[str, np.ndarray], fine: np.ndarray, coarse: np.ndarray,
           sensors: bool = False) -> np.ndarray:
     """Per-entry error floor of the finite-difference Jacobian ``fine`` (at EPS / 10) given the
-    same at EPS: 3 x |fine - coarse| + roundoff + 1e-9 x (1 + |fine|) (see the module docstring).
+    same at EPS: 3 x max(|fine - coarse|, its row's largest) + roundoff + 1e-9 x (1 + |fine|)
+    (see the module docstring). The row's largest change is the noise of that output's finite
+    differences: one entry's change can be small by chance (ball_joint: 1.3e-9 where its row's
+    noise was 1.7e-6 and MJX's exact derivative 2e-7 away).
     Roundoff scales with the largest output: the next state, or (``sensors``) per row the
     sensor's own largest value."""
     d = _data(m, state)
@@ -188,7 +232,9 @@ def floor(m: mujoco.MjModel, state: dict[str, np.ndarray], fine: np.ndarray, coa
         size = 1 + np.abs(_per_sensor_max(m, d.sensordata))[:, None]
     else:
         size = 1 + float(np.max(np.abs(np.concatenate([d.qpos, d.qvel, d.act]))))
-    return 3 * np.abs(fine - coarse) + 1e-15 * size / (EPS / 10) + 1e-9 * (1 + np.abs(fine))
+    change = np.abs(fine - coarse)
+    row_noise = change.max(axis=1, keepdims=True) if change.size else change
+    return 3 * np.maximum(change, row_noise) + 1e-15 * size / (EPS / 10) + 1e-9 * (1 + np.abs(fine))
 
 
 def _per_sensor_max(m: mujoco.MjModel, sensordata: np.ndarray) -> np.ndarray:
@@ -233,13 +279,16 @@ def _component(m: mujoco.MjModel, i: int, inputs: bool, control: bool = False) -
     """Name of row/column ``i`` of A (state) or of a column of B (``control``)."""
     def joint_of(dof):
         j = int(m.dof_jntid[dof])
-        return mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) or f"#{j}"
+        name = f"'{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) or f'#{j}'}'"
+        axes = {mujoco.mjtJoint.mjJNT_FREE: ("x", "y", "z", "rot x", "rot y", "rot z"),
+                mujoco.mjtJoint.mjJNT_BALL: ("rot x", "rot y", "rot z")}.get(int(m.jnt_type[j]))
+        return f"{name} ({axes[dof - int(m.jnt_dofadr[j])]})" if axes else name
     if control:
         return f"ctrl of actuator '{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, i) or f'#{i}'}'"
     if i < m.nv:
-        return f"qpos of joint '{joint_of(i)}'"
+        return f"qpos of joint {joint_of(i)}"
     if i < 2 * m.nv:
-        return f"qvel of joint '{joint_of(i - m.nv)}'"
+        return f"qvel of joint {joint_of(i - m.nv)}"
     a = i - 2 * m.nv
     return f"act of actuator '{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, int(m.actuator_actadr.tolist().index(a)) if a in m.actuator_actadr else a) or a}'"
 
@@ -257,41 +306,101 @@ def _sensor(m: mujoco.MjModel, i: int) -> str:
 MATRICES = (("A", False, False), ("B", False, True), ("C", True, False), ("D", True, True))
 
 
-def _compare(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | None) -> tuple[float, dict[str, Any]]:
-    """Worst |MJX - C| / floor over A, B, C and D at one state, and that entry."""
+def _ratios(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | None) -> dict[str, tuple]:
+    """Per matrix of :data:`MATRICES` (those with entries): (|MJX - C| / floor with NaN as inf,
+    MJX, C at EPS / 10, C at EPS, the floor)."""
     mjx_all = mjx_jacobians(m, state, code)
     fine_all = c_jacobians(m, state, EPS / 10)
     coarse_all = c_jacobians(m, state, EPS)
-    worst: tuple[float, dict[str, Any]] = (0.0, {})
-    for (name, sensors, control), x, fine, coarse in zip(MATRICES, mjx_all, fine_all, coarse_all):
-        if x.size == 0:
-            continue
-        ratio = np.abs(x - fine) / floor(m, state, fine, coarse, sensors)
-        ratio = np.where(np.isnan(ratio), np.inf, ratio)
-        i, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
-        if ratio[i, j] > worst[0] or not worst[1]:
-            worst = (float(ratio[i, j]), dict(matrix=name, row=int(i), column=int(j),
-                                              output=_sensor(m, i) if sensors else _component(m, i, False),
-                                              input=_component(m, j, True, control=control),
-                                              mjx=float(x[i, j]), c=float(fine[i, j]),
-                                              c_coarse=float(coarse[i, j])))
-    return worst
+    out = {}
+    for (name, sensors, _), x, fine, coarse in zip(MATRICES, mjx_all, fine_all, coarse_all):
+        if x.size:
+            fl = floor(m, state, fine, coarse, sensors)
+            ratio = np.abs(x - fine) / fl
+            out[name] = (np.where(np.isnan(ratio), np.inf, ratio), x, fine, coarse, fl)
+    return out
+
+
+#: How many failing entries besides the worst a failure lists (``worst["entries"]``).
+ENTRIES = 5
+
+
+def _describe(m: mujoco.MjModel, name: str, i: int, j: int) -> dict[str, Any]:
+    sensors, control = next((s, c) for n, s, c in MATRICES if n == name)
+    return dict(matrix=name, row=int(i), column=int(j), output=_sensor(m, i) if sensors else _component(m, i, False),
+                input=_component(m, j, True, control=control))
+
+
+def _worst(m: mujoco.MjModel, ratios: dict[str, tuple]) -> tuple[float, dict[str, Any]]:
+    """The largest ratio and its entry (named, with MJX's and C's values), plus in ``entries``
+    the :data:`ENTRIES` largest failing entries (ratio > 1) over all matrices."""
+    flat = sorted(((float(r[i, j]), name, i, j) for name, (r, *_) in ratios.items()
+                   for i, j in zip(*np.nonzero(r > 1))), reverse=True)[:ENTRIES]
+    if not flat:
+        name, (r, *_) = max(ratios.items(), key=lambda kv: float(kv[1][0].max()))
+        i, j = np.unravel_index(int(np.argmax(r)), r.shape)
+        flat = [(float(r[i, j]), name, i, j)]
+    ratio, name, i, j = flat[0]
+    _, x, fine, coarse, _ = ratios[name]
+    entries = [dict(_describe(m, n, a, b), ratio=q) for q, n, a, b in flat if q > 1]
+    nan = sum(int(np.isnan(v[1]).sum()) for v in ratios.values())
+    return ratio, dict(_describe(m, name, i, j), mjx=float(x[i, j]), c=float(fine[i, j]),
+                       c_coarse=float(coarse[i, j]), entries=entries, nan=nan,
+                       size=sum(int(v[1].size) for v in ratios.values()))
+
+
+def _jumps(ratios: dict[str, tuple], fd: dict[str, tuple]) -> dict[str, np.ndarray]:
+    """Per matrix, the failing entries where MJX's own forward is not smooth inside the stencil:
+    its finite differences at EPS / 10 and EPS part by more than 1000 x C's floor and 1e-3 x
+    (1 + |C|) (a jump in MJX's dynamics, such as a tie in its contact selection, grows them as
+    1 / eps; C's constraint set stayed the same)."""
+    return {name: (r > 1) & (np.abs(fd[name][0] - fd[name][1]) > np.maximum(1e3 * fl, 1e-3 * (1 + np.abs(fine))))
+            for name, (r, _, fine, _, fl) in ratios.items()}
+
+
+def _kind(ad: float, c: float, mjx_fd: float) -> str:
+    """Whether MJX's gradient ``ad`` is wrong for its own dynamics (its finite differences
+    ``mjx_fd`` agree with C's ``c``: ``derivative only``) or follows dynamics that differ from C's
+    (they agree with ``ad``: ``forward dynamics``)."""
+    off = abs(ad - c) if np.isfinite(ad) else np.inf
+    if abs(mjx_fd - c) < off / 10:
+        return "derivative only"
+    return "forward dynamics" if abs(mjx_fd - ad) < off / 10 else "derivative and forward"
 
 
 def judge_state(m: mujoco.MjModel, state: dict[str, np.ndarray], index: int = 0, member: int = 0,
                 step: int = 0, code: str | None = None) -> StateResult:
-    """The verdict at one state (see the module docstring); ``code`` as for :func:`mjx_jacobians`."""
+    """The verdict at one state (see the module docstring); ``code`` as for :func:`mjx_jacobians`.
+
+    A failure is checked against MJX's own finite differences (:func:`mjx_fd`): entries where
+    MJX's forward jumps inside the stencil are set aside (only such entries: ``non-smooth``,
+    ``worst["reason"]`` says so); the worst of the rest is classed ``derivative only`` or
+    ``forward dynamics`` (``worst["kind"]``) and sits in the ``constraint`` part when, with
+    constraints disabled on both sides, that same entry agrees; else in the ``smooth dynamics``."""
     if has_constraints(m) and not smooth_at(m, state):
         return StateResult(index, member, step, "non-smooth")
-    ratio, worst = _compare(m, state, code)
+    ratios = _ratios(m, state, code)
+    ratio, worst = _worst(m, ratios)
     if not ratio > 1:
         return StateResult(index, member, step, "pass", ratio, worst)
+    fd = mjx_fd(m, state, code)
+    jumps = _jumps(ratios, fd)
+    if all(not (r > 1)[~jumps[name]].any() for name, (r, *_) in ratios.items()):
+        reason = (f"MJX's forward jumps inside the stencil (C's does not): its own finite differences of "
+                  f"d {worst['output']} / d {worst['input']} are {fd[worst['matrix']][1][worst['row'], worst['column']]:.4g} "
+                  f"at {EPS:g} and {fd[worst['matrix']][0][worst['row'], worst['column']]:.4g} at {EPS / 10:g}")
+        return StateResult(index, member, step, "non-smooth", ratio, dict(worst, reason=reason))
+    kept = {name: (np.where(jumps[name], 0.0, r), *rest) for name, (r, *rest) in ratios.items()}
+    ratio, worst = _worst(m, kept)
+    kind = _kind(worst["mjx"], worst["c"], float(fd[worst["matrix"]][1][worst["row"], worst["column"]]))
     part = "smooth dynamics"
     if has_constraints(m):
         free = copy.copy(m)
         free.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
-        part = "constraint" if _compare(free, state, code)[0] <= 1 else "smooth dynamics"
-    return StateResult(index, member, step, "fail", ratio, dict(worst, part=part))
+        unconstrained = _ratios(free, state, code)[worst["matrix"]][0][worst["row"], worst["column"]]
+        part = "constraint" if unconstrained <= 1 else "smooth dynamics"
+    return StateResult(index, member, step, "fail", ratio, dict(worst, part=part, kind=kind,
+                                                               mjx_fd=float(fd[worst["matrix"]][1][worst["row"], worst["column"]])))
 
 
 def sample_states(scenario, m: mujoco.MjModel, count: int, seed: int = 0, steps: int | None = None
@@ -352,6 +461,11 @@ def check_scenario(scenario, count: int = 8, seed: int = 0, reproducers=None) ->
                 judged_at.append((mi, state))
     except NotImplementedError as e:
         return dict(name=scenario.name, status="unsupported", message=f"MJX does not support: {e}")
+    except mujoco.FatalError as e:  # e.g. "mjd_transitionFD: RK4 integrator is not supported"
+        status = "unsupported" if "not supported" in str(e) else "error"
+        return dict(name=scenario.name, status=status, message=f"MuJoCo C: {' '.join(str(e).split())}")
+    except Exception as e:  # noqa: BLE001 - one scenario's trouble is its own; the others go on
+        return dict(name=scenario.name, status="error", message=" ".join(f"{type(e).__name__}: {e}".split()))
     judged = [r for r in results if r.status != "non-smooth"]
     failed = [r for r in judged if r.status == "fail"]
     worst = max(judged, key=lambda r: r.ratio, default=None)
@@ -406,8 +520,10 @@ def replay(rep) -> tuple[StateResult, bool]:
 def _entry(r: StateResult) -> str:
     """A failing state's worst entry, in words."""
     x = r.worst
+    nan = f"; {x['nan']} of {x['size']} MJX entries NaN" if x.get("nan") else ""
     return (f"d {x['output']} / d {x['input']} ({x['matrix']}[{x['row']}, {x['column']}]) MJX {x['mjx']:.6g}, "
-            f"C {x['c']:.6g}, {r.ratio:.3g}x its floor; in the {x['part']}")
+            f"C {x['c']:.6g}, {r.ratio:.3g}x its floor; in the {x['part']}, {x['kind']} (MJX's own finite "
+            f"difference {x['mjx_fd']:.6g}){nan}")
 
 
 def format_state(r: StateResult) -> str:

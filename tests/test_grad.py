@@ -43,6 +43,7 @@ def test_a_derivative_only_bug_passes_the_sweep_and_fails_grad_with_its_block(mo
     worst = max(r["results"], key=lambda s: s["ratio"])["worst"]
     assert worst["matrix"] == "B" and worst["input"] == "ctrl of actuator 'torque'" and worst["mjx"] == 0.0
     assert worst["output"] == "qvel of joint 'hinge'" and worst["part"] == "smooth dynamics"
+    assert worst["kind"] == "derivative only" and worst["mjx_fd"] == pytest.approx(worst["c"], rel=1e-6)
 
 
 def test_a_forward_bug_fails_grad_too(monkeypatch):
@@ -51,6 +52,7 @@ def test_a_forward_bug_fails_grad_too(monkeypatch):
                         lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
     r = grad.check_scenario(load_scenario("pendulum"), count=2)
     assert r["status"] == "fail" and "d qvel of joint 'hinge' / d ctrl of actuator 'torque'" in r["message"]
+    assert "forward dynamics" in r["message"]  # MJX's own finite differences follow its (wrong) gradient
 
 
 def test_a_contact_switching_inside_the_stencil_is_non_smooth():

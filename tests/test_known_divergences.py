@@ -247,8 +247,8 @@ def test_the_gradient_of_a_resting_body_s_orientation_with_respect_to_its_angula
                                        "<geom size='.1'/></body></worldbody></mujoco>")
     state = dict(qpos=m.qpos0.copy(), qvel=np.zeros(6), act=np.zeros(0), ctrl=np.zeros(0))
     with jax.enable_x64(True):
-        A, _ = grad.mjx_jacobians(m, state)
-    C, _ = grad.c_jacobians(m, state, 1e-7)
+        A, *_ = grad.mjx_jacobians(m, state)
+    C, *_ = grad.c_jacobians(m, state, 1e-7)
     np.testing.assert_allclose(np.diag(C[3:6, 9:12]), 0.01, rtol=1e-6)  # C: the timestep
     np.testing.assert_allclose(A[3:6, 9:12], C[3:6, 9:12], atol=1e-6)
 
@@ -269,5 +269,5 @@ def test_elliptic_cone_gradients_are_finite_for_a_body_at_rest():
     state = dict(qpos=np.r_[0, 0, 0.099, 1, 0, 0, 0.0], qvel=np.zeros(6), act=np.zeros(0), ctrl=np.zeros(0))
     assert grad.smooth_at(m, state)  # the same constraint rows and states throughout the stencil
     with jax.enable_x64(True):
-        A, _ = grad.mjx_jacobians(m, state)
+        A, *_ = grad.mjx_jacobians(m, state)
     assert np.isfinite(A).all(), f"{int(np.isnan(A).sum())} of {A.size} entries NaN"
