@@ -284,7 +284,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "double_pendulum, cartpole, actuators, gravcomp_arm)")
     gr.add_argument("--states", type=_positive, default=8, help="states sampled per scenario (default 8)")
     gr.add_argument("--seed", type=int, default=0, help="seed of the randomized members (default 0)")
-    gr.add_argument("--out", metavar="DIR", help="write DIR/grad-report.json and, per failing scenario, its worst "
+    gr.add_argument("--out", metavar="DIR", help="write DIR/grad-report.json, DIR/grad-report.html (a heat map of "
+                                                 "each failing scenario's worst state) and, per failing scenario, its worst "
                                                  "state as DIR/reproducers/NAME-grad-stateI.json for 'mjxdiff replay'")
     gr.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     hi = sub.add_parser("history", help="query the run history sweeps append to (DuckDB over Parquet)",
@@ -697,7 +698,10 @@ def _cmd_grad(args: argparse.Namespace) -> int:
     doc = dict(kind="grad", schema_version=report.SCHEMA_VERSION, versions=report.versions(), code=report.code(),
                config=dict(states=args.states, seed=args.seed, eps=grad.EPS), scenarios=rows)
     if args.out:
-        print(f"report written to {report.write_report(args.out, doc, 'grad-report.json')}", file=sys.stderr)
+        from mjxdiff import html_report
+
+        print(f"report written to {report.write_report(args.out, doc, 'grad-report.json')} and "
+              f"{html_report.write_grad(args.out, doc)}", file=sys.stderr)
     if args.format == "json":
         print(json.dumps(doc, indent=2))
     if any(r["status"] == "error" for r in rows):

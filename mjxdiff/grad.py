@@ -43,7 +43,7 @@ from mujoco import mjx
 from mjxdiff.noise import converge_solver, has_constraints
 
 __all__ = ["EPS", "SMOOTH", "MATRICES", "StateResult", "sample_states", "mjx_jacobians", "mjx_fd", "c_jacobians", "floor", "smooth_at", "judge_state",
-           "check_scenario", "replay", "format_state", "format_text"]
+           "check_scenario", "log10_ratios", "replay", "format_state", "format_text"]
 
 #: The larger finite-difference step; C is also differenced at EPS / 10.
 EPS = 1e-6
@@ -209,12 +209,41 @@ def c_jacobians(m: mujoco.MjModel, state: dict[str, np.ndarray], eps: float
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(A, B, C, D) of one ``mj_step`` at ``state`` by centred finite differences
     (``mujoco.mjd_transitionFD``; shapes as :func:`mjx_jacobians`)."""
+    if m.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4:  # mjd_transitionFD: "RK4 ... not supported"
+        return _c_fd(m, state, eps)
     d = _data(m, state)
     n = 2 * m.nv + m.na
     A, B = np.zeros((n, n)), np.zeros((n, m.nu))
     C, D = np.zeros((m.nsensordata, n)), np.zeros((m.nsensordata, m.nu))
     mujoco.mjd_transitionFD(m, d, eps, True, A, B, C if m.nsensordata else None, D if m.nsensordata else None)
     return A, B, C, D
+
+
+def _c_fd(m: mujoco.MjModel, state: dict[str, np.ndarray], eps: float
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(A, B, C, D) as ``mjd_transitionFD`` defines them, by centred differences of ``mj_step``
+    written out (qpos moved with ``mj_integratePos``, differenced with ``mj_differentiatePos``):
+    for the integrators ``mjd_transitionFD`` refuses (RK4)."""
+    nv, na, nu = m.nv, m.na, m.nu
+    n = 2 * nv + na
+    d = _data(m, state)
+    mujoco.mj_step(m, d)
+    ref = d.qpos.copy()
+
+    def after(dx: np.ndarray, du: np.ndarray) -> np.ndarray:
+        d = _data(m, state)
+        mujoco.mj_integratePos(m, d.qpos, dx[:nv], 1.0)
+        d.qvel[:] += dx[nv:2 * nv]
+        d.act[:] += dx[2 * nv:]
+        d.ctrl[:] += du
+        mujoco.mj_step(m, d)
+        dq = np.zeros(nv)
+        mujoco.mj_differentiatePos(m, dq, 1.0, ref, d.qpos)
+        return np.concatenate([dq, d.qvel, d.act, d.sensordata])
+
+    basis = np.eye(n + nu) * eps
+    J = np.stack([(after(e[:n], e[n:]) - after(-e[:n], -e[n:])) / (2 * eps) for e in basis], axis=1)
+    return J[:n, :n], J[:n, n:], J[n:, :n], J[n:, n:]
 
 
 def floor(m: mujoco.MjModel, state: dict[str, np.ndarray], fine: np.ndarray, coarse: np.ndarray,
@@ -449,6 +478,11 @@ def check_scenario(scenario, count: int = 8, seed: int = 0, reproducers=None) ->
     from mjxdiff import export_cache
 
     export_cache.fresh_digest()  # JAX's own caches forget MJX code that has changed since
+    from mjxdiff.sweep import release_compiled_if_crowded
+
+    if release_compiled_if_crowded():  # many scenarios in one process: the kernel's map limit
+        _jacobian_fn.cache_clear()
+        _values_fn.cache_clear()
     code = export_cache.code_digest()
     results, judged_at = [], []
     try:
@@ -483,12 +517,25 @@ def check_scenario(scenario, count: int = 8, seed: int = 0, reproducers=None) ->
         status = "non-smooth"
     if non_smooth:
         message += f"; {non_smooth} of {len(results)} states non-smooth (constraint set changes in the stencil)"
-    path = None
-    if failed and reproducers is not None:
-        path = _save_reproducer(reproducers, scenario, max(failed, key=lambda r: r.ratio), judged_at)
+    path = heatmap = None
+    if failed:
+        w = max(failed, key=lambda r: r.ratio)
+        if reproducers is not None:
+            path = _save_reproducer(reproducers, scenario, w, judged_at)
+        with jax.enable_x64(True):
+            heatmap = dict(state=w.index, log10_ratio=log10_ratios(*judged_at[w.index], code))
     return dict(name=scenario.name, status=status, message=message, states=len(results), smooth=len(judged),
                 non_smooth=non_smooth, worst_ratio=worst.ratio if worst else None,
-                seconds=time.perf_counter() - t0, results=[dataclasses.asdict(r) for r in results], reproducer=path)
+                seconds=time.perf_counter() - t0, results=[dataclasses.asdict(r) for r in results], reproducer=path,
+                heatmap=heatmap)
+
+
+def log10_ratios(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | None = None
+                 ) -> dict[str, list[list[float]]]:
+    """log10(|MJX - C| / floor) of every entry of A, B, C and D at one state (NaN in MJX, or a
+    ratio above 1e12, as 12; below 1e-3 as -3), rounded to 0.01: the report page's heat maps."""
+    return {name: np.clip(np.log10(np.maximum(r, 1e-3)), -3, 12).round(2).tolist()
+            for name, (r, *_) in _ratios(m, state, code).items()}
 
 
 def _save_reproducer(directory, scenario, result: StateResult, judged_at) -> str | None:

@@ -22,7 +22,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-__all__ = ["render", "write", "PLOTS"]
+__all__ = ["render", "write", "render_grad", "write_grad", "PLOTS"]
 
 PLOTS = ("failing", "all", "none")
 
@@ -174,12 +174,81 @@ def render(doc: dict[str, Any], out_dir: str | Path | None = None, plots: str = 
     return "\n".join(parts)
 
 
-def write(out_dir: str | Path, doc: dict[str, Any], plots: str = "failing") -> Path:
-    """Writes ``out_dir/report.html`` (atomically: a temporary file renamed into place)."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "report.html"
-    tmp = out / ".report.html.tmp"
-    tmp.write_text(render(doc, out, plots), encoding="utf-8")
+def _write(path: Path, text: str) -> Path:
+    """``text`` into ``path`` atomically (a temporary file renamed into place)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, path)
     return path
+
+
+def write(out_dir: str | Path, doc: dict[str, Any], plots: str = "failing") -> Path:
+    """Writes ``out_dir/report.html`` (atomically: a temporary file renamed into place)."""
+    return _write(Path(out_dir) / "report.html", render(doc, Path(out_dir), plots))
+
+
+# ----------------------------------------------------------------------------
+# the derivative report (``mjxdiff grad``)
+
+
+def heatmap(name: str, state: int, matrices: dict[str, list[list[float]]]) -> str:
+    """log10(|MJX - C| / floor) of A, B, C, D side by side; above 0 (red) fails."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    shown = {k: np.asarray(v, float) for k, v in matrices.items() if np.size(v)}
+    fig, axes = plt.subplots(1, len(shown), figsize=(3.2 * len(shown) + 1, 3.4), squeeze=False)
+    image = None
+    for ax, (k, v) in zip(axes[0], shown.items()):
+        image = ax.imshow(v, cmap="RdBu_r", vmin=-3, vmax=3, interpolation="nearest", aspect="auto")
+        ax.set_title({"A": "A = dx'/dx", "B": "B = dx'/du", "C": "C = ds/dx", "D": "D = ds/du"}[k], fontsize=9)
+        ax.set_xlabel("input", fontsize=8)
+        ax.set_ylabel("output", fontsize=8)
+        ax.tick_params(labelsize=7)
+    fig.colorbar(image, ax=list(axes[0]), label="log10 |MJX - C| / floor")
+    fig.suptitle(f"{name}: state {state}", fontsize=10)
+    return _png(fig)
+
+
+def render_grad(doc: dict[str, Any], out_dir: str | Path | None = None) -> str:
+    """The page of a ``grad`` report: a table of scenarios, then per failing scenario its
+    message, a heat map of its worst state and the reproducer's link."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    rows = doc.get("scenarios", [])
+    v = doc.get("versions", {})
+    counts = {k: sum(r["status"] == k for r in rows) for k in ("pass", "fail", "non-smooth", "unsupported", "error")}
+    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>mjxdiff grad report</title>"
+             f"<style>{_STYLE}</style></head><body><h1>mjxdiff grad: MJX's Jacobians vs MuJoCo C's finite "
+             "differences</h1>",
+             f"<p>{len(rows)} scenarios: " + ", ".join(f"{n} {k}" for k, n in counts.items()) +
+             f". mujoco {_e(v.get('mujoco'))}, mujoco-mjx {_e(v.get('mujoco-mjx'))}, jax {_e(v.get('jax'))}; "
+             f"seed {_e(doc.get('config', {}).get('seed'))}, {_e(doc.get('config', {}).get('states'))} states each.</p>",
+             "<table><tr><th>scenario</th><th>status</th><th>smooth</th><th>non-smooth</th>"
+             "<th>worst ratio to floor</th><th>seconds</th></tr>"]
+    for r in rows:
+        anchor = f"<a href='#{_e(r['name'])}'>{_e(r['name'])}</a>" if r.get("heatmap") else _e(r["name"])
+        parts.append(f"<tr><td>{anchor}</td><td class='{_e(r['status'])}'>{_e(r['status'])}</td>"
+                     f"<td>{_e(r.get('smooth', ''))}</td><td>{_e(r.get('non_smooth', ''))}</td>"
+                     f"<td>{_num(r.get('worst_ratio')):.3g}</td><td>{_num(r.get('seconds')):.1f}</td></tr>")
+    parts.append("</table>")
+    for r in rows:
+        if r["status"] in ("pass",) and not r.get("heatmap"):
+            continue
+        parts.append(f"<h2 id='{_e(r['name'])}'>{_e(r['name'])}: {_e(r['status'])}</h2><pre>{_e(r.get('message', ''))}</pre>")
+        h = r.get("heatmap")
+        if h:
+            parts.append(f"<img alt='{_e(r['name'])} Jacobian error map' src='{heatmap(r['name'], h['state'], h['log10_ratio'])}'>")
+        if r.get("reproducer"):
+            href = os.path.relpath(r["reproducer"], out_dir) if out_dir else r["reproducer"]
+            parts.append(f"<p>reproducer: <a href='{_e(Path(href).as_posix())}'>{_e(href)}</a> "
+                         f"(<code>python -m mjxdiff replay {_e(r['reproducer'])}</code>)</p>")
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def write_grad(out_dir: str | Path, doc: dict[str, Any]) -> Path:
+    """Writes ``out_dir/grad-report.html``."""
+    return _write(Path(out_dir) / "grad-report.html", render_grad(doc, Path(out_dir)))
