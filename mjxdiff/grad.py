@@ -13,7 +13,8 @@ tangent space, qvel, act) as MuJoCo's ``mjd_transitionFD`` defines it, are compu
 ``3 x |A(EPS) - A(EPS/10)|`` (the truncation and solver-noise part, measured; at least 3 x the
 largest such change in the same row, that output's noise) plus roundoff,
 ``1e-15 x (1 + |x'|) / (EPS/10)``, plus ``1e-9 x (1 + |A|)``; an entry fails when
-``|A_mjx - A_c(EPS/10)|`` exceeds it. **Non-smooth states**: where the constraint set (which
+``|A_mjx - A_c(EPS/10)|`` exceeds it plus ``RTOL x max(|A_mjx|, |A_c|)`` (implementation
+differences the forward sweep accepts, such as where a contact point sits). **Non-smooth states**: where the constraint set (which
 contacts and limits are active, and each row's state) differs anywhere in the FD stencil, the
 dynamics are not differentiable there; such states are reported as ``non-smooth`` and not
 judged. Models with constraints are compared with a converged solver on both sides (a solver
@@ -42,11 +43,17 @@ from mujoco import mjx
 
 from mjxdiff.noise import converge_solver, has_constraints
 
-__all__ = ["EPS", "SMOOTH", "MATRICES", "StateResult", "sample_states", "mjx_jacobians", "mjx_fd", "c_jacobians", "floor", "smooth_at", "judge_state",
+__all__ = ["EPS", "RTOL", "SMOOTH", "MATRICES", "StateResult", "sample_states", "mjx_jacobians", "mjx_fd", "c_jacobians", "floor", "smooth_at", "judge_state",
            "check_scenario", "log10_ratios", "replay", "format_state", "format_text"]
 
 #: The larger finite-difference step; C is also differenced at EPS / 10.
 EPS = 1e-6
+#: Relative tolerance added to the finite-difference floor: implementation differences the
+#: forward sweep accepts (where a contact point sits, a converged solver's last digits) move
+#: derivatives too (sensing: d qvel' / d qpos of a yawing box on the floor, MJX and C 8.8e-6
+#: apart, MJX's own finite differences agreeing with its gradient). A 2% gain slip or a cut
+#: gradient is orders of magnitude above it.
+RTOL = 1e-4
 #: Bundled scenarios without contacts: every sampled state is smooth (``grad``'s default).
 SMOOTH = ("pendulum", "double_pendulum", "cartpole", "actuators", "gravcomp_arm")
 
@@ -336,15 +343,16 @@ MATRICES = (("A", False, False), ("B", False, True), ("C", True, False), ("D", T
 
 
 def _ratios(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | None) -> dict[str, tuple]:
-    """Per matrix of :data:`MATRICES` (those with entries): (|MJX - C| / floor with NaN as inf,
-    MJX, C at EPS / 10, C at EPS, the floor)."""
+    """Per matrix of :data:`MATRICES` (those with entries): (|MJX - C| / bound with NaN as inf,
+    MJX, C at EPS / 10, C at EPS, the bound): the bound is :func:`floor` plus
+    ``RTOL x max(|MJX|, |C|)``."""
     mjx_all = mjx_jacobians(m, state, code)
     fine_all = c_jacobians(m, state, EPS / 10)
     coarse_all = c_jacobians(m, state, EPS)
     out = {}
     for (name, sensors, _), x, fine, coarse in zip(MATRICES, mjx_all, fine_all, coarse_all):
         if x.size:
-            fl = floor(m, state, fine, coarse, sensors)
+            fl = floor(m, state, fine, coarse, sensors) + RTOL * np.maximum(np.abs(x), np.abs(fine))
             ratio = np.abs(x - fine) / fl
             out[name] = (np.where(np.isnan(ratio), np.inf, ratio), x, fine, coarse, fl)
     return out
