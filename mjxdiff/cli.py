@@ -489,15 +489,22 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     now = doc.get("first_divergence") or {}
     same = (doc["status"] == rep.verdict["status"]
             and all(then.get(k) == now.get(k) for k in ("field", "step", "object")))
-    if args.format == "json":
-        print(json.dumps(dict(reproduced=same, saved=rep.verdict, replayed=doc), indent=2))
-    else:
-        print(f"replaying {rep.scenario} member {rep.member} (seed {rep.inputs.seed}, {config.precision}, "
-              f"saved with mujoco {rep.versions.get('mujoco')}, mjx {rep.versions.get('mujoco-mjx')})")
-        print(report.format_line(result))
-        print("reproduced: same status, field, object and step as saved" if same else
-              f"NOT reproduced: saved {rep.verdict['status']} {then}, now {doc['status']} {now}")
+    _print_replay(args.format, rep, doc, same,
+                  f"replaying {rep.scenario} member {rep.member} (seed {rep.inputs.seed}, {config.precision}",
+                  report.format_line(result), "same status, field, object and step as saved",
+                  f"saved {rep.verdict['status']} {then}, now {doc['status']} {now}")
     return exit_code([result])
+
+
+def _print_replay(fmt: str, rep, replayed: dict, same: bool, header: str, line: str, kept: str, lost: str) -> None:
+    """Print a replay: the JSON document, or the header, the replayed verdict's line and whether
+    it reproduced (``kept`` / ``lost`` say how)."""
+    if fmt == "json":
+        print(json.dumps(dict(reproduced=same, saved=rep.verdict, replayed=replayed), indent=2))
+        return
+    print(f"{header}, saved with mujoco {rep.versions.get('mujoco')}, mjx {rep.versions.get('mujoco-mjx')})")
+    print(line)
+    print(f"reproduced: {kept}" if same else f"NOT reproduced: {lost}")
 
 
 def _replay_grad(rep, fmt: str) -> int:
@@ -505,14 +512,9 @@ def _replay_grad(rep, fmt: str) -> int:
 
     engines.configure_jax("float64", None)
     r, same = grad.replay(rep)
-    if fmt == "json":
-        print(json.dumps(dict(reproduced=same, saved=rep.verdict, replayed=dataclasses.asdict(r)), indent=2))
-    else:
-        print(f"replaying the Jacobians of {rep.scenario} at state {rep.index} (float64, saved with mujoco "
-              f"{rep.versions.get('mujoco')}, mjx {rep.versions.get('mujoco-mjx')})")
-        print(grad.format_state(r))
-        print("reproduced: same status and worst entry as saved" if same else
-              f"NOT reproduced: saved {json.dumps(rep.verdict)}")
+    _print_replay(fmt, rep, dataclasses.asdict(r), same,
+                  f"replaying the Jacobians of {rep.scenario} at state {rep.index} (float64",
+                  grad.format_state(r), "same status and worst entry as saved", f"saved {json.dumps(rep.verdict)}")
     return 1 if r.status == "fail" else 0
 
 

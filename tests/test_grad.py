@@ -126,17 +126,18 @@ def test_a_scenario_with_no_smooth_state_is_not_a_pass(monkeypatch, tmp_path):
     assert grad.format_text([r]).startswith("NONSM")
 
 
-@pytest.mark.parametrize("name, entry", [("grad_resting_orientation", "A[5, 11]"),
-                                         ("grad_elliptic_cone_at_rest", "A[11, 11]")])
-def test_the_committed_reproducers_of_mjx_gradient_bugs_load(name, entry):
-    """The reproducers of the two MJX gradient bugs (tests/test_known_divergences.py) that the
+@pytest.mark.parametrize("name, entry, nv", [("grad_resting_orientation", "A[5, 11]", 6),
+                                             ("grad_elliptic_cone_at_rest", "A[11, 11]", 6),
+                                             ("grad_cg_solver_cross_coupling", "A[27, 2]", 18)])
+def test_the_committed_reproducers_of_mjx_gradient_bugs_load(name, entry, nv):
+    """The reproducers of the MJX gradient bugs (tests/test_known_divergences.py) that the
     closing note cites: 'python -m mjxdiff replay tests/data/NAME.json'."""
     from pathlib import Path
 
     from mjxdiff import reproducer
 
     rep = reproducer.load_any(Path(__file__).parent / "data" / f"{name}.json")
-    assert isinstance(rep, reproducer.GradReproducer) and rep.model.nv == 6
+    assert isinstance(rep, reproducer.GradReproducer) and rep.model.nv == nv
     assert rep.verdict["status"] == "fail" and rep.verdict["worst"]["kind"] == "derivative only"
     assert entry in grad.format_state(grad.StateResult(**rep.verdict))
 
