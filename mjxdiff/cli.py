@@ -270,15 +270,18 @@ def build_parser() -> argparse.ArgumentParser:
                         description="At states sampled from each scenario (initial states and states along C "
                                     "rollouts), compare the transition Jacobians of one step, A = dx'/dx and B = "
                                     "dx'/du (x: qpos in the tangent space, qvel, act), and the sensors' C = ds/dx "
-                                    "and D = ds/du, from jax.jacfwd of mjx.step "
-                                    "in float64 with mujoco.mjd_transitionFD (centred, at 1e-6 and 1e-7). Each entry "
-                                    "is judged against the finite differences' own error floor (3x their change "
-                                    "between the two steps, plus roundoff). States where the constraint set changes "
-                                    "inside the stencil are reported as non-smooth, not judged (a scenario with no smooth state "
-                                    "is NONSM: nothing judged). Models with "
-                                    "constraints use a converged solver on both sides. A failure names the worst "
-                                    "entry (d output / d input, joints and actuators) and whether it sits in the "
-                                    "smooth dynamics or the constraint part. Exit 0 pass, 1 fail, 2 bad input.")
+                                    "and D = ds/du, from jax.jacfwd of mjx.step in float64 with "
+                                    "mujoco.mjd_transitionFD (centred, at 1e-6 and 1e-7). Each entry is judged "
+                                    "against the finite differences' own error floor (3x their change between the "
+                                    "two steps, at least their row's, plus roundoff) plus 1e-4 of its size. States "
+                                    "where the constraint set changes inside the stencil, or where MJX's own forward "
+                                    "jumps there, are reported as non-smooth, not judged (a scenario with no smooth "
+                                    "state is NONSM: nothing judged). Models with constraints use a converged solver "
+                                    "on both sides. A failure names the worst entry (d output / d input: joints, "
+                                    "actuators, sensors), whether it sits in the smooth dynamics or the constraint "
+                                    "part, and its kind from MJX's own finite differences: 'derivative only' (a "
+                                    "gradient bug: MJX's forward agrees with C) or 'forward dynamics' (MJX's forward "
+                                    "has another slope). Exit 0 pass, 1 fail, 2 bad input.")
     gr.add_argument("scenarios", nargs="*", metavar="SCENARIO",
                     help="bundled scenario name, scenario .toml or MJCF .xml (default: the smooth ones: pendulum, "
                          "double_pendulum, cartpole, actuators, gravcomp_arm)")

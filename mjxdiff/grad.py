@@ -518,7 +518,7 @@ def check_scenario(scenario, count: int = 8, seed: int = 0, reproducers=None) ->
                    f"step {w.step}): {_entry(w)}")
         status = "fail"
     elif worst:
-        message = f"{len(judged)} smooth states agree (worst {worst.ratio:.2g}x the FD floor)"
+        message = f"{len(judged)} smooth states agree (worst {worst.ratio:.2g}x the bound)"
         status = "pass"
     else:  # judged nothing: neither a pass nor a failure
         message = "no smooth state to judge: sample more states (--states) or states away from contact changes"
@@ -577,7 +577,7 @@ def _entry(r: StateResult) -> str:
     x = r.worst
     nan = f"; {x['nan']} of {x['size']} MJX entries NaN" if x.get("nan") else ""
     return (f"d {x['output']} / d {x['input']} ({x['matrix']}[{x['row']}, {x['column']}]) MJX {x['mjx']:.6g}, "
-            f"C {x['c']:.6g}, {r.ratio:.3g}x its floor; in the {x['part']}, {x['kind']} (MJX's own finite "
+            f"C {x['c']:.6g}, {r.ratio:.3g}x its bound; in the {x['part']}, {x['kind']} (MJX's own finite "
             f"difference {x['mjx_fd']:.6g}){nan}")
 
 
@@ -586,7 +586,7 @@ def format_state(r: StateResult) -> str:
     head = f"state {r.index} (member {r.member}, step {r.step}): {r.status}"
     if r.status == "fail":
         return f"{head}: {_entry(r)}"
-    return head + (f", worst {r.ratio:.2g}x the FD floor" if r.status == "pass" else "")
+    return head + (f", worst {r.ratio:.2g}x the bound" if r.status == "pass" else "")
 
 
 def format_text(rows: list[dict[str, Any]]) -> str:
