@@ -207,7 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
     fz.add_argument("--out", metavar="DIR", help="save the reproducer and the example database under DIR")
     fz.add_argument("--include-known", action="store_true",
                     help="also generate features with known, documented C/MJX divergences "
-                         "(connect/weld, RK4/implicitfast, box and mesh geoms) and report the contact "
+                         "(connect/weld, RK4/implicitfast, box and mesh geoms, tendon wrap sidesites) and report the contact "
                          "differences known by their signature (plane-cylinder far cap, capsule contact frames)")
     fz.add_argument("--cache-dir", metavar="DIR", help="JAX persistent compilation cache (see sweep --help)")
     bn = sub.add_parser("bench", help="measure MJX and MuJoCo C throughput, compile time and memory per scenario",

@@ -97,6 +97,24 @@ def test_a_cylinder_lying_on_a_plane_touches_it_at_both_caps():
     assert len(_contacts_mjx(dx).get((0, 1), [])) == 2
 
 
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="MJX 3.17 picks a tendon's wrap side by the older rule "
+                   "(the arc whose middle is nearest the sidesite's direction), C 4.0 by the winding of end0 -> "
+                   "sidesite -> end1 around the wrap geom (MuJoCo Warp 4.0 too): with the sidesite 1 mm off its "
+                   "symmetry plane C wraps one side and MJX the other (C switches at 0, MJX at -1.87 mm; ten_length "
+                   "1.437623 vs 1.440931). Found by fuzz seed 3 once its known-divergence filter was fixed")
+def test_a_tendon_wraps_on_the_sidesite_s_side():
+    from mjxdiff import reproducer
+
+    rep = reproducer.load(Path(__file__).parent / "data" / "fuzz_wrap_sidesite.json")
+    m = rep.model
+    m.site_pos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "side0")] += [-0.001, 0, 0]
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:] = rep.inputs.qpos[0], rep.inputs.qvel[0]
+    mujoco.mj_forward(m, d)
+    dx = engines.forward(mjx.put_model(m), mjx.make_data(m).replace(qpos=d.qpos.copy(), qvel=d.qvel.copy()))
+    np.testing.assert_allclose(np.asarray(dx.ten_length), d.ten_length, atol=1e-9)
+
+
 def _forward_both(xml: str, **state):
     """(m, C's data, MJX's data) after ``mj_forward`` and ``mjx.forward`` from the same state
     (``qpos``/``qvel`` entries set by index: ``qvel={3: 1.0}``). MJX starts from fresh data, not
