@@ -247,7 +247,7 @@ def known_contact_divergence(m, inputs: BatchedInputs, result: ScenarioResult) -
             dx = engines.forward(mx, mjx.make_data(mi).replace(
                 qpos=d.qpos.copy(), qvel=d.qvel.copy(), act=d.act.copy(), ctrl=d.ctrl.copy()))
             cc, cx = _contacts_c(mi, d), _contacts_mjx(dx)
-            if any({int(t) for t in mi.geom_type[list(pair)]} == cylinder and len(cc[pair]) > len(cx.get(pair, []))
+            if any({int(g) for g in mi.geom_type[list(pair)]} == cylinder and len(cc[pair]) > len(cx.get(pair, []))
                    for pair in cc):
                 return "plane-cylinder far cap"
             c = dx._impl.contact
