@@ -238,30 +238,47 @@ def known_contact_divergence(m, inputs: BatchedInputs, result: ScenarioResult) -
     d = mujoco.MjData(mi)
     d.qpos[:], d.qvel[:], d.act[:] = inputs.qpos[member], inputs.qvel[member], inputs.act[member]
     mx = mjx.put_model(mi)
-    pyramidal = mi.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
-    cylinder = {int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)}
     for t in range(step + 1):
         d.ctrl[:] = inputs.ctrl[member, t]
         if t >= step - 2:
             mujoco.mj_forward(mi, d)
             dx = engines.forward(mx, mjx.make_data(mi).replace(
                 qpos=d.qpos.copy(), qvel=d.qvel.copy(), act=d.act.copy(), ctrl=d.ctrl.copy()))
-            cc, cx = _contacts_c(mi, d), _contacts_mjx(dx)
-            if any({int(g) for g in mi.geom_type[list(pair)]} == cylinder and len(cc[pair]) > len(cx.get(pair, []))
-                   for pair in cc):
+            if _cylinder_contact_missing(mi, _contacts_c(mi, d), _contacts_mjx(dx)):
                 return "plane-cylinder far cap"
-            c = dx._impl.contact
-            geom, pos, frame = np.asarray(c.geom), np.asarray(c.pos), np.asarray(c.frame).reshape(-1, 9)
-            for con in d.contact[:d.ncon]:
-                direction = pyramidal or con.friction[0] != con.friction[1] or (con.dim == 6 and con.friction[3] != con.friction[4])
-                if con.dim < 3 or not direction:
-                    continue
-                same = ((geom == (con.geom1, con.geom2)).all(axis=1) & (np.abs(pos - con.pos).max(axis=1) < 1e-6)
-                        & (np.abs(frame[:, :3] - con.frame[:3]).max(axis=1) < 1e-6))
-                if same.any() and (np.abs(frame[same][:, 3:6] - con.frame[3:6]).max(axis=1) > 1e-6).all():
-                    return "contact tangent frames"
+            if _tangent_turned(mi, d, dx):
+                return "contact tangent frames"
         mujoco.mj_step(mi, d)
     return None
+
+
+def _cylinder_contact_missing(m, cc: dict, cx: dict) -> bool:
+    """Whether a plane-cylinder pair has more contacts in C (``cc``) than in MJX (``cx``), both
+    by geom pair as :mod:`mjxdiff.diagnose` collects them."""
+    import mujoco
+
+    cylinder = {int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)}
+    return any({int(g) for g in m.geom_type[list(pair)]} == cylinder and len(cc[pair]) > len(cx.get(pair, []))
+               for pair in cc)
+
+
+def _tangent_turned(m, d, dx) -> bool:
+    """Whether an MJX contact at a C contact's place (same geoms, position and normal within 1e-6)
+    has a first tangent more than 1e-6 from C's, where friction depends on the tangent's direction."""
+    import mujoco
+
+    pyramidal = m.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
+    c = dx._impl.contact
+    geom, pos, frame = np.asarray(c.geom), np.asarray(c.pos), np.asarray(c.frame).reshape(-1, 9)
+    for con in d.contact[:d.ncon]:
+        direction = pyramidal or con.friction[0] != con.friction[1] or (con.dim == 6 and con.friction[3] != con.friction[4])
+        if con.dim < 3 or not direction:
+            continue
+        same = ((geom == (con.geom1, con.geom2)).all(axis=1) & (np.abs(pos - con.pos).max(axis=1) < 1e-6)
+                & (np.abs(frame[:, :3] - con.frame[:3]).max(axis=1) < 1e-6))
+        if same.any() and (np.abs(frame[same][:, 3:6] - con.frame[3:6]).max(axis=1) > 1e-6).all():
+            return True
+    return False
 
 
 def _divergence(m, inputs: BatchedInputs, config) -> ScenarioResult:
