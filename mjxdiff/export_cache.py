@@ -41,7 +41,6 @@ from typing import Any, Callable, Iterator
 import jax
 import numpy as np
 from jax import export
-from jax._src import config as _config
 
 __all__ = ["bind", "call", "clear", "code_digest", "count", "evict", "export_dir", "fresh_digest", "loaded_count",
            "rollout_digest", "settings_digest", "tally", "untraced"]
@@ -150,6 +149,8 @@ class _Digest:
             return
         if isinstance(value, types.ModuleType):
             h.update(b"module " + value.__name__.encode())
+            if sys.modules.get(value.__name__) is not value:  # a copy bound by hand: its name loads other code
+                h.update(b"unregistered " + _module_content(value))
             return
         if _UNTRACED.get(id(value)) is value:
             h.update(b"untraced")
@@ -240,6 +241,31 @@ class _Digest:
                 self.feed(fn.__globals__[name], depth + 1)
 
 
+_IN_PROGRESS = threading.local()
+
+
+def _module_content(module: types.ModuleType) -> bytes:
+    """Digest of everything ``module`` holds, functions in full: for a module object that is not
+    the one ``sys.modules`` has under its name (an edited copy bound where MJX imported the
+    original), whose functions therefore cannot be found again by name."""
+    busy = getattr(_IN_PROGRESS, "modules", None)
+    if busy is None:
+        busy = _IN_PROGRESS.modules = set()
+    if id(module) in busy:
+        return b"cycle"
+    busy.add(id(module))
+    try:
+        d = _Digest(TRACED_MODULES)  # a plain digest: every function in full, none by name
+        d.h.update(str(getattr(module, "__file__", "")).encode())
+        for attr in sorted(vars(module)):
+            if not attr.startswith(("__", "@")):
+                d.h.update(attr.encode())
+                d.feed(vars(module)[attr])
+        return d.h.digest()
+    finally:
+        busy.discard(id(module))
+
+
 def _is_test(name: str) -> bool:
     leaf = name.rsplit(".", 1)[-1]
     return leaf.startswith("test_") or leaf.endswith("_test")
@@ -310,7 +336,8 @@ def clear() -> None:
 
 @functools.cache
 def _versions() -> tuple[str, ...]:
-    return tuple(importlib.metadata.version(p) for p in ("jax", "jaxlib", "mujoco", "mujoco-mjx"))
+    return (*(importlib.metadata.version(p) for p in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")),
+            sys.version)  # with jax, jaxlib, numpy and the standard library left out of dependencies
 
 
 def _structure(treedef, h) -> None:
@@ -321,10 +348,20 @@ def _structure(treedef, h) -> None:
         _structure(child, h)
 
 
+#: Artifacts' format: 2 records every frame of a trace (1 left frames of other files out).
+FORMAT = 2
+
+
+@functools.cache
+def _harness() -> str:
+    """Digest of this file: the code that wraps every trace (``flat``) and decides what a key holds."""
+    return hashlib.sha256(Path(__file__).read_bytes()).hexdigest()
+
+
 def _key(fn: Callable, treedef, leaves: list, static: dict[str, Any], code: str) -> str:
     h = hashlib.sha256()
     _structure(treedef, h)
-    for part in (code, fn.__module__, fn.__qualname__, sorted((k, repr(v)) for k, v in static.items()),
+    for part in (FORMAT, _harness(), code, fn.__module__, fn.__qualname__, sorted((k, repr(v)) for k, v in static.items()),
                  [(x.shape, str(x.dtype), str(getattr(x, "sharding", None))) for x in leaves]):
         h.update(repr(part).encode())
     return h.hexdigest()
@@ -351,7 +388,7 @@ def fresh_digest() -> str:
     digest = rollout_digest()
     if _SEEN["digest"] not in (None, digest):
         jax.clear_caches()
-        for memo in (_FUNCTION_DIGESTS, _MODULE_FUNCTIONS, _LINE_INDEX, _REFERENCES, _METHODS):
+        for memo in (_FUNCTION_DIGESTS, _MODULE_FUNCTIONS, _OWNERS, _REFERENCES, _METHODS):
             memo.clear()
     _SEEN["digest"] = digest
     return digest
@@ -359,17 +396,19 @@ def fresh_digest() -> str:
 
 # --- what one trace depended on -------------------------------------------------------------
 #
-# An artifact is valid for the code its trace ran. Its dependencies are the functions of
-# TRACED_MODULES on the call stack of every operation it emitted (the StableHLO's locations,
-# which a sub-trace JAX took from its caches keeps) and those they can call by name
-# (dependency_mode() "functions"), or those sys.settrace saw run ("traced"). Each is digested
-# "shallowly": its code (nested functions included), defaults, closure and the globals it reads,
-# where a function of TRACED_MODULES stands for itself by name (its own code counts only where
-# it is a dependency). An edit of one collision function therefore retraces only the rollouts
-# that can reach it.
+# An artifact is valid for the code its trace ran. Its dependencies are every code object on the
+# call stack of every operation it emitted (JAX's tracebacks in the jaxpr, sub-jaxprs included),
+# below the wrapper the trace starts from, and the functions of TRACED_MODULES those can call by
+# name (dependency_mode() "functions"), or those sys.settrace saw run ("traced"). Code of
+# TRACED_MODULES is named by module and qualname and digested "shallowly": its code (nested
+# functions included), defaults, closure and the globals it reads, where a function of
+# TRACED_MODULES stands for itself by name (its own code counts only where it is a dependency).
+# An edit of one collision function therefore retraces only the rollouts that can reach it.
+# Code from any other file is named by file and qualname and digested in full; jax, jaxlib, numpy
+# and the standard library are left out (their versions are in the key). Code that cannot be
+# named leaves the trace unsaved: the key fails closed.
 
 _FUNCTION_DIGESTS: dict[tuple[str, str], str] = {}  # (module, qualname) -> shallow digest; cleared on a code change
-_LOCATION = __import__("re").compile(r'loc\("([^"]+)":(\d+):')
 
 
 class _Shallow(_Digest):
@@ -412,6 +451,8 @@ def _functions(module: str) -> dict[str, types.FunctionType]:
                 return
             if not isinstance(fn, types.FunctionType) or fn.__module__ != module:
                 return
+            if fn.__code__.co_filename.startswith("<"):  # generated (a dataclass's __init__): one qualname for all
+                return
             if found.setdefault(fn.__code__.co_qualname, fn) is not fn or depth > 3:
                 return
             for cell in fn.__closure__ or ():
@@ -434,8 +475,10 @@ def _resolve(module: str, qualname: str) -> Any:
 
 def function_digest(module: str, qualname: str) -> str:
     """Shallow digest of the module-level function or method ``module.qualname`` as loaded now
-    ("missing" if there is none)."""
+    ("missing" if there is none); for ``*``, :func:`code_digest` of the whole module."""
     key = (module, qualname)
+    if key not in _FUNCTION_DIGESTS and qualname == "*":
+        _FUNCTION_DIGESTS[key] = code_digest((module,)) if module in sys.modules else "missing"
     if key not in _FUNCTION_DIGESTS:
         obj = _resolve(module, qualname)
         if obj is None:
@@ -447,33 +490,221 @@ def function_digest(module: str, qualname: str) -> str:
     return _FUNCTION_DIGESTS[key]
 
 
-def _traced_files() -> dict[str, str]:
-    """Source file -> module name, for the modules of TRACED_MODULES."""
-    return {os.path.realpath(m.__file__): name for name, m in _modules(TRACED_MODULES) if getattr(m, "__file__", None)}
+_OWNERS: dict[str, dict[int, tuple[types.CodeType, tuple[str, str]]]] = {}  # cleared on a code change
 
 
-_LINE_INDEX: dict[str, list[tuple[int, int, str]]] = {}  # cleared on a code change, with the digests
+def _nested(code: types.CodeType) -> Iterator[types.CodeType]:
+    """``code`` and every code object nested in it (its functions, lambdas, comprehensions)."""
+    yield code
+    for const in code.co_consts:
+        if isinstance(const, types.CodeType):
+            yield from _nested(const)
 
 
-def _line_index(module: str) -> list[tuple[int, int, str]]:
-    """(first line, last line, qualname) of every function :func:`_functions` finds in ``module``."""
-    if module in _LINE_INDEX:
-        return _LINE_INDEX[module]
-    out = []
+def _owners() -> dict[int, tuple[types.CodeType, tuple[str, str]]]:
+    """id(code) -> (code, (module, qualname)) for the code of TRACED_MODULES as loaded now: every
+    function :func:`_functions` finds (its nested code under its name), functions held in a
+    module's tables (``*``: the whole module), and each module's own body (``*``)."""
+    if "index" not in _OWNERS:
+        index: dict[int, tuple[types.CodeType, tuple[str, str]]] = {}
 
-    def lines(code: types.CodeType) -> list[int]:
-        found = [line for _, _, line in code.co_lines() if line is not None]
-        for const in code.co_consts:
-            if isinstance(const, types.CodeType):
-                found += lines(const)
-        return found
+        def own(code: types.CodeType, owner: tuple[str, str]) -> None:
+            for c in _nested(code):
+                index.setdefault(id(c), (c, owner))
 
-    for qualname, fn in _functions(module).items():
-        found = lines(fn.__code__)
-        if found:
-            out.append((min(found), max(found), qualname))
-    _LINE_INDEX[module] = out  # whole: another compile worker may read it at once
+        for name, module in _modules(TRACED_MODULES):
+            for qualname, fn in _functions(name).items():
+                own(fn.__code__, (name, qualname))
+            for value in list(vars(module).values()):
+                if isinstance(value, type) and value.__module__ == name:  # a dataclass's generated methods
+                    for member in list(vars(value).values()):
+                        fn = member.__func__ if isinstance(member, (staticmethod, classmethod)) else member
+                        if isinstance(fn, types.FunctionType) and fn.__code__.co_filename.startswith("<"):
+                            own(fn.__code__, (name, "*"))
+            for value in list(vars(module).values()):  # lambdas and partials in dispatch tables
+                items = list(value.values()) if isinstance(value, dict) else value if isinstance(value, (list, tuple)) else ()
+                for item in items:
+                    for part in (item if isinstance(item, tuple) else (item,)):
+                        fn = _unwrap(part.func if isinstance(part, functools.partial) else part)
+                        if isinstance(fn, types.FunctionType) and fn.__module__ == name:
+                            own(fn.__code__, (name, "*"))
+        _OWNERS["index"] = index
+    return _OWNERS["index"]
+
+
+def _module_files() -> dict[str, str]:
+    """Source file -> module of TRACED_MODULES, by ``__file__`` and by its functions' ``co_filename``
+    (they differ for a module compiled from another file): where a module's own body runs."""
+    out = {}
+    for name, module in _modules(TRACED_MODULES):
+        files = {getattr(module, "__file__", None)} | {f.__code__.co_filename for f in _functions(name).values()}
+        for file in files - {None}:
+            out.setdefault(file, name)
     return out
+
+
+@functools.cache
+def _ignored_roots() -> tuple[str, ...]:
+    """Directories whose code is left out of dependencies, their versions being in the key
+    (:func:`settings_digest`): jax, jaxlib, numpy and the standard library. Nothing else is."""
+    import sysconfig
+
+    import jaxlib
+
+    roots = {os.path.dirname(m.__file__) for m in (jax, jaxlib, np)}
+    roots |= {sysconfig.get_path(k) for k in ("stdlib", "platstdlib")} | {os.path.dirname(os.__file__)}
+    return tuple(sorted(r.rstrip(os.sep) + os.sep for r in roots if r))
+
+
+def _ignored(file: str) -> bool:
+    return file.startswith("<frozen ") or file == __file__ or file.startswith(_ignored_roots())
+
+
+def _is_flat(code: types.CodeType) -> bool:
+    """Whether ``code`` is the wrapper :func:`_export` traces: frames above it are outside the trace."""
+    return code.co_filename == __file__ and code.co_name == "flat"
+
+
+def trace_codes(closed_jaxpr) -> set[types.CodeType]:
+    """The code objects on the call stack of every operation of ``closed_jaxpr`` and of the
+    jaxprs inside it (scan, while, cond, pjit bodies), from JAX's tracebacks, inside the trace:
+    frames below :func:`_export`'s wrapper. A stack that does not reach the wrapper (a body
+    traced from a callback, whose Python stack starts there, or one JAX took from its caches)
+    keeps its frames up to the outermost of TRACED_MODULES, or all of them if it has none."""
+    from jax._src import core
+
+    codes: set[types.CodeType] = set()
+    stacks: set[tuple[int, ...]] = set()
+    seen_jaxprs: set[int] = set()
+    todo = [closed_jaxpr.jaxpr]
+    owners = _owners()
+    while todo:
+        jaxpr = todo.pop()
+        if id(jaxpr) in seen_jaxprs:
+            continue
+        seen_jaxprs.add(id(jaxpr))
+        for eqn in jaxpr.eqns:
+            tb = eqn.source_info.traceback
+            if tb is not None:
+                stack = tb.raw_frames()[0]
+                key = tuple(map(id, stack))
+                if key not in stacks:
+                    stacks.add(key)
+                    cut = next((i for i, c in enumerate(stack) if _is_flat(c)), None)
+                    if cut is None:
+                        ours = [i for i, c in enumerate(stack) if id(c) in owners]
+                        cut = ours[-1] + 1 if ours else len(stack)
+                    codes.update(stack[:cut])
+            todo.extend(core.jaxprs_in_params(eqn.params))
+    return codes
+
+
+class Unaccounted(Exception):
+    """A frame of a trace whose code the key cannot name: the artifact is not saved."""
+
+
+def _foreign_key(code: types.CodeType, qualname: str | None = None) -> str:
+    """``@file:qualname`` of ``code`` (or of its enclosing ``qualname``); for generated code (a file
+    name like ``<string>``, shared by every namedtuple's ``__new__``), ``#`` and its code's digest."""
+    key = f"@{code.co_filename}:{qualname or code.co_qualname}"
+    if code.co_filename.startswith("<") and qualname is None:
+        key += "#" + _code(code).hex()[:16]
+    return key
+
+
+def _live_functions(keys: set[str]) -> dict[str, list[types.FunctionType]]:
+    """``@file:qualname`` -> the live functions of that code's file and qualified name (one pass
+    over the objects the garbage collector tracks, after a collection, ~0.1-0.3 s; only traces that ran code outside
+    TRACED_MODULES and the ignored packages need it)."""
+    import gc
+
+    out: dict[str, list[types.FunctionType]] = {}
+    if keys:
+        gc.collect()  # a dead patch's function is not code that can run
+        files = {k[1:].rsplit(":", 1)[0] for k in keys}
+        for obj in gc.get_objects():
+            if type(obj) is types.FunctionType and obj.__code__.co_filename in files:
+                for key in {_foreign_key(obj.__code__), _foreign_key(obj.__code__, obj.__code__.co_qualname)}:
+                    if key in keys:
+                        out.setdefault(key, []).append(obj)
+    return out
+
+
+def _foreign_digest(functions: list[types.FunctionType]) -> str:
+    """Digest of live functions of one file and qualified name: each one's code, defaults,
+    closure and the globals it reads (functions of TRACED_MODULES by name), in a stable order."""
+    digests = []
+    for fn in functions:
+        d = _Shallow(TRACED_MODULES)
+        d.feed(fn)
+        digests.append(d.h.hexdigest())
+    return hashlib.sha256(repr(sorted(digests)).encode()).hexdigest() if digests else "missing"
+
+
+def _generated_by_ignored(functions: list[types.FunctionType]) -> bool:
+    """Whether generated functions (``exec``'d by dataclasses, namedtuple) all belong to modules
+    of the ignored packages (:func:`_ignored`), or are a namedtuple's ``__new__`` (module
+    ``namedtuple_<name>``: ``lambda _cls, a, b: _tuple_new(_cls, (a, b))``, all of it in the
+    code's own digest, which is part of the key)."""
+    def ignored(fn: types.FunctionType) -> bool:
+        if fn.__module__.startswith("namedtuple_"):
+            return True
+        file = getattr(sys.modules.get(fn.__module__), "__file__", None)
+        return file is not None and _ignored(file)
+    return bool(functions) and all(ignored(fn) for fn in functions)
+
+
+def _enclosing(qualname: str) -> list[str]:
+    """``a.<locals>.b.<locals>.c`` -> ``["a.<locals>.b", "a"]``: the functions a nested one is defined in."""
+    parts = qualname.split(".<locals>.")
+    return [".<locals>.".join(parts[:i]) for i in range(len(parts) - 1, 0, -1)]
+
+
+def _account(codes: set[types.CodeType]) -> tuple[set[tuple[str, str]], dict[str, str]]:
+    """Names every code object a trace ran: ``(found, foreign)``.
+
+    - code of TRACED_MODULES (by identity, :func:`_owners`): ``(module, qualname)`` in ``found``;
+    - a module's own body: ``(module, "*")``;
+    - code of jax, jaxlib, numpy, the standard library and this file: left out (:func:`_ignored`);
+    - any other code (a patch from a user's module, an edited copy of an MJX module loaded from
+      another file, a module whose ``__file__`` is not its code's file): ``@file:qualname`` in
+      ``foreign``, with :func:`_foreign_digest` of the live functions that hold it, or of the
+      nearest enclosing function that does (a closure made during the trace).
+
+    Raises :class:`Unaccounted` for code no live function holds, nor contains.
+    """
+    owners, files = _owners(), None
+    found: set[tuple[str, str]] = set()
+    others: list[types.CodeType] = []
+    for code in codes:
+        owner = owners.get(id(code))
+        if owner is not None and owner[0] is code:
+            found.add(owner[1])
+        elif _ignored(code.co_filename):
+            continue
+        elif code.co_name == "<module>":
+            files = _module_files() if files is None else files
+            if code.co_filename not in files:
+                raise Unaccounted(f"module-level code of {code.co_filename} ran inside the trace")
+            found.add((files[code.co_filename], "*"))
+        else:
+            others.append(code)
+    foreign: dict[str, str] = {}
+    if others:
+        wanted = {_foreign_key(c, q) for c in others for q in [None, *_enclosing(c.co_qualname)]}
+        live = _live_functions(wanted)
+        for code in others:
+            if code.co_filename.startswith("<") and _generated_by_ignored(live.get(_foreign_key(code), [])):
+                continue  # a jax or standard-library class's generated __init__, a namedtuple's __new__
+            for qualname in [None, *_enclosing(code.co_qualname)]:
+                key = _foreign_key(code, qualname)
+                if any(code in set(_nested(fn.__code__)) for fn in live.get(key, ())):
+                    foreign[key] = _foreign_digest(live[key])
+                    break
+            else:
+                raise Unaccounted(f"{code.co_qualname} ({code.co_filename}:{code.co_firstlineno}) ran inside the "
+                                  f"trace, but no live function holds its code")
+    return found, foreign
 
 
 _REFERENCES: dict[tuple[str, str], tuple[tuple[tuple[str, str], bool], ...]] = {}  # cleared on a code change
@@ -517,7 +748,7 @@ def _functions_in(value: Any, depth: int = 0) -> Iterator[types.FunctionType]:
         return
     value = _unwrap(value)
     if isinstance(value, types.FunctionType):
-        if _ours(value) and not value.__code__.co_filename.startswith("<"):  # not generated (dataclass __init__)
+        if _ours(value):  # generated code (a dataclass's __init__) stands for its whole module
             yield value
         return
     if isinstance(value, functools.partial):
@@ -585,8 +816,9 @@ def _methods() -> dict[str, list]:
 
 
 #: Modules whose every function a trace depends on: MJX's pytree machinery, which JAX calls
-#: (flatten, hash, equality) rather than MJX code by name.
-ALWAYS_DEPENDED_ON = ("mujoco.mjx._src.dataclasses",)
+#: (flatten, hash, equality) rather than MJX code by name, and the types whose generated
+#: methods (``__init__``, ``__eq__``) every ``replace`` runs.
+ALWAYS_DEPENDED_ON = ("mujoco.mjx._src.dataclasses", "mujoco.mjx._src.types")
 
 
 def _closure(found: set[tuple[str, str]]) -> set[tuple[str, str]]:
@@ -601,45 +833,36 @@ def _closure(found: set[tuple[str, str]]) -> set[tuple[str, str]]:
     return out
 
 
-def dependencies(called: set[types.CodeType], mlir_text: str, follow: bool = True) -> dict[str, str]:
-    """``"module:qualname"`` -> :func:`function_digest` for each module-level function or method
-    of TRACED_MODULES a trace ran (``called``: code objects of its frames) or whose lines
-    emitted an operation (locations in ``mlir_text``, each with its call stack) and, with
-    ``follow``, each function those can call by name (:func:`_closure`) and every function of
-    :data:`ALWAYS_DEPENDED_ON`. ``*`` for a qualname: the whole module."""
-    files = _traced_files()
-    found: set[tuple[str, str]] = set()
-    for code in called:
-        module = files.get(os.path.realpath(code.co_filename))
-        if module is not None:
-            found.add(_as_dependency(module, code.co_qualname))
-    by_file: dict[str, set[int]] = {}
-    for file, line in _LOCATION.findall(mlir_text):
-        by_file.setdefault(file, set()).add(int(line))
-    for file, lines in by_file.items():
-        module = files.get(os.path.realpath(file))
-        if module is None:
-            continue
-        index = _line_index(module)
-        for line in lines:
-            spans = [(last - first, q) for first, last, q in index if first <= line <= last]
-            if spans:  # a function _line_index found by name: resolvable again
-                found.add((module, min(spans)[1]))
-            else:  # a line of no function (module level): depend on the whole module
-                found.add((module, "*"))
+def dependencies(codes: set[types.CodeType], follow: bool = True) -> dict[str, str]:
+    """What an artifact's trace depended on: ``"module:qualname"`` -> :func:`function_digest` for
+    each function of TRACED_MODULES among ``codes`` (the frames of the trace: :func:`trace_codes`,
+    and with ``MJXDIFF_DEPENDENCIES=traced`` every function it called) and, with ``follow``, each
+    function those can call by name (:func:`_closure`) and every function of
+    :data:`ALWAYS_DEPENDED_ON`; ``*`` for a qualname: the whole module. Code from any other file
+    is named ``"@file:qualname"`` with the digest of the live functions holding it (:func:`_account`).
+
+    Fails closed: raises :class:`Unaccounted` for a frame it cannot name, and the artifact is
+    then not saved."""
+    found, foreign = _account(codes)
     if follow:
         found = _closure(found) | {(m, "*") for m in ALWAYS_DEPENDED_ON if m in sys.modules}
-    return {f"{m}:{q}": (code_digest((m,)) if q == "*" else function_digest(m, q)) for m, q in sorted(found)}
+    deps = {f"{m}:{q}": function_digest(m, q) for m, q in sorted(found)}
+    deps.update(foreign)
+    return dict(sorted(deps.items()))
+
+
+def _holds(name: str, digest: str, live: dict[str, list[types.FunctionType]] | None = None) -> bool:
+    if name.startswith("@"):
+        return live is not None and _foreign_digest(live.get(name, [])) == digest
+    module, qualname = name.split(":", 1)
+    if module not in sys.modules:
+        return False
+    return function_digest(module, qualname) == digest
 
 
 def _deps_hold(deps: dict[str, str]) -> bool:
-    for name, digest in deps.items():
-        module, qualname = name.split(":", 1)
-        if module not in sys.modules:
-            return False
-        if (code_digest((module,)) if qualname == "*" else function_digest(module, qualname)) != digest:
-            return False
-    return True
+    live = _live_functions({n for n in deps if n.startswith("@")})
+    return all(_holds(n, d, live) for n, d in deps.items())
 
 
 #: Most bytes of artifacts kept (~2,500 of 130-230 KB); beyond it the least recently used go.
@@ -675,34 +898,80 @@ def _save(directory: Path, out_tree, exported, deps: dict[str, str]) -> Path:
     return path
 
 
+def _read_deps(path: Path) -> dict[str, str] | None:
+    try:
+        deps = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    ok = isinstance(deps, dict) and all(isinstance(k, str) and isinstance(v, str) for k, v in deps.items())
+    return deps if ok else None
+
+
 def matching(directory: Path) -> list[Path]:
     """The artifacts in ``directory`` (one arguments' key) whose recorded dependencies all still
-    have the digests they had when they were traced: those the code loaded now may run."""
+    have the digests they had when they were traced: those the code loaded now may run. More
+    than one means some key was incomplete (:func:`bind` then loads none)."""
     try:
         candidates = sorted(directory.glob("*.deps"))
     except OSError:
         return []
-    out = []
-    for deps_path in candidates:
-        try:
-            deps = json.loads(deps_path.read_text())
-        except (OSError, ValueError):
-            continue
-        if isinstance(deps, dict) and _deps_hold(deps):
-            out.append(deps_path.with_suffix(".jaxexport"))
-    return out
+    read = [(p, _read_deps(p)) for p in candidates]
+    # names of TRACED_MODULES first (memoized digests); live functions, one pass, only if needed
+    local = [(p, deps) for p, deps in read if deps is not None
+             and all(_holds(n, d) for n, d in deps.items() if not n.startswith("@"))]
+    live = _live_functions({n for _, deps in local for n in deps if n.startswith("@")})
+    return [p.with_suffix(".jaxexport") for p, deps in local
+            if all(_holds(n, d, live) for n, d in deps.items() if n.startswith("@"))]
+
+
+def _remove(path: Path) -> None:
+    for part in (path.with_suffix(".deps"), path, path.with_suffix(".cost")):
+        with contextlib.suppress(OSError):
+            part.unlink()
 
 
 def _load_matching(directory: Path):
-    """(out_tree, Exported, path) of the first artifact in ``directory`` the code loaded now may run."""
-    for path in matching(directory):
-        found = _load(path) if path.exists() else None
-        if found is not None:
-            return (*found, path)
-        for part in (path.with_suffix(".deps"), path, path.with_suffix(".cost")):  # unreadable: never tried again
-            with contextlib.suppress(OSError):
-                part.unlink()
+    """(out_tree, Exported, path) of the one artifact in ``directory`` the code loaded now may
+    run; None when there is none, or more than one (recorded in :func:`events` as ambiguous)."""
+    found = matching(directory)
+    if len(found) > 1:
+        _event("ambiguous", f"{directory.name[:12]}: {len(found)} artifacts match the code loaded now")
+        return None
+    for path in found:
+        loaded = _load(path) if path.exists() else None
+        if loaded is not None:
+            return (*loaded, path)
+        _remove(path)  # unreadable: never tried again
     return None
+
+
+_EVENTS: dict[str, Any] = {"loaded": 0, "traced": 0, "saved": 0, "unsaved": [], "ambiguous": [], "removed": 0}
+_EVENTS_LOCK = threading.Lock()
+
+
+def _event(kind: str, detail: Any = 1) -> None:
+    with _EVENTS_LOCK:
+        if isinstance(_EVENTS[kind], list):
+            _EVENTS[kind].append(detail)
+        else:
+            _EVENTS[kind] += detail
+
+
+def events() -> dict[str, Any]:
+    """What the artifact cache did in this process so far: ``loaded`` (artifacts loaded instead of
+    a trace), ``traced``, ``saved``, ``unsaved`` (one line each: why a trace could not be saved),
+    ``ambiguous`` (keys where several artifacts matched: none was loaded) and ``removed``
+    (artifacts deleted as untrustworthy). :func:`events_since` gives one run's share."""
+    with _EVENTS_LOCK:
+        return {k: list(v) if isinstance(v, list) else v for k, v in _EVENTS.items()}
+
+
+def events_since(before: dict[str, Any]) -> dict[str, Any]:
+    """:func:`events` since the snapshot ``before``, with the cache directory (None: off)."""
+    now = events()
+    out = {k: now[k][len(before[k]):] if isinstance(now[k], list) else now[k] - before[k] for k in now}
+    out["dir"] = str(export_dir()) if export_dir() is not None else None
+    return out
 
 
 class _Lowered:
@@ -815,11 +1084,20 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
                 if traced is None:
                     return direct
                 (out_tree, exported, deps), artifact = traced, None
-                if directory is not None:
+                _event("traced")
+                if isinstance(deps, str):  # a frame the key cannot name: used, never saved
+                    _event("unsaved", deps)
+                elif directory is not None:
                     with contextlib.suppress(Exception):  # unwritable cache dir, no flatbuffers: use it unsaved
                         artifact = _save(directory / key, out_tree, exported, deps)
+                        _event("saved")
+                        for other in matching(directory / key):  # others matching: keyed incompletely
+                            if other != artifact:
+                                _remove(other)
+                                _event("removed")
             else:
                 _LOADED["count"] += 1
+                _event("loaded")
                 count("loaded")
                 out_tree, exported, artifact = found
             lowered = jax.jit(exported.call).lower(*leaves)
@@ -880,15 +1158,21 @@ def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
 
     if record:
         sys.settrace(tracer)
+    jitted = jax.jit(flat)
     try:
-        # every operation's whole call stack in its location: the roots of the dependencies
-        with _config.include_full_tracebacks_in_locations(True), _config.traceback_in_locations_limit(-1):
-            exported = export.export(jax.jit(flat), platforms=["cpu"])(*shapes)
+        exported = export.export(jitted, platforms=["cpu"])(*shapes)
     except Exception:  # noqa: BLE001 - the direct call that follows raises MJX's own error, if any
         return None
     finally:
         if record:
             sys.settrace(before)
-    deps = ({f"{m}:*": code_digest((m,)) for m in TRACED_MODULES} if mode == "code"
-            else dependencies(called, exported.mlir_module(), follow=mode == "functions"))
+    try:
+        # the jaxpr export just traced (JAX's trace cache: ~2 ms), for its operations' call stacks
+        codes = trace_codes(jitted.trace(*shapes).jaxpr) | called
+        deps: dict[str, str] | str = dependencies(codes, follow=mode == "functions")
+        if mode == "code":
+            deps = {**{f"{m}:*": code_digest((m,)) for m in TRACED_MODULES},
+                    **{k: v for k, v in deps.items() if k.startswith("@")}}
+    except Unaccounted as e:
+        deps = f"not saved: {e}"
     return out_tree[0], exported, deps

@@ -109,16 +109,16 @@ def test_dependencies_found_by_name_include_every_function_the_trace_ran(name, m
     scenario = load_scenario(name)
     m = load_model(scenario)
     inputs = make_inputs(scenario, m, seed=0, batch=2, steps=5)
-    seen = []
-    real = export_cache.dependencies
-    monkeypatch.setattr(export_cache, "dependencies", lambda called, text, follow=True: seen.append(
-        (set(called), text)) or real(called, text, follow))
+    seen, stacks = [], []
+    real, real_codes = export_cache.dependencies, export_cache.trace_codes
+    monkeypatch.setattr(export_cache, "dependencies", lambda codes, follow=True: seen.append(set(codes)) or real(codes, follow))
+    monkeypatch.setattr(export_cache, "trace_codes", lambda jaxpr: stacks.append(real_codes(jaxpr)) or stacks[-1])
     monkeypatch.setattr(export_cache, "export_dir", lambda: tmp_path)  # no artifact: traced here
     monkeypatch.setenv("MJXDIFF_DEPENDENCIES", "traced")
     _rollout(inputs)
-    [(called, text)] = seen
-    ran = set(real(called, text, follow=False))
-    found = real(set(), text, follow=True)
+    [codes], [on_stacks] = seen, stacks  # everything sys.settrace saw run, and the operations' stacks
+    ran = set(real(codes, follow=False))
+    found = real(on_stacks, follow=True)
     whole = {n.split(":")[0] for n in found if n.endswith(":*")}
     missing = {n for n in ran - set(found) if n.split(":")[0] not in whole} - _NOT_TRACED_CODE
     assert not missing, f"ran, but not found by name: {sorted(missing)}"
