@@ -308,6 +308,24 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--by-version", action="store_true", help="compare runs by MuJoCo/MJX version and code digest")
     view.add_argument("--runs", action="store_true", help="list the runs (id, time, versions, passes, failures)")
     hi.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
+    ca = sub.add_parser("cache", help="check the cache of traced MJX rollouts against the code loaded now",
+                        description="Verifies every saved MJX rollout (DIR/mjxdiff-exports) against the MJX and "
+                                    "mjxdiff code loaded now: which artifacts this code may load, which belong to "
+                                    "other code (kept: valid for that code), keys where more than one matches "
+                                    "(ambiguous: a sweep loads none of them), unreadable artifacts, files left "
+                                    "without their pair, directories of an older format, and bytes per model "
+                                    "structure. Exit 0 when everything can be trusted (or --fix removed what "
+                                    "could not), 1 when something cannot.",
+                        formatter_class=argparse.RawDescriptionHelpFormatter,
+                        epilog="examples:\n  python -m mjxdiff cache check\n"
+                               "  python -m mjxdiff cache check --fix --cache-dir .jax_cache")
+    ca.add_argument("action", choices=("check",), help="what to do (check)")
+    ca.add_argument("--fix", action="store_true",
+                    help="remove what cannot be trusted: every artifact of an ambiguous key, unreadable ones, "
+                         "orphaned files, older formats")
+    ca.add_argument("--cache-dir", metavar="DIR",
+                    help="the cache to check (default $MJXDIFF_CACHE or ~/.cache/mjxdiff/jax, as sweep)")
+    ca.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     sub.add_parser("list", help="list bundled scenarios and what each exercises",
                    description="List bundled scenarios with their model, size and what they exercise.")
     return parser
@@ -341,7 +359,7 @@ def _cmd_list() -> int:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from mjxdiff import engines, report
+    from mjxdiff import engines, export_cache, report
     from mjxdiff.scenario import ScenarioError, bundled_scenarios, load_scenario, no_bundled_scenarios_message
     from mjxdiff.sweep import SweepConfig, exit_code, sweep
     from mjxdiff.verdict import ScenarioResult
@@ -398,6 +416,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
             print(report.format_line(r) + (f" [known: {entry.id}]" if entry else ""), flush=True)
 
     t0 = time.perf_counter()
+    cache_before = export_cache.events()
     results = list(bad)
     if args.impl in ("mjx", "both"):
         results += sweep(scenarios, config, progress=args.progress, on_result=show)
@@ -419,6 +438,9 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     seconds = time.perf_counter() - t0
     doc = report.to_json(results, dict(vars(args), threshold=args.threshold, seconds=seconds,
                                        mjx_compiles=engines.compile_count()))
+    doc["code"]["cache"] = cache = export_cache.events_since(cache_before)
+    if args.format == "text":
+        print(report.format_cache(cache), file=sys.stderr)
     accepted = set()
     for sc in doc["scenarios"]:
         entry = known.match(sc, entries)
@@ -730,10 +752,45 @@ def _cmd_coverage(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_cache(args: argparse.Namespace) -> int:
+    from mjxdiff import engines, export_cache
+
+    if args.cache_dir == "":
+        print("mjxdiff: error: --cache-dir '' means no cache: nothing to check", file=sys.stderr)
+        return 2
+    engines.configure_jax("float64", args.cache_dir)
+    root = export_cache.export_dir()
+    if root is None or not root.is_dir():
+        print(f"mjxdiff: error: no saved MJX rollouts at {root} (a sweep with this --cache-dir makes them)",
+              file=sys.stderr)
+        return 2
+    found = export_cache.check(root, fix=args.fix)
+    untrusted = sum(len(found[k]) for k in ("ambiguous", "unreadable", "orphans", "old_format"))
+    if args.format == "json":
+        print(json.dumps(found, indent=2))
+    else:
+        print(f"cache {found['root']}: {found['artifacts']} artifacts of {found['structures']} model structures, "
+              f"{found['bytes'] / 2**20:.1f} MiB")
+        print(f"  {found['matching']} match the code loaded now, {found['other_code']} belong to other code (kept)")
+        for kind, what in (("ambiguous", "ambiguous (several match one key: a sweep loads none)"),
+                           ("unreadable", "unreadable"), ("orphans", "orphaned files (no pair, interrupted writes)"),
+                           ("old_format", "directories of an older format")):
+            print(f"  {len(found[kind])} {what}" + "".join(f"\n    {p}" for p in found[kind][:10]))
+        for key, st in sorted(found["per_structure"].items(), key=lambda kv: -kv[1]["bytes"])[:10]:
+            print(f"  {key[:16]}  {st['artifacts']} artifacts, {st['matching']} matching, {st['bytes'] / 2**20:.2f} MiB")
+        if args.fix:
+            print(f"removed {found['removed']} untrusted entries")
+        elif untrusted:
+            print("run 'mjxdiff cache check --fix' to remove what cannot be trusted")
+    return 0 if args.fix or not untrusted else 1
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "list":
         return _cmd_list()
+    if args.command == "cache":
+        return _cmd_cache(args)
     if args.command == "coverage":
         return _cmd_coverage(args)
     if args.command == "history":

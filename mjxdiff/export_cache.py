@@ -42,8 +42,8 @@ import jax
 import numpy as np
 from jax import export
 
-__all__ = ["bind", "call", "clear", "code_digest", "count", "evict", "export_dir", "fresh_digest", "loaded_count",
-           "rollout_digest", "settings_digest", "tally", "untraced"]
+__all__ = ["bind", "call", "check", "clear", "code_digest", "count", "events", "events_since", "evict", "export_dir",
+           "fresh_digest", "loaded_count", "rollout_digest", "settings_digest", "tally", "untraced"]
 
 # (arguments' key, whole-code digest, options key) -> (output tree structure, compiled call of an
 # Exported, what the options chose)
@@ -869,14 +869,15 @@ def _deps_hold(deps: dict[str, str]) -> bool:
 MAX_BYTES = 512 * 2**20
 
 
-def _load(path: Path):
+def _load(path: Path, touch: bool = True):
     try:
         out_tree, blob = pickle.loads(path.read_bytes())
         found = out_tree, export.deserialize(bytearray(blob))
     except Exception:  # noqa: BLE001 - unreadable or from another format: trace again and overwrite
         return None
-    with contextlib.suppress(OSError):
-        os.utime(path)  # recently used: evicted last
+    if touch:
+        with contextlib.suppress(OSError):
+            os.utime(path)  # recently used: evicted last
     return found
 
 
@@ -890,6 +891,8 @@ def _save(directory: Path, out_tree, exported, deps: dict[str, str]) -> Path:
     """Writes the artifact and, last, its dependencies (``<digest of deps>.jaxexport`` and
     ``.deps`` in ``directory``, the arguments' key): a reader only trusts complete pairs."""
     directory.mkdir(parents=True, exist_ok=True)
+    if not (directory / "FORMAT").exists():
+        _write(directory / "FORMAT", str(FORMAT).encode())  # what `mjxdiff cache check` trusts
     stem = hashlib.sha256(json.dumps(deps, sort_keys=True).encode()).hexdigest()[:32]
     path = directory / f"{stem}.jaxexport"
     _write(path, pickle.dumps((out_tree, bytes(exported.serialize()))))
@@ -971,6 +974,78 @@ def events_since(before: dict[str, Any]) -> dict[str, Any]:
     now = events()
     out = {k: now[k][len(before[k]):] if isinstance(now[k], list) else now[k] - before[k] for k in now}
     out["dir"] = str(export_dir()) if export_dir() is not None else None
+    return out
+
+
+def check(root: Path | None = None, fix: bool = False) -> dict[str, Any]:
+    """Verifies every artifact under ``root`` (default :func:`export_dir`) against the code loaded
+    now, importing the modules their dependencies name; with ``fix``, removes what cannot be
+    trusted: every artifact of an ambiguous key (more than one matches the code loaded now),
+    unreadable ones, files without their pair, interrupted writes, and structure directories
+    of an older format. Artifacts of other code are kept (they are valid for that code).
+
+    Returns ``dict(root, structures, artifacts, bytes, matching, other_code, ambiguous,
+    unreadable, orphans, old_format, removed, per_structure)``; the lists name files (paths
+    relative to ``root``), ``per_structure`` gives each key's artifacts, matches and bytes.
+    """
+    import importlib
+
+    root = Path(root) if root is not None else export_dir()
+    out: dict[str, Any] = dict(root=str(root), structures=0, artifacts=0, bytes=0, matching=0, other_code=0,
+                               ambiguous=[], unreadable=[], orphans=[], old_format=[], removed=0, per_structure={})
+    if root is None or not root.is_dir():
+        return out
+    rel = lambda p: str(p.relative_to(root))  # noqa: E731
+    bad: list[Path] = []
+    for directory in sorted(p for p in root.iterdir() if p.is_dir()):
+        files = sorted(p for p in directory.iterdir() if p.is_file())
+        size = sum(p.stat().st_size for p in files)
+        out["structures"] += 1
+        out["bytes"] += size
+        if not (directory / "FORMAT").exists() or (directory / "FORMAT").read_text().strip() != str(FORMAT):
+            out["old_format"].append(rel(directory))
+            bad.append(directory)
+            continue
+        stems = {p.stem for p in files if p.suffix in (".jaxexport", ".deps", ".cost")}
+        for p in files:
+            paired = all((directory / f"{p.stem}{suffix}").exists() for suffix in (".jaxexport", ".deps"))
+            if p.suffix == ".tmp" or (p.suffix in (".jaxexport", ".deps", ".cost") and not paired):
+                out["orphans"].append(rel(p))  # an interrupted write, or half of an evicted pair
+                bad.append(p)
+        pairs = [directory / f"{s}.jaxexport" for s in sorted(stems)
+                 if (directory / f"{s}.jaxexport").exists() and (directory / f"{s}.deps").exists()]
+        readable = []
+        for path in pairs:
+            deps = _read_deps(path.with_suffix(".deps"))
+            if deps is None or _load(path, touch=False) is None:
+                out["unreadable"].append(rel(path))
+                bad.append(path)
+                continue
+            for name in {n.split(":", 1)[0] for n in deps if not n.startswith("@")}:
+                with contextlib.suppress(Exception):  # a module this MJX lacks: that dependency fails
+                    importlib.import_module(name)
+            readable.append(path)
+        fresh_digest()  # the imports above may have changed the code loaded now
+        found = [p for p in matching(directory) if p in readable]
+        if len(found) > 1:
+            out["ambiguous"].extend(rel(p) for p in found)
+            bad.extend(found)
+        out["artifacts"] += len(readable)
+        out["matching"] += len(found)
+        out["other_code"] += len(readable) - len(found)
+        out["per_structure"][directory.name] = dict(artifacts=len(readable), matching=len(found), bytes=size)
+    if fix:
+        import shutil
+
+        for path in bad:
+            if path.is_dir():
+                shutil.rmtree(path, ignore_errors=True)
+            elif path.suffix in (".jaxexport", ".deps"):
+                _remove(path.with_suffix(".jaxexport"))
+            else:
+                with contextlib.suppress(OSError):
+                    path.unlink()
+            out["removed"] += 1
     return out
 
 

@@ -99,6 +99,21 @@ def code() -> dict[str, str]:
     return dict(mjx=export_cache.code_digest(), rollout=export_cache.rollout_digest())
 
 
+def format_cache(cache: dict[str, Any]) -> str:
+    """One line on what the cache of traced rollouts did in a run (:func:`mjxdiff.export_cache.events_since`):
+    how many were loaded instead of traced and from where, and any trace it could not save
+    or key it did not trust."""
+    if cache.get("dir") is None:
+        return f"cache: off ({cache.get('traced', 0)} MJX rollouts traced)"
+    line = f"cache: {cache['loaded']} MJX rollouts loaded from {cache['dir']}, {cache['traced']} traced"
+    if cache["unsaved"]:
+        line += f"; {len(cache['unsaved'])} not saved ({cache['unsaved'][0]})"
+    if cache["ambiguous"]:
+        line += (f"; {len(cache['ambiguous'])} ambiguous keys traced afresh (run 'mjxdiff cache check'),"
+                 f" {cache['removed']} untrusted artifacts removed")
+    return line
+
+
 def to_json(results: Sequence[ScenarioResult], config: dict[str, Any]) -> dict[str, Any]:
     """The whole report as a JSON-ready dict."""
     return _clean(dict(

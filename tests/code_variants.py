@@ -12,7 +12,7 @@ without touching the installed files, the way users and developers do.
 - ``mismatch``: ``smooth.py`` edited and compiled under a file name that is not its module's
   ``__file__`` (``co_filename`` points into the workspace, ``__file__`` at the installed file).
 
-:func:`apply` installs one variant in this process (once per process: a variant is not undone).
+:func:`apply` installs one variant in this process and returns what undoes it.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import importlib.util
 import sys
 import types
 from pathlib import Path
+from typing import Callable
 
 VARIANTS = ("clean", "copy", "copy2", "patch", "mismatch")
 
@@ -39,23 +40,29 @@ def fwd_actuation(m, d):
 '''
 
 
-def _rebind(name: str, new: types.ModuleType, register: bool) -> None:
+def _setattr(undo: list, owner, attr: str, value) -> None:
+    undo.append((owner, attr, getattr(owner, attr)))
+    setattr(owner, attr, value)
+
+
+def _rebind(name: str, new: types.ModuleType, register: bool, undo: list) -> None:
     """Points every MJX module that imported module ``name`` (or its functions) at ``new``; with
     ``register``, ``sys.modules`` too (else the installed module stays there, unused)."""
     old = sys.modules[name]
     if register:
+        undo.append((sys.modules, name, old))
         sys.modules[name] = new
         parent, _, leaf = name.rpartition(".")
-        setattr(sys.modules[parent], leaf, new)
+        _setattr(undo, sys.modules[parent], leaf, new)
     for mod_name, module in list(sys.modules.items()):
         if module is None or not mod_name.startswith("mujoco.mjx") or module in (new, old):
             continue
         for attr, value in list(vars(module).items()):
             if value is old:
-                setattr(module, attr, new)
+                _setattr(undo, module, attr, new)
             elif getattr(value, "__module__", None) == name and hasattr(new, getattr(value, "__name__", "")):
                 if callable(value) and not isinstance(value, type):
-                    setattr(module, attr, getattr(new, value.__name__))
+                    _setattr(undo, module, attr, getattr(new, value.__name__))
 
 
 def _load_copy(name: str, source: str, code_file: Path, module_file: Path) -> types.ModuleType:
@@ -74,31 +81,39 @@ def _edited(module_name: str, old: str, new: str) -> str:
     return source.replace(old, new)
 
 
-def apply(variant: str, workspace: Path) -> None:
-    """Installs ``variant`` (one of :data:`VARIANTS`) in this process, its files under ``workspace``."""
+def apply(variant: str, workspace: Path) -> Callable[[], None]:
+    """Installs ``variant`` (one of :data:`VARIANTS`) in this process, its files under
+    ``workspace``; returns a function that undoes it."""
     from mujoco.mjx._src import forward, passive, smooth  # noqa: F401 - imported so they can be replaced
 
-    workspace = Path(workspace)
-    if variant == "clean":
-        return
+    workspace, undo = Path(workspace), []
     if variant in ("copy", "copy2"):
         factor = "1.05" if variant == "copy" else "1.10"
         name = "mujoco.mjx._src.passive"
         source = _edited(name, _PASSIVE_OLD, f"qfrc -= m.dof_damping * d.qvel * {factor}")
         path = workspace / "passive.py"  # the same workspace file for both edits
-        _rebind(name, _load_copy(name, source, path, path), register=False)
+        _rebind(name, _load_copy(name, source, path, path), register=False, undo=undo)
     elif variant == "patch":
         path = workspace / "mjx_patches.py"
+        path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(PATCHES)
         spec = importlib.util.spec_from_file_location("mjx_patches", path)
         patches = importlib.util.module_from_spec(spec)
-        sys.modules["mjx_patches"] = patches
         spec.loader.exec_module(patches)
-        forward.fwd_actuation = patches.fwd_actuation
+        _setattr(undo, forward, "fwd_actuation", patches.fwd_actuation)
     elif variant == "mismatch":
         name = "mujoco.mjx._src.smooth"
         source = _edited(name, _SMOOTH_OLD, "d = d.replace(qfrc_bias=1.02 * qfrc_bias)")
         installed = Path(sys.modules[name].__file__)
-        _rebind(name, _load_copy(name, source, workspace / "elsewhere" / "smooth_edit.py", installed), register=True)
-    else:
+        _rebind(name, _load_copy(name, source, workspace / "elsewhere" / "smooth_edit.py", installed),
+                register=True, undo=undo)
+    elif variant != "clean":
         raise ValueError(f"unknown variant {variant!r}; one of {', '.join(VARIANTS)}")
+
+    def restore() -> None:
+        for owner, attr, value in reversed(undo):
+            if owner is sys.modules:
+                sys.modules[attr] = value
+            else:
+                setattr(owner, attr, value)
+    return restore
