@@ -129,7 +129,8 @@ def render(doc: dict[str, Any], out_dir: str | Path | None = None, plots: str = 
         total = sum(x for k, x in secs.items() if k != "compiled_ahead" and isinstance(x, (int, float)))
         ch = changes.get(sc["name"], {})
         parts.append(f"<tr><td><a href='#{_e(sc['name'])}'>{_e(sc['name'])}</a></td>"
-                     f"<td class='{_e(sc['status'])}'>{_e(sc['status'])}</td><td>{_e(sc.get('known', {}).get('id', ''))}"
+                     f"<td class='{_e(sc['status'])}'>{_e(sc['status'])}{' (weak)' if sc.get('weak') else ''}</td>"
+                     f"<td>{_e(sc.get('known', {}).get('id', ''))}"
                      f"</td><td>{_e(ch.get('change', ''))}</td><td>{_e(worst[0] or '')}</td>"
                      f"<td>{_num(worst[1].get('ratio')):.3g}</td><td>{_e(worst[1].get('first_step', ''))}</td>"
                      f"<td>{total:.2f}</td><td>{_num(secs.get('compile')):.2f}</td></tr>")

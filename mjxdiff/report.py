@@ -17,7 +17,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any, Sequence
 
-from mjxdiff.verdict import ScenarioResult
+from mjxdiff.verdict import WEAK_BOUND, ScenarioResult
 
 __all__ = ["SCHEMA_VERSION", "code", "summary", "to_json", "format_text", "write_report", "versions", "safe_filename",
            "path_under"]
@@ -55,8 +55,12 @@ def summary(results: Sequence[ScenarioResult], threshold: float) -> dict[str, An
     word what was found: ``consistent``, ``divergent`` (some fail), ``error`` or
     ``input-error``. ``adjusted`` counts scenarios whose model mjxdiff changed
     so that MJX could run it (:mod:`mjxdiff.adjust`), whatever their status.
+    ``weak`` counts passes whose bound was wider than :data:`~mjxdiff.verdict.WEAK_BOUND` of
+    a field's scale (:attr:`~mjxdiff.verdict.ScenarioResult.weak`): they could not have seen
+    a bug of that size.
     """
     counts = {s: sum(r.status == s for r in results) for s in ("pass", "fail", "unsupported")}
+    counts["weak"] = sum(r.status == "pass" and bool(r.weak) for r in results)
     counts["error"] = sum(r.status == "error" and r.error_kind != "input" for r in results)
     counts["input_error"] = sum(r.status == "error" and r.error_kind == "input" for r in results)
     counts["adjusted"] = sum(bool(r.info.get("adjusted")) for r in results)
@@ -192,7 +196,8 @@ def format_text(results: Sequence[ScenarioResult], threshold: float, seconds: fl
     lines = [format_line(r) for r in results]
     inputs = f", {s['input_error']} input error" if s["input_error"] else ""
     inputs += f" ({s['adjusted']} adjusted for MJX)" if s["adjusted"] else ""
-    lines.append(f"{s['total']} scenarios{tail}: {s['pass']} pass, {s['fail']} fail, "
+    weak = f" ({s['weak']} weak: bound over {WEAK_BOUND:.0%} of the field's scale)" if s["weak"] else ""
+    lines.append(f"{s['total']} scenarios{tail}: {s['pass']} pass{weak}, {s['fail']} fail, "
                  f"{s['unsupported']} unsupported, {s['error']} error{inputs}; "
                  f"pass rate {s['pass_rate']:.0%} -> {verdict}")
     return "\n".join(lines)

@@ -44,6 +44,9 @@ STATUSES = ("pass", "fail", "unsupported", "error")
 OUTLIER_RATIO = 100.0
 #: Most rows of a field's kept error series (:attr:`FieldResult.series`).
 SERIES_POINTS = 256
+#: A field whose bound at the median step exceeds this fraction of the field's own scale
+#: (:attr:`FieldResult.bound_scale`) could not have seen a bug of that size: its pass is weak.
+WEAK_BOUND = 0.01
 
 
 def downsample(error: np.ndarray, bound: np.ndarray, most: int = SERIES_POINTS) -> tuple[tuple[int, float, float], ...]:
@@ -82,6 +85,12 @@ class FieldResult:
         rows ``(step, batch-max error, batch-max bound)``; each row covers the steps from its
         own to the next row's, error and bound taken as their maxima there (peaks survive).
         Empty for fraction fields (``contacts``, ``rangefinder``).
+      scale: the field's own size in its error's units: RMS of C's values over healthy
+        members, steps and components (``sensordata``: of min(|value|, 1), its errors being
+        relative above 1); 0 when there is nothing to measure.
+      bound_scale: (tightest, median) over steps of the batch-max bound / ``scale``: how large
+        a difference the check could still have passed, relative to the field. Above
+        :data:`WEAK_BOUND` at the median step the field is :attr:`weak`.
     """
 
     field: str
@@ -95,15 +104,24 @@ class FieldResult:
     ratio: float = 0.0
     floor: str = "tolerance"
     series: tuple[tuple[int, float, float], ...] = ()
+    scale: float = 0.0
+    bound_scale: tuple[float, float] = (0.0, 0.0)
 
     @property
     def ok(self) -> bool:
         return self.first_step < 0 and bool(np.isfinite(self.max_error))
 
+    @property
+    def weak(self) -> bool:
+        """Whether the bound at the median step exceeds :data:`WEAK_BOUND` of the field's scale."""
+        return self.scale > 0 and self.bound_scale[1] > WEAK_BOUND
+
 
 @dataclasses.dataclass(frozen=True)
 class ScenarioResult:
-    """The verdict on one scenario, with everything the report shows."""
+    """The verdict on one scenario, with everything the report shows; ``weak`` names the fields
+    of a pass whose bound was too wide to see a bug of a percent of their scale
+    (:attr:`FieldResult.weak`)."""
 
     name: str
     status: str
@@ -119,6 +137,7 @@ class ScenarioResult:
     threshold: float | None = None
     noise_rate: dict[str, float] = dataclasses.field(default_factory=dict)
     diagnosis: dict[str, Any] = dataclasses.field(default_factory=dict)
+    weak: tuple[str, ...] = ()
 
     def field(self, name: str) -> FieldResult:
         return next(f for f in self.fields if f.field == name)
@@ -190,14 +209,20 @@ class _FieldTrack:
         self.last_bound = np.full(batch, tol)
         self.batch_max = np.zeros(steps)
         self.batch_bound = np.zeros(steps)
+        self.sumsq, self.count = 0.0, 0
 
     def update(self, err: np.ndarray, bound: np.ndarray, time: np.ndarray, start: int, members: np.ndarray,
-               healthy: np.ndarray, floor: np.ndarray | None = None) -> None:
+               healthy: np.ndarray, floor: np.ndarray | None = None, values: np.ndarray | None = None) -> None:
         """Adds (b, K, n) errors against (b, K) bounds; ``floor`` (b, K) says which of
-        :data:`FLOORS` each bound is (the tolerance when None)."""
+        :data:`FLOORS` each bound is (the tolerance when None); ``values`` (b, K, m) are C's
+        values in the error's units, for the field's scale."""
         self.width = err.shape[-1]
         if self.width == 0:
             return
+        if values is not None and values.size:
+            kept = np.where(healthy[:, None, None] & np.isfinite(values), values, 0.0)
+            self.sumsq += float(np.sum(kept ** 2))
+            self.count += int(healthy.sum()) * values.shape[1] * values.shape[2]
         rows, K = np.arange(err.shape[0]), err.shape[1]
         per_step = err.max(axis=2)
         with np.errstate(invalid="ignore"):  # inf / inf where a blown-up member's envelope is infinite
@@ -239,10 +264,14 @@ class _FieldTrack:
             comp, floor = int(self.ratio_comp[member]), int(self.ratio_floor[member])
         growth = metrics.error_growth(jnp.asarray(self.batch_max), dt)
         envelope = float(np.where(healthy, self.last_bound, 0.0).max()) if self.above_tol else 0.0
+        scale = float(np.sqrt(self.sumsq / self.count)) if self.count else 0.0
+        sharp = (0.0, 0.0)
+        if scale > 0 and len(self.batch_bound):
+            sharp = (float(self.batch_bound.min() / scale), float(np.median(self.batch_bound) / scale))
         return FieldResult(field, float(np.where(healthy, self.max_error, 0.0).max()), self.tol, step, member,
                            objects[comp] if objects else "", float(growth.rate), envelope,
                            float(np.where(healthy, self.max_ratio, 0.0).max()), FLOORS[floor],
-                           downsample(self.batch_max, self.batch_bound))
+                           downsample(self.batch_max, self.batch_bound), scale, sharp)
 
 
 class _FractionTrack:
@@ -431,7 +460,10 @@ class Judge:
             if envelope is not None:
                 floor = np.where(envelope[key] > tol, source[key] if source is not None else 1, 0)
                 bound = np.maximum(bound, envelope[key])
-            track.update(series[key], bound, traj_c.time, start, members, healthy, floor)
+            values = np.asarray(getattr(traj_c, key))
+            if key == "sensordata":  # its errors are relative above 1
+                values = np.minimum(np.abs(values), 1.0)
+            track.update(series[key], bound, traj_c.time, start, members, healthy, floor, values)
         # a step whose counts differ at all, as metrics.contact_mismatch(atol=0) counts it
         self.contacts.update(np.asarray(metrics.exceeds(series["ncon"], 0), float), traj_c.time, start, members)
         if self.rf_mask.any():
@@ -490,7 +522,7 @@ class Judge:
             d0 = min((d for d in diverged if d["engine"] == "c"), key=lambda d: d["step"])
             unstable_c = (f"MuJoCo C itself goes non-finite or unstable in {int(c_bad.sum())} member(s) (first: "
                           f"member {d0['member']} at step {d0['step']}, t={d0['time']:g} s)")
-        kind = ""
+        kind, weak = "", ()
         if mjx_bad.any():
             status = "fail"
             d0 = min((d for d in diverged if d["engine"] == "mjx"), key=lambda d: d["step"])
@@ -520,6 +552,11 @@ class Judge:
             status = "pass"
             message = f"worst {worst.field} {worst.max_error:.2g} (tol {worst.tolerance:.0e}"
             message += f", envelope {worst.envelope:.1e})" if worst.envelope else ")"
+            weak = tuple(f.field for f in fields if f.weak)
+            if weak:
+                loosest = max((f for f in fields if f.weak), key=lambda f: f.bound_scale[1])
+                message += (f"; weak: the {loosest.field} bound is {loosest.bound_scale[1]:.2g}x its scale "
+                            f"{loosest.scale:.2g} at the median step (a difference that large would pass)")
             if member_fails.any():
                 message += (f"; {int(member_fails.sum())}/{int(judged.sum())} members out of tolerance, "
                             f"pass rate {pass_rate:.0%}")
@@ -527,6 +564,7 @@ class Judge:
             message += f"; not judged: {unstable_c}"
         return ScenarioResult(
             name=name, status=status, message=message, error_kind=kind, fields=tuple(fields),
+            weak=weak,
             first_divergence=first, diverged_members=tuple(diverged),
             behaviour=self._behaviour(healthy), tolerances=tol.as_dict(),
             pass_rate=float(pass_rate), threshold=threshold,

@@ -219,3 +219,31 @@ def test_one_member_far_out_of_bound_fails_whatever_the_pass_rate(lidar, factor,
     if status == "fail":
         assert result.first_divergence["member"] == 2 and result.first_divergence["step"] == 23
         assert "member 2 is 1e+04x its bound: an outlier" in result.message
+
+
+def test_a_pass_says_how_sharp_its_bound_was(lidar):
+    """Bound relative to the field's own scale (RMS of C's values): the fixed tolerance is sharp;
+    an envelope wide enough to pass a difference of half the field's size is a weak pass,
+    named on the line and counted in the summary; the same error against that bound, sharp
+    or not, is judged the same way."""
+    from mjxdiff.report import format_text, summary
+    from mjxdiff.verdict import WEAK_BOUND
+
+    scenario, m, _, traj_c, _ = lidar
+    tol = scenario.tolerance
+    sharp = judge("lidar", m, traj_c, traj_c, tol)
+    qpos = sharp.field("qpos")
+    assert qpos.scale == pytest.approx(np.sqrt(np.mean(np.asarray(traj_c.qpos) ** 2)), rel=1e-9)
+    assert qpos.bound_scale == pytest.approx((tol.qpos / qpos.scale,) * 2)
+    assert sharp.status == "pass" and not sharp.weak and "weak" not in sharp.message
+
+    j = Judge(m, tol, *traj_c.time.shape)
+    wide = {key: np.full(traj_c.time.shape, 0.5 * qpos.scale) for key in ("qpos", "qvel", "act", "sensordata")}
+    shifted = dataclasses.replace(traj_c, qpos=traj_c.qpos + 0.1 * qpos.scale)  # 10% of the scale: passes 50%
+    j.update(traj_c, shifted, wide)
+    weak = j.result("lidar")
+    assert weak.status == "pass" and "qpos" in weak.weak
+    assert weak.field("qpos").bound_scale[1] == pytest.approx(0.5) and weak.field("qpos").weak
+    assert f"weak: the" in weak.message and "bound is" in weak.message
+    assert summary([sharp, weak], 0.95)["weak"] == 1
+    assert f"2 pass (1 weak: bound over {WEAK_BOUND:.0%}" in format_text([sharp, weak], 0.95)
