@@ -614,13 +614,12 @@ def _foreign_key(code: types.CodeType, qualname: str | None = None) -> str:
 
 def _live_functions(keys: set[str]) -> dict[str, list[types.FunctionType]]:
     """``@file:qualname`` -> the live functions of that code's file and qualified name (one pass
-    over the objects the garbage collector tracks, after a collection, ~0.1-0.3 s; only traces that ran code outside
+    over the objects the garbage collector tracks, ~0.1-0.2 s; only traces that ran code outside
     TRACED_MODULES and the ignored packages need it)."""
     import gc
 
     out: dict[str, list[types.FunctionType]] = {}
-    if keys:
-        gc.collect()  # a dead patch's function is not code that can run
+    if keys:  # no gc.collect() (~0.5 s): a dead function not yet collected only makes a key stricter
         files = {k[1:].rsplit(":", 1)[0] for k in keys}
         for obj in gc.get_objects():
             if type(obj) is types.FunctionType and obj.__code__.co_filename in files:
@@ -927,6 +926,19 @@ def matching(directory: Path) -> list[Path]:
             if all(_holds(n, d, live) for n, d in deps.items() if n.startswith("@"))]
 
 
+def _also_matching(directory: Path, saved: Path, deps: dict[str, str]) -> list[Path]:
+    """The artifacts of ``directory`` besides ``saved`` (just traced, with ``deps``) that the code
+    loaded now may run too; without a pass over live functions: code from other files counts as
+    matching only where ``deps`` names it with the same digest (else the artifact is left for
+    the next :func:`matching` to judge)."""
+    out = []
+    for p in sorted(directory.glob("*.deps")):
+        other = _read_deps(p) if p.with_suffix(".jaxexport") != saved else None
+        if other and all(deps.get(n) == d if n.startswith("@") else _holds(n, d) for n, d in other.items()):
+            out.append(p.with_suffix(".jaxexport"))
+    return out
+
+
 def _remove(path: Path) -> None:
     for part in (path.with_suffix(".deps"), path, path.with_suffix(".cost")):
         with contextlib.suppress(OSError):
@@ -1166,10 +1178,9 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
                     with contextlib.suppress(Exception):  # unwritable cache dir, no flatbuffers: use it unsaved
                         artifact = _save(directory / key, out_tree, exported, deps)
                         _event("saved")
-                        for other in matching(directory / key):  # others matching: keyed incompletely
-                            if other != artifact:
-                                _remove(other)
-                                _event("removed")
+                        for other in _also_matching(directory / key, artifact, deps):  # keyed incompletely
+                            _remove(other)
+                            _event("removed")
             else:
                 _LOADED["count"] += 1
                 _event("loaded")
