@@ -67,3 +67,15 @@ def test_a_wrong_constraint_force_at_a_converged_solver_still_fails(tmp_path, fr
     assert result.info["solver_floor"]["first_stage"] == "constraint"
     assert result.info["solver_floor"]["status"] == "fail", "the solver floor was consulted and does not explain it"
     assert "qfrc_constraint" in result.message and result.first_divergence["step"] < 5
+
+
+def test_a_one_iteration_quadruped_passes_only_weakly(repo_root):
+    """Robots are shipped tuned for speed (iterations=1, ls_iterations=5, implicitfast, elliptic
+    cone, position actuators, free base). Unmodified MJX and C end up radians apart there, within
+    C's own solver freedom; such a pass could not have seen a bug, and says so."""
+    scenario = load_scenario(str(repo_root / "tests" / "data" / "quadruped_1iter.xml"))
+    result = run_scenario(scenario, SweepConfig(seed=0, diagnose="none"))
+    assert result.status == "pass" and "within C's own solver freedom" in result.message, result.message
+    assert result.field("qpos").max_error > 0.1, "the trajectories part far"
+    assert {"qpos", "qvel"} <= set(result.weak) and "; weak: the" in result.message
+    assert result.field("qvel").bound_scale[1] > 1, "the bound is larger than the motion itself"
