@@ -133,6 +133,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="remove geom pairs MJX cannot collide (e.g. cylinder-box) from the model both engines "
                          "step and test the rest; changes the dynamics, so it is never the default and every "
                          "dropped pair is listed in the result")
+    sw.add_argument("--onestep", action=argparse.BooleanOptionalAction, default=True,
+                    help="when a pass is weak (its bound over 1%% of a field's scale: a chaos envelope or solver "
+                         "floor as large as the motion), check MJX one step at a time from C's states with a "
+                         "converged solver in both, bounded by C's own rounding; it can fail the scenario "
+                         "(default on)")
     sw.add_argument("--transfer", action=argparse.BooleanOptionalAction, default=True,
                     help="also check MJX's host interface against C at two C states of each scenario "
                          "(default): get_data(put_data(d)) gives C's fields and penetrating contacts back, "
@@ -392,7 +397,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
                          quick=args.quick, threshold=args.threshold, envelope=args.envelope,
                          noise_floor=args.noise_floor, diagnose=args.diagnose, adjust=args.adjust,
                          drop_unsupported=args.drop_unsupported, compile=args.compile,
-                         compile_workers=args.compile_workers, transfer=args.transfer)
+                         compile_workers=args.compile_workers, transfer=args.transfer,
+                         onestep=args.onestep)
     scenarios, bad = [], []
     try:
         refs = args.scenarios or [s.name for s in bundled_scenarios()]

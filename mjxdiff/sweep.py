@@ -21,7 +21,7 @@ import jax
 import mujoco
 import numpy as np
 
-from mjxdiff import adjust, diagnose, engines, export_cache, report, reproducer, transfer
+from mjxdiff import adjust, diagnose, engines, export_cache, onestep, report, reproducer, transfer
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
 from mjxdiff.inputs import BatchedInputs, make_inputs
 from mjxdiff.scenario import Scenario, ScenarioError, Tolerances, load_model
@@ -75,6 +75,10 @@ class SweepConfig:
       transfer: also check MJX's host interface (``put_data``, ``get_data``,
         ``get_state``/``set_state``, names, ``bind``) against C at two C states of member 0
         (:mod:`mjxdiff.transfer`); a mismatch fails the scenario as field ``transfer``.
+      onestep: when a pass is weak (its bound as large as the motion, :attr:`ScenarioResult.weak`),
+        the one-step check (:mod:`mjxdiff.onestep`): from states of C's rollout, one step in
+        both engines with a converged solver, bounded by C's own rounding; it can fail the
+        scenario on its own (``info['onestep']``).
       impl: the implementation judged against C: ``mjx`` or ``warp`` (MuJoCo Warp on the
         CPU, :mod:`mjxdiff.mjwarp`; float32, so ``precision`` becomes ``float32``: tolerance
         floors, the perturbation of C's rerun and the metrics are float32's; no host-interface
@@ -101,6 +105,7 @@ class SweepConfig:
     compile: str = "auto"
     compile_workers: int | None = None
     transfer: bool = True
+    onestep: bool = True
     impl: str = "mjx"
     reference: str = "c"
 
@@ -572,6 +577,8 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
                                                                      c_engine, clock)
     if result.status == "fail" and config.diagnose != "none":
         result = _diagnose(result, m, inputs, tol, config, mjx_engine, c_engine, traj_c, drill)
+    if result.status == "pass" and result.weak and config.onestep and config.reference == "c":
+        result, info["onestep"] = _onestep(result, m, inputs, tol, config, mjx_engine, c_engine, traj_c)
     seconds.update(c=clock.get("c", 0.0), mjx=clock.get("mjx", 0.0), verdict=clock.get("verdict", 0.0),
                    diagnosis=time.perf_counter() - t)
     if counts.get("xla") is not None:
@@ -629,6 +636,45 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
                f"{first['step']} {where} and stays within {SOLVER_MARGIN:g}x C's divergence from its converged self"
                + (f" (solver floor bounds {', '.join(held)})" if held else ""))
     return dataclasses.replace(second, message=message), traj_c, drill, check
+
+
+def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
+             mjx_engine: MJXEngine, c_engine: CEngine, traj_c: Trajectory | None) -> tuple[ScenarioResult, dict]:
+    """A weak pass judged again by :func:`mjxdiff.onestep.check`: a failure there fails the
+    scenario, naming the field, object, step and (from the stage drill-down at that state, with
+    a converged solver) the first stage and field that differ. Never raises."""
+    try:
+        traj_c = traj_c if traj_c is not None else c_engine.rollout(inputs)
+        found = onestep.check(m, inputs, traj_c, tol, mjx_engine, c_engine, config.precision)
+    except UnsupportedError:
+        raise
+    except Exception as e:  # noqa: BLE001 - the rollout's verdict stands
+        return dataclasses.replace(result, message=f"{result.message}; one-step check could not run: "
+                                                   f"{_one_line(e)}"), dict(status="error", message=_one_line(e))
+    if found["status"] == "error":
+        return dataclasses.replace(result, message=f"{result.message}; one-step check: {found['message']}"), found
+    n = found["pairs"]
+    if found["status"] == "pass":
+        message = (f"{result.message}; one-step check (C's states, one step, converged solver in both; {n} "
+                   f"member-states): pass, worst {found['field']} at {found['ratio']:.2g} of its bound")
+        return dataclasses.replace(result, message=message), found
+    member, step = found["member"], found["step"]
+    where = ""
+    with contextlib.suppress(Exception):  # the verdict stands without its drill-down
+        row = int(np.flatnonzero(inputs.ids == member)[0])
+        drill = diagnose.drill_down(converged(inputs.take([row])).models[0],
+                                    *diagnose.state_before(inputs, traj_c, row, step),
+                                    precision=config.precision, member=member, step=step, impl=mjx_engine.name)
+        found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object)
+        where = (f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
+                 if drill.first_stage else "; every forward stage agrees (the difference is in the integration)")
+    message = (f"one-step check: {found['field']} of {found['object'] or 'member ' + str(member)} after step "
+               f"{step} from C's state, member {member}, converged solver in both: error {found['error']:.3g}, "
+               f"bound {found['bound']:.3g} ({found['ratio']:.3g}x){where}; the rollout alone passed only weakly "
+               f"({result.message})")
+    first = dict(field=found["field"], step=step, time=None, member=member, object=found["object"],
+                 error=found["error"], tolerance=found["bound"], check="onestep")
+    return dataclasses.replace(result, status="fail", message=message, first_divergence=first), found
 
 
 def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,

@@ -1,0 +1,107 @@
+"""The one-step check: MJX put in C's state and stepped once beside C, converged solver in both,
+bounded by C's own rounding. Sharp where the rollout is not: on a quadruped tuned for speed (one
+solver iteration) unmodified MJX stays far inside its bound while injected bugs of several
+kinds exceed it by orders of magnitude, each named by field and step."""
+
+import numpy as np
+import pytest
+from mujoco.mjx._src import forward as mjx_forward
+from mujoco.mjx._src import passive as mjx_passive
+from mujoco.mjx._src import smooth as mjx_smooth
+from mujoco.mjx._src import solver as mjx_solver
+
+from mjxdiff import onestep
+from mjxdiff.engines import CEngine, MJXEngine
+from mjxdiff.inputs import make_inputs
+from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.sweep import SweepConfig, run_scenario
+
+
+@pytest.fixture(scope="module")
+def quadruped(repo_root):
+    scenario = load_scenario(str(repo_root / "tests" / "data" / "quadruped_1iter.xml"))
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, seed=0, batch=4, steps=120)
+    return scenario, m, inputs, CEngine().rollout(inputs)
+
+
+def _check(quadruped):
+    scenario, m, inputs, traj_c = quadruped
+    return onestep.check(m, inputs, traj_c, scenario.tolerance, MJXEngine(), CEngine())
+
+
+def test_states_are_the_first_steps_the_busiest_and_the_fastest(quadruped):
+    _, _, inputs, traj_c = quadruped
+    steps = onestep.sample_steps(traj_c)
+    assert steps[0] == -1 and {0, 1} <= set(steps) and len(steps) <= onestep.STATES + 1
+    assert steps.max() <= inputs.steps - 2
+    assert int(np.asarray(traj_c.ncon).max(axis=0)[:-1].argmax()) in steps
+
+
+def test_one_step_inputs_start_from_cs_states_with_a_converged_solver(quadruped):
+    _, _, inputs, traj_c = quadruped
+    steps = np.array([-1, 5])
+    one = onestep.one_step_inputs(inputs, traj_c, steps)
+    assert one.batch == 2 * inputs.batch and one.steps == 1
+    np.testing.assert_array_equal(one.qpos[0], inputs.qpos[0])  # member 0, initial state
+    np.testing.assert_array_equal(one.qvel[3], traj_c.qvel[1, 5])  # member 1, after step 5
+    np.testing.assert_array_equal(one.ctrl[3, 0], inputs.ctrl[1, 6])  # with step 6's control
+    assert all(mi.opt.iterations == 200 and mi.opt.tolerance == 1e-14 for mi in one.models)
+    assert inputs.models[0].opt.iterations == 1, "the scenario's own models are untouched"
+
+
+def test_unmodified_mjx_is_far_inside_its_bound(quadruped, fresh_mjx):
+    found = _check(quadruped)
+    assert found["status"] == "pass" and found["ratio"] < 0.05, found
+    assert found["pairs"] == 4 * len(found["states"])
+
+
+def _gain(monkeypatch):
+    orig = mjx_forward.fwd_actuation
+    monkeypatch.setattr(mjx_forward, "fwd_actuation",
+                        lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
+
+
+def _damping(monkeypatch):
+    orig = mjx_passive._spring_damper
+    monkeypatch.setattr(mjx_passive, "_spring_damper", lambda m, d: orig(m, d) * 1.01)
+
+
+def _constraint_force(monkeypatch):
+    orig = mjx_solver.solve
+
+    def buggy(m, d):
+        d = orig(m, d)
+        extra = 0.01 * d.qfrc_constraint
+        return d.replace(qfrc_constraint=d.qfrc_constraint + extra, qacc=d.qacc + mjx_smooth.solve_m(m, d, extra))
+    monkeypatch.setattr(mjx_solver, "solve", buggy)
+
+
+def _friction(monkeypatch):
+    orig = mjx_forward.fwd_position
+    monkeypatch.setattr(mjx_forward, "fwd_position", lambda m, d: orig(m.replace(geom_friction=m.geom_friction * 0.9), d))
+
+
+def _inertia(monkeypatch):
+    orig = mjx_smooth.com_pos  # the composite inertias (cinert) of 1% heavier bodies
+    monkeypatch.setattr(mjx_smooth, "com_pos", lambda m, d: orig(m.replace(body_mass=m.body_mass * 1.01), d))
+
+
+@pytest.mark.parametrize("bug", [_gain, _damping, _constraint_force, _friction, _inertia],
+                         ids=["actuator gain", "passive damping", "constraint force", "friction", "inertia"])
+def test_injected_bugs_exceed_the_bound_by_orders_of_magnitude(quadruped, bug, monkeypatch, fresh_mjx):
+    bug(monkeypatch)
+    found = _check(quadruped)
+    assert found["status"] == "fail" and found["ratio"] > 10, found
+    assert found["field"] in ("qpos", "qvel") and found["object"].startswith("joint ")
+    assert 0 <= found["step"] < quadruped[2].steps
+
+
+def test_a_weak_pass_carries_the_one_step_verdict(repo_root):
+    scenario = load_scenario(str(repo_root / "tests" / "data" / "quadruped_1iter.xml"))
+    result = run_scenario(scenario, SweepConfig(seed=0, diagnose="none"))
+    assert result.status == "pass" and result.weak
+    assert result.info["onestep"]["status"] == "pass" and result.info["onestep"]["ratio"] < 0.05
+    assert "one-step check (C's states, one step, converged solver in both" in result.message
+    off = run_scenario(scenario, SweepConfig(seed=0, diagnose="none", onestep=False))
+    assert "onestep" not in off.info and "one-step" not in off.message
