@@ -646,8 +646,6 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
     try:
         traj_c = traj_c if traj_c is not None else c_engine.rollout(inputs)
         found = onestep.check(m, inputs, traj_c, tol, mjx_engine, c_engine, config.precision)
-    except UnsupportedError:
-        raise
     except Exception as e:  # noqa: BLE001 - the rollout's verdict stands
         return dataclasses.replace(result, message=f"{result.message}; one-step check could not run: "
                                                    f"{_one_line(e)}"), dict(status="error", message=_one_line(e))
@@ -672,7 +670,8 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
                f"{step} from C's state, member {member}, converged solver in both: error {found['error']:.3g}, "
                f"bound {found['bound']:.3g} ({found['ratio']:.3g}x){where}; the rollout alone passed only weakly "
                f"({result.message})")
-    first = dict(field=found["field"], step=step, time=None, member=member, object=found["object"],
+    first = dict(field=found["field"], step=step, time=round((step + 1) * float(m.opt.timestep), 9), member=member,
+                 object=found["object"],
                  error=found["error"], tolerance=found["bound"], check="onestep")
     return dataclasses.replace(result, status="fail", message=message, first_divergence=first), found
 

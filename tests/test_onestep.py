@@ -105,3 +105,20 @@ def test_a_weak_pass_carries_the_one_step_verdict(repo_root):
     assert "one-step check (C's states, one step, converged solver in both" in result.message
     off = run_scenario(scenario, SweepConfig(seed=0, diagnose="none", onestep=False))
     assert "onestep" not in off.info and "one-step" not in off.message
+
+
+def test_a_one_step_failure_fails_the_weak_pass_and_names_the_stage(quadruped, monkeypatch, fresh_mjx):
+    """The sweep's second look at a weak pass: the gain bug makes it a failure that names the
+    field, the member and step, and the first forward stage that differs from that state."""
+    from mjxdiff import sweep
+    from mjxdiff.verdict import ScenarioResult
+
+    scenario, m, inputs, traj_c = quadruped
+    weak = ScenarioResult(name="quadruped_1iter", status="pass", message="worst qpos 3.1 (...)", weak=("qpos",))
+    _gain(monkeypatch)
+    result, found = sweep._onestep(weak, m, inputs, scenario.tolerance, SweepConfig(), MJXEngine(), CEngine(), traj_c)
+    assert result.status == "fail" and found["status"] == "fail"
+    assert result.message.startswith(f"one-step check: {found['field']} of {found['object']} after step ")
+    assert found["first_stage"] == "actuation" and "first field to differ: actuator_force (actuation" in result.message
+    assert result.first_divergence["check"] == "onestep" and result.first_divergence["member"] == found["member"]
+    assert "the rollout alone passed only weakly (worst qpos 3.1" in result.message
