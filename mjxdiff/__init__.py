@@ -30,6 +30,7 @@ _PUBLIC = {
     "grad": None,  # the module: MJX's one-step Jacobians against C's finite differences
     "history": None,  # the module: the Parquet run history and its anomalies
     "known": None,  # the module: the catalogue of known MJX-vs-C approximations
+    "onestep": None,  # the module: one step from C's states, converged solver, C's rounding as the bound
     "transfer": None,  # the module: MJX's host interface checked against C
     "configure_jax": "mjxdiff.engines",
     "judge": "mjxdiff.verdict",
