@@ -8,13 +8,13 @@ import pytest
 from mujoco.mjx._src import forward as mjx_forward
 from mujoco.mjx._src import passive as mjx_passive
 from mujoco.mjx._src import smooth as mjx_smooth
-from mujoco.mjx._src import solver as mjx_solver
 
 from mjxdiff import onestep
 from mjxdiff.engines import CEngine, MJXEngine
 from mjxdiff.inputs import make_inputs
 from mjxdiff.scenario import load_model, load_scenario
 from mjxdiff.sweep import SweepConfig, run_scenario
+from test_solver_floor import _one_percent_more_constraint_force
 
 
 @pytest.fixture(scope="module")
@@ -67,16 +67,6 @@ def _damping(monkeypatch):
     monkeypatch.setattr(mjx_passive, "_spring_damper", lambda m, d: orig(m, d) * 1.01)
 
 
-def _constraint_force(monkeypatch):
-    orig = mjx_solver.solve
-
-    def buggy(m, d):
-        d = orig(m, d)
-        extra = 0.01 * d.qfrc_constraint
-        return d.replace(qfrc_constraint=d.qfrc_constraint + extra, qacc=d.qacc + mjx_smooth.solve_m(m, d, extra))
-    monkeypatch.setattr(mjx_solver, "solve", buggy)
-
-
 def _friction(monkeypatch):
     orig = mjx_forward.fwd_position
     monkeypatch.setattr(mjx_forward, "fwd_position", lambda m, d: orig(m.replace(geom_friction=m.geom_friction * 0.9), d))
@@ -87,7 +77,7 @@ def _inertia(monkeypatch):
     monkeypatch.setattr(mjx_smooth, "com_pos", lambda m, d: orig(m.replace(body_mass=m.body_mass * 1.01), d))
 
 
-@pytest.mark.parametrize("bug", [_gain, _damping, _constraint_force, _friction, _inertia],
+@pytest.mark.parametrize("bug", [_gain, _damping, _one_percent_more_constraint_force, _friction, _inertia],
                          ids=["actuator gain", "passive damping", "constraint force", "friction", "inertia"])
 def test_injected_bugs_exceed_the_bound_by_orders_of_magnitude(quadruped, bug, monkeypatch, fresh_mjx):
     bug(monkeypatch)
