@@ -48,7 +48,6 @@ __all__ = ["bind", "call", "check", "clear", "code_digest", "count", "events", "
 # (arguments' key, whole-code digest, options key) -> (output tree structure, compiled call of an
 # Exported, what the options chose)
 _FUNCTIONS: dict[tuple[str, str, str], tuple[Any, Callable, Any]] = {}
-_LOADED = {"count": 0}
 _KEY_LOCKS: dict[tuple[str, str, str], threading.Lock] = {}  # one per key: threads binding the same function compile it once
 _KEY_LOCKS_GUARD = threading.Lock()
 _LOCAL = threading.local()
@@ -257,13 +256,18 @@ def _module_content(module: types.ModuleType) -> bytes:
     try:
         d = _Digest(TRACED_MODULES)  # a plain digest: every function in full, none by name
         d.h.update(str(getattr(module, "__file__", "")).encode())
-        for attr in sorted(vars(module)):
-            if not attr.startswith(("__", "@")):
-                d.h.update(attr.encode())
-                d.feed(vars(module)[attr])
+        _feed_module(d, module)
         return d.h.digest()
     finally:
         busy.discard(id(module))
+
+
+def _feed_module(d: _Digest, module: types.ModuleType) -> None:
+    """Feeds every module-level name and value of ``module`` to ``d``."""
+    for attr in sorted(vars(module)):
+        if not attr.startswith(("__", "@")):  # "@py_builtins": pytest's assertion rewriting
+            d.h.update(attr.encode())
+            d.feed(vars(module)[attr])
 
 
 def _is_test(name: str) -> bool:
@@ -294,10 +298,7 @@ def code_digest(modules: tuple[str, ...] = ("mujoco.mjx",)) -> str:
     d = _Digest(modules)
     for name, module in _modules(modules):
         d.h.update(b"module " + name.encode())
-        for attr in sorted(vars(module)):
-            if not attr.startswith(("__", "@")):  # "@py_builtins": pytest's assertion rewriting
-                d.h.update(attr.encode())
-                d.feed(vars(module)[attr])
+        _feed_module(d, module)
     return d.h.hexdigest()
 
 
@@ -323,7 +324,7 @@ def export_dir() -> Path | None:
 
 def loaded_count() -> int:
     """Compiled functions this process loaded from an artifact instead of tracing."""
-    return _LOADED["count"]
+    return _EVENTS["loaded"]
 
 
 def clear() -> None:
@@ -521,7 +522,7 @@ def _owners() -> dict[int, tuple[types.CodeType, tuple[str, str]]]:
                         fn = member.__func__ if isinstance(member, (staticmethod, classmethod)) else member
                         if isinstance(fn, types.FunctionType) and fn.__code__.co_filename.startswith("<"):
                             own(fn.__code__, (name, "*"))
-            for value in list(vars(module).values()):  # lambdas and partials in dispatch tables
+                # lambdas and partials in dispatch tables
                 items = list(value.values()) if isinstance(value, dict) else value if isinstance(value, (list, tuple)) else ()
                 for item in items:
                     for part in (item if isinstance(item, tuple) else (item,)):
@@ -697,7 +698,7 @@ def _account(codes: set[types.CodeType]) -> tuple[set[tuple[str, str]], dict[str
                 continue  # a jax or standard-library class's generated __init__, a namedtuple's __new__
             for qualname in [None, *_enclosing(code.co_qualname)]:
                 key = _foreign_key(code, qualname)
-                if any(code in set(_nested(fn.__code__)) for fn in live.get(key, ())):
+                if any(c is code for fn in live.get(key, ()) for c in _nested(fn.__code__)):
                     foreign[key] = _foreign_digest(live[key])
                     break
             else:
@@ -859,11 +860,6 @@ def _holds(name: str, digest: str, live: dict[str, list[types.FunctionType]] | N
     return function_digest(module, qualname) == digest
 
 
-def _deps_hold(deps: dict[str, str]) -> bool:
-    live = _live_functions({n for n in deps if n.startswith("@")})
-    return all(_holds(n, d, live) for n, d in deps.items())
-
-
 #: Most bytes of artifacts kept (~2,500 of 130-230 KB); beyond it the least recently used go.
 MAX_BYTES = 512 * 2**20
 
@@ -1018,14 +1014,14 @@ def check(root: Path | None = None, fix: bool = False) -> dict[str, Any]:
             out["old_format"].append(rel(directory))
             bad.append(directory)
             continue
-        stems = {p.stem for p in files if p.suffix in (".jaxexport", ".deps", ".cost")}
+        pairs = []
         for p in files:
             paired = all((directory / f"{p.stem}{suffix}").exists() for suffix in (".jaxexport", ".deps"))
             if p.suffix == ".tmp" or (p.suffix in (".jaxexport", ".deps", ".cost") and not paired):
                 out["orphans"].append(rel(p))  # an interrupted write, or half of an evicted pair
                 bad.append(p)
-        pairs = [directory / f"{s}.jaxexport" for s in sorted(stems)
-                 if (directory / f"{s}.jaxexport").exists() and (directory / f"{s}.deps").exists()]
+            elif p.suffix == ".jaxexport":
+                pairs.append(p)
         readable = []
         for path in pairs:
             deps = _read_deps(path.with_suffix(".deps"))
@@ -1182,7 +1178,6 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
                             _remove(other)
                             _event("removed")
             else:
-                _LOADED["count"] += 1
                 _event("loaded")
                 count("loaded")
                 out_tree, exported, artifact = found
