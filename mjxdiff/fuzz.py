@@ -40,7 +40,7 @@ from mjxdiff import report, reproducer, strategies
 from mjxdiff.inputs import BatchedInputs
 from mjxdiff.scenario import Tolerances
 from mjxdiff.sweep import release_compiled_if_crowded
-from mjxdiff.verdict import ScenarioResult
+from mjxdiff.verdict import TRUNCATION, ScenarioResult
 
 __all__ = ["DEFAULT_BUDGET", "DEFAULT_VARIANTS", "KNOWN_DIVERGENCES", "FuzzResult", "fuzz", "model_strategy",
            "variants"]
@@ -289,10 +289,12 @@ def _divergence(m, inputs: BatchedInputs, config) -> ScenarioResult:
 
 def is_divergence(result: ScenarioResult) -> bool:
     """Whether a generated example's verdict is a find: anything but a pass, except MuJoCo C
-    itself blowing up (``error``/``unstable``: an unstable model, whatever MJX did) and MJX
-    refusing the model (``unsupported``)."""
+    itself blowing up (``error``/``unstable``: an unstable model, whatever MJX did), MJX
+    refusing the model (``unsupported``) and a solver truncation (the generated solver settings
+    part the engines, and the converged twin agrees: :data:`mjxdiff.verdict.TRUNCATION`)."""
     unstable = result.status == "error" and result.error_kind == "unstable"
-    return result.status != "pass" and not unstable and result.status != "unsupported"
+    truncation = (result.diagnosis.get("cause") or {}).get("cause") == TRUNCATION  # the settings, not MJX
+    return result.status != "pass" and not unstable and result.status != "unsupported" and not truncation
 
 
 def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET, out: str | Path | None = None,

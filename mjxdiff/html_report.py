@@ -22,6 +22,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+from mjxdiff import report
+
 __all__ = ["render", "write", "render_grad", "write_grad", "PLOTS"]
 
 PLOTS = ("failing", "all", "none")
@@ -121,7 +123,7 @@ def render(doc: dict[str, Any], out_dir: str | Path | None = None, plots: str = 
                      f"src='{pass_rate_chart(scenarios, threshold)}'>")
     parts.append("<h2>Scenarios</h2><table><tr><th>scenario</th><th>status</th><th>known</th><th>baseline</th>"
                  "<th>worst field</th><th>ratio to bound</th><th>first step</th><th>seconds</th>"
-                 "<th>compile s</th></tr>")
+                 "<th>compile s</th><th>sharp checks (one-step, converged twin)</th></tr>")
     for sc in scenarios:
         fields = sc.get("fields") or {}
         worst = max(fields.items(), key=lambda kv: _num(kv[1].get("ratio")), default=(None, {}))
@@ -133,7 +135,8 @@ def render(doc: dict[str, Any], out_dir: str | Path | None = None, plots: str = 
                      f"<td>{_e(sc.get('known', {}).get('id', ''))}"
                      f"</td><td>{_e(ch.get('change', ''))}</td><td>{_e(worst[0] or '')}</td>"
                      f"<td>{_num(worst[1].get('ratio')):.3g}</td><td>{_e(worst[1].get('first_step', ''))}</td>"
-                     f"<td>{total:.2f}</td><td>{_num(secs.get('compile')):.2f}</td></tr>")
+                     f"<td>{total:.2f}</td><td>{_num(secs.get('compile')):.2f}</td>"
+                     f"<td>{_e(report.format_checks(sc.get('info') or {}).removeprefix('checks: '))}</td></tr>")
     parts.append("</table>")
     for section, key in (("History anomalies", "anomalies"),):
         items = (doc.get("history") or {}).get(key) or []

@@ -8,11 +8,19 @@ ones, the step with the most contacts and the fastest one. Every (member, state)
 member of a one-step batch (:func:`one_step_inputs`), so one compiled step serves them all. The
 bound of each pair is C's own: ``max(tolerance, ROUNDING_FACTOR x |C(x) - C(x + 4 ulps)|)``, the
 per-step analogue of the rollout's chaos envelope.
+
+The same states tell whether the model's own solver settings converge: C stepped once as
+configured against C stepped once converged, beyond the same bound, means they do not (a
+speed-tuned robot's one iteration). The sweep then runs the converged twin
+(:func:`mjxdiff.sweep._twin`) and, with ``evidence``, MJX's truncated step is compared with C's.
+Both engines start each step from a cold solver (no warm start) at time 0 and the scenario's
+mocap poses; a converged solve does not depend on its starting point.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import jax
@@ -23,7 +31,7 @@ from mjxdiff.engines import Trajectory
 from mjxdiff.inputs import BatchedInputs
 from mjxdiff.scenario import Tolerances
 from mjxdiff.noise import converged, perturb
-from mjxdiff.verdict import component_objects, error_series, rangefinder_mask
+from mjxdiff.verdict import WEAK_BOUND, component_objects, error_series, rangefinder_mask
 
 __all__ = ["FIELDS", "ROUNDING_FACTOR", "STATES", "check", "one_step_inputs", "sample_steps"]
 
@@ -52,9 +60,11 @@ def sample_steps(traj_c: Trajectory, states: int = STATES) -> np.ndarray:
     return np.array(sorted(picks))
 
 
-def one_step_inputs(inputs: BatchedInputs, traj_c: Trajectory, steps: np.ndarray) -> BatchedInputs:
+def one_step_inputs(inputs: BatchedInputs, traj_c: Trajectory, steps: np.ndarray,
+                    converge: bool = True) -> BatchedInputs:
     """One member per (member, sampled state), in member-major order, each starting from C's state
-    after record ``j`` with the control of step ``j + 1``, for one step, with a converged solver."""
+    after record ``j`` with the control of step ``j + 1``, for one step, with a converged solver
+    (``converge=False``: the model's own solver settings)."""
     B, S = inputs.batch, len(steps)
     rows = steps + 1  # index into [initial, record 0, record 1, ...]
 
@@ -68,48 +78,94 @@ def one_step_inputs(inputs: BatchedInputs, traj_c: Trajectory, steps: np.ndarray
         ctrl=ctrl, models=tuple(mi for mi in inputs.models for _ in range(S)),
         factors={k: np.repeat(np.asarray(v), S, axis=0) for k, v in inputs.factors.items()},
         member_ids=np.arange(B * S))
-    return converged(one)
+    return converged(one) if converge else one
+
+
+def _per_pair(a: Trajectory, b: Trajectory, layout, mask) -> dict[str, np.ndarray]:
+    """Field -> (P, n) errors of one-step pairs ``a`` against ``b`` (the step's only record)."""
+    err = jax.tree.map(np.asarray, error_series(a, b, layout, jax.numpy.asarray(mask)))
+    return {f: err[f][:, 0] for f in FIELDS}
+
+
+def _worst(e: np.ndarray) -> np.ndarray:
+    """(P,) worst component of (P, n) errors, non-finite as inf."""
+    return np.where(np.isfinite(e), e, np.inf).max(axis=1, initial=0.0)
 
 
 def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine, c_engine,
-          precision: str = "float64", states: int = STATES) -> dict[str, Any]:
+          precision: str = "float64", states: int = STATES, evidence: bool = False) -> dict[str, Any]:
     """The one-step check of ``engine`` (MJX or MJWarp) against ``c_engine`` (C) from states of
-    C's rollout ``traj_c`` of ``inputs``.
+    C's rollout ``traj_c`` of ``inputs``, and whether the model's own solver settings converge.
+
+    From every sampled state C also steps once with the model's own solver settings: where that
+    differs from C's converged step beyond the pair's bound, the solver is **not converged**
+    (``solver['converged']`` False; its ``ratio`` the worst |C as configured - C converged| /
+    bound, ``field`` where). With ``evidence``, for a model not converged, ``engine`` steps as
+    configured too: ``as_configured`` holds, per field, MJX's truncated step against C's
+    (``error``), C's truncated step against its converged one (``truncation``), and for the field
+    with the largest ``error / truncation`` that ratio (<= 1: MJX's truncation is of the size of C's).
 
     Returns a dict: ``status`` (``pass``, ``fail``, or ``error`` when C itself goes non-finite
-    from every state), ``states`` (record indices), ``pairs`` judged, and for the worst pair
-    (largest error / bound over fields): ``field``, ``object``, ``member``, ``step`` (the step
-    applied, 0-based), ``error``, ``bound``, ``ratio``; ``ratios`` the worst ratio per field.
+    from every state), ``states`` (record indices), ``pairs`` judged, ``solver``, ``bound_scale``
+    (field -> (tightest, median) over pairs of the bound / RMS of C's values after the step, as
+    :attr:`mjxdiff.verdict.FieldResult.bound_scale`), ``weak`` (fields whose median exceeds
+    :data:`~mjxdiff.verdict.WEAK_BOUND`), and for the worst
+    pair (largest error / bound over fields): ``field``, ``object``, ``member``, ``step`` (the
+    step applied, 0-based), ``error``, ``bound``, ``ratio``; ``ratios`` the worst ratio per field.
     """
     steps = sample_steps(traj_c, states)
-    one = one_step_inputs(inputs, traj_c, steps)
-    c = c_engine.rollout(one)
-    nudged = c_engine.rollout(perturb(one, precision))
+    configured = one_step_inputs(inputs, traj_c, steps, converge=False)
+    one = converged(configured)
+    P = one.batch
+    joined = c_engine.rollout(functools.reduce(BatchedInputs.concat, [one, perturb(one, precision), configured]))
+    c, nudged, c_cfg = (jax.tree.map(lambda a, i=i: a[i * P:(i + 1) * P], joined) for i in range(3))
     x = engine.rollout(one)
     layout, mask = metrics.qpos_layout(m), rangefinder_mask(m)
-    err = jax.tree.map(np.asarray, error_series(x, c, layout, jax.numpy.asarray(mask)))
-    own = jax.tree.map(np.asarray, error_series(nudged, c, layout, jax.numpy.asarray(mask)))
+    err, own, trunc = (_per_pair(a, c, layout, mask) for a in (x, nudged, c_cfg))
     healthy = (c.diverged_at < 0) & (nudged.diverged_at < 0)
     objects = component_objects(m, layout)
     S = len(steps)
-    out: dict[str, Any] = dict(states=[int(j) for j in steps], pairs=int(healthy.sum()), ratios={})
+    out: dict[str, Any] = dict(states=[int(j) for j in steps], pairs=int(healthy.sum()), ratios={}, bound_scale={})
     if not healthy.any():
         return dict(out, status="error", message="MuJoCo C goes non-finite from every sampled state")
-    worst = None
+    worst, solver = None, dict(converged=True, ratio=0.0, field="")
     for field in FIELDS:
         e = err[field]
         if e.shape[-1] == 0:
             continue
-        per_pair = np.where(np.isfinite(e), e, np.inf).max(axis=(1, 2))
-        bound = np.maximum(getattr(tol, field), ROUNDING_FACTOR * np.nan_to_num(own[field]).max(axis=(1, 2)))
+        per_pair = _worst(e)
+        bound = np.maximum(getattr(tol, field), ROUNDING_FACTOR * np.nan_to_num(_worst(own[field]), posinf=0.0))
         ratio = np.where(healthy, per_pair / bound, 0.0)
         out["ratios"][field] = float(ratio.max())
+        values = np.asarray(getattr(c, field))[healthy]
+        values = np.minimum(np.abs(values), 1.0) if field == "sensordata" else values
+        scale = float(np.sqrt(np.mean(np.where(np.isfinite(values), values, 0.0) ** 2)))
+        if scale > 0:
+            out["bound_scale"][field] = (float(bound[healthy].min() / scale), float(np.median(bound[healthy]) / scale))
         i = int(ratio.argmax())
         if worst is None or ratio[i] > worst["ratio"]:
-            comp = int(np.nan_to_num(e[i, 0], nan=np.inf).argmax())
+            comp = int(np.nan_to_num(e[i], nan=np.inf).argmax())
             worst = dict(field=field, object=objects[field][comp] if objects.get(field) else "",
                          member=int(inputs.ids[i // S]), step=int(steps[i % S]) + 1,
                          error=float(per_pair[i]), bound=float(bound[i]), ratio=float(ratio[i]))
-    out.update(worst or dict(ratio=0.0))
+        t = float(np.where(healthy, _worst(trunc[field]) / bound, 0.0).max())
+        if t > solver["ratio"]:
+            solver.update(ratio=t, field=field)
+    solver["converged"] = solver["ratio"] <= 1.0
+    out.update(worst or dict(ratio=0.0), solver=solver,
+               weak=[f for f, (_, median) in out["bound_scale"].items() if median > WEAK_BOUND])
     out["status"] = "fail" if out["ratio"] > 1.0 else "pass"
+    if evidence and not solver["converged"]:
+        x_cfg = engine.rollout(configured)
+        mjx_cfg = _per_pair(x_cfg, c_cfg, layout, mask)
+        fields = {}
+        for field in FIELDS:
+            if trunc[field].shape[-1] == 0:
+                continue
+            e = float(np.where(healthy, _worst(mjx_cfg[field]), 0.0).max())
+            t = float(np.where(healthy, np.nan_to_num(_worst(trunc[field]), posinf=0.0), 0.0).max())
+            fields[field] = dict(error=e, truncation=t)
+        key = max(fields, key=lambda f: fields[f]["error"] / max(fields[f]["truncation"], 1e-300))
+        out["as_configured"] = dict(fields=fields, field=key,
+                                    ratio=fields[key]["error"] / max(fields[key]["truncation"], 1e-300))
     return out

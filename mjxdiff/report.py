@@ -17,7 +17,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any, Sequence
 
-from mjxdiff.verdict import WEAK_BOUND, ScenarioResult
+from mjxdiff.verdict import TRUNCATION, WEAK_BOUND, ScenarioResult
 
 __all__ = ["SCHEMA_VERSION", "code", "summary", "to_json", "format_text", "write_report", "versions", "safe_filename",
            "path_under"]
@@ -57,10 +57,13 @@ def summary(results: Sequence[ScenarioResult], threshold: float) -> dict[str, An
     so that MJX could run it (:mod:`mjxdiff.adjust`), whatever their status.
     ``weak`` counts passes whose bound was wider than :data:`~mjxdiff.verdict.WEAK_BOUND` of
     a field's scale (:attr:`~mjxdiff.verdict.ScenarioResult.weak`): they could not have seen
-    a bug of that size.
+    a bug of that size. ``truncation`` counts failures whose cause is the model's own solver
+    settings (:data:`~mjxdiff.verdict.TRUNCATION`: apart as configured, together when converged).
     """
     counts = {s: sum(r.status == s for r in results) for s in ("pass", "fail", "unsupported")}
     counts["weak"] = sum(r.status == "pass" and bool(r.weak) for r in results)
+    counts["truncation"] = sum(r.status == "fail" and (r.diagnosis.get("cause") or {}).get("cause") == TRUNCATION
+                               for r in results)
     counts["error"] = sum(r.status == "error" and r.error_kind != "input" for r in results)
     counts["input_error"] = sum(r.status == "error" and r.error_kind == "input" for r in results)
     counts["adjusted"] = sum(bool(r.info.get("adjusted")) for r in results)
@@ -180,10 +183,48 @@ def write_report(out_dir: str | Path, report: dict[str, Any], name: str = "repor
 
 
 def format_line(r: ScenarioResult) -> str:
-    """One line per scenario: status, name, and what happened."""
+    """One line per scenario: status, name, and what happened; a second, indented line with the
+    sharp checks (:func:`format_checks`) when they ran."""
     symbol = "INPUT" if r.status == "error" and r.error_kind == "input" else _SYMBOL[r.status]
     adjusted = f" [adjusted: {'; '.join(r.info['adjusted'])}]" if r.info.get("adjusted") else ""
-    return f"{symbol:<6} {r.name:<28} {r.message}{adjusted}"
+    checks = format_checks(r.info)
+    return f"{symbol:<6} {r.name:<28} {r.message}{adjusted}" + (f"\n{'':<6} {'':<28} {checks}" if checks else "")
+
+
+def format_checks(info: dict[str, Any]) -> str:
+    """The sharp checks of a scenario (its ``info``) in one line: the one-step check
+    (``info['onestep']``, :func:`mjxdiff.onestep.check`) and the converged twin (``info['twin']``),
+    each with its worst ratio to its bound and how large that bound is against the field's scale;
+    '' when neither ran."""
+    parts = []
+    one, twin = info.get("onestep"), info.get("twin")
+    if one and one.get("status") in ("pass", "fail"):
+        scale = (one.get("bound_scale") or {}).get(one.get("field"))
+        text = (f"one-step {one['status']}: {one.get('field')} {_num(one.get('ratio')):.2g} of its bound "
+                f"({one.get('pairs')} states of C, converged solver"
+                + (f"; bound {scale[1]:.1g} of the field's scale" if scale else "") + ")")
+        solver = one.get("solver") or {}
+        if not solver.get("converged", True):
+            text += (f"; your solver settings do not converge (C's truncated step {_num(solver.get('ratio')):.2g}x "
+                     f"the bound in {solver.get('field')})")
+        parts.append(text)
+    elif one:
+        parts.append(f"one-step {one.get('status')}: {one.get('message', '')}")
+    if twin and twin.get("worst"):
+        w, scale = twin["worst"], (twin.get("fields") or {}).get(twin["worst"]["field"], {}).get("bound_scale")
+        parts.append(f"converged twin {twin['status']}: {w['field']} {_num(w['ratio']):.2g} of its bound"
+                     + (f" (bound {scale[1]:.1g} of the field's scale)" if scale else "")
+                     + (f", weak: {', '.join(twin['weak'])}" if twin.get("weak") else ""))
+    elif twin:
+        parts.append(f"converged twin {twin.get('status')}: {twin.get('message', '')}")
+    return ("checks: " + "; ".join(parts)) if parts else ""
+
+
+def _num(x: Any) -> float:
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return float("nan")
 
 
 def format_text(results: Sequence[ScenarioResult], threshold: float, seconds: float | None = None) -> str:
@@ -197,7 +238,8 @@ def format_text(results: Sequence[ScenarioResult], threshold: float, seconds: fl
     inputs = f", {s['input_error']} input error" if s["input_error"] else ""
     inputs += f" ({s['adjusted']} adjusted for MJX)" if s["adjusted"] else ""
     weak = f" ({s['weak']} weak: bound over {WEAK_BOUND:.0%} of the field's scale)" if s["weak"] else ""
-    lines.append(f"{s['total']} scenarios{tail}: {s['pass']} pass{weak}, {s['fail']} fail, "
+    truncation = f" ({s['truncation']} solver truncation)" if s["truncation"] else ""
+    lines.append(f"{s['total']} scenarios{tail}: {s['pass']} pass{weak}, {s['fail']} fail{truncation}, "
                  f"{s['unsupported']} unsupported, {s['error']} error{inputs}; "
                  f"pass rate {s['pass_rate']:.0%} -> {verdict}")
     return "\n".join(lines)

@@ -26,7 +26,7 @@ from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
 from mjxdiff.inputs import BatchedInputs, make_inputs
 from mjxdiff.scenario import Scenario, ScenarioError, Tolerances, load_model
 from mjxdiff.noise import SOLVER_MARGIN, NoiseFloor, combine, converged, has_constraints, perturb
-from mjxdiff.verdict import FieldResult, Judge, ScenarioResult, rangefinder_mask
+from mjxdiff.verdict import TRUNCATION, FieldResult, Judge, ScenarioResult, rangefinder_mask
 
 __all__ = ["SweepConfig", "run_scenario", "sweep"]
 
@@ -577,8 +577,8 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
                                                                      c_engine, clock)
     if result.status == "fail" and config.diagnose != "none":
         result = _diagnose(result, m, inputs, tol, config, mjx_engine, c_engine, traj_c, drill)
-    if result.status == "pass" and result.weak and config.onestep and config.reference == "c":
-        result, info["onestep"] = _onestep(result, m, inputs, tol, config, mjx_engine, c_engine, traj_c)
+    if config.reference == "c" and result.status in ("pass", "fail"):
+        result = _sharp(result, m, inputs, tol, config, mjx_engine, c_engine, traj_c, clock, info)
     seconds.update(c=clock.get("c", 0.0), mjx=clock.get("mjx", 0.0), verdict=clock.get("verdict", 0.0),
                    diagnosis=time.perf_counter() - t)
     if counts.get("xla") is not None:
@@ -627,6 +627,11 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
         return result, traj_c, drill, dict(status=f"could not run: {_one_line(e)}")
     first = result.first_divergence
     check["status"] = second.status
+    gap = result.field(first["field"]) if any(f.field == first["field"] for f in result.fields) else None
+    check["first"] = first
+    check["gap"] = dict(field=first["field"], object=first["object"], step=first["step"],
+                        error=gap.max_error if gap else first["error"], steps=inputs.steps,
+                        tolerance=first["tolerance"])
     if second.status != "pass":
         return result, traj_c, drill, check
     held = [f.field for f in second.fields if f.floor == "solver"]
@@ -638,24 +643,51 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
     return dataclasses.replace(second, message=message), traj_c, drill, check
 
 
+def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
+           mjx_engine: MJXEngine, c_engine: CEngine, traj_c: Trajectory | None,
+           clock: dict[str, float], info: dict) -> ScenarioResult:
+    """The checks that stay sharp where the rollout's verdict cannot: the one-step check
+    (:func:`_onestep`, with ``config.onestep``), then, where the rollout's pass was held only by
+    the solver floor, or was weak on a model whose solver settings the one-step check found not
+    converged, the converged twin (:func:`_twin`); a pass held only by the solver floor becomes a
+    ``solver truncation`` failure (:func:`_truncation`). Never raises."""
+    excused = result.status == "pass" and info.get("solver_floor", {}).get("status") == "pass"
+    found: dict = {}
+    if config.onestep:
+        result, found, traj_c = _onestep(result, m, inputs, tol, config, mjx_engine, c_engine, traj_c,
+                                         evidence=excused or bool(result.weak))
+        info["onestep"] = found
+    converged_ = found.get("solver", {}).get("converged", True)
+    twin = None
+    if result.status == "pass" and (excused or (result.weak and not converged_)):
+        result, info["twin"] = _twin(result, m, inputs, tol, config, mjx_engine, c_engine, clock)
+        twin = info["twin"]
+    if result.status == "pass" and excused:
+        result = _truncation(result, m, info["solver_floor"], found, twin)
+    return result
+
+
 def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-             mjx_engine: MJXEngine, c_engine: CEngine, traj_c: Trajectory | None) -> tuple[ScenarioResult, dict]:
-    """A weak pass judged again by :func:`mjxdiff.onestep.check`: a failure there fails the
-    scenario, naming the field, object, step and (from the stage drill-down at that state, with
-    a converged solver) the first stage and field that differ. Never raises."""
+             mjx_engine: MJXEngine, c_engine: CEngine, traj_c: Trajectory | None,
+             evidence: bool = False) -> tuple[ScenarioResult, dict, Trajectory | None]:
+    """``result`` judged again by :func:`mjxdiff.onestep.check` (kept in ``info['onestep']``): a
+    failure there fails a passing scenario, naming the field, object, step and (from the stage
+    drill-down at that state, with a converged solver) the first stage and field that differ; a
+    failing scenario keeps its verdict and gains the one-step result as evidence. Never raises.
+
+    Returns (result, what the check found, C's whole rollout or None)."""
     try:
         traj_c = traj_c if traj_c is not None else c_engine.rollout(inputs)
-        found = onestep.check(m, inputs, traj_c, tol, mjx_engine, c_engine, config.precision)
+        found = onestep.check(m, inputs, traj_c, tol, mjx_engine, c_engine, config.precision, evidence=evidence)
     except Exception as e:  # noqa: BLE001 - the rollout's verdict stands
+        found = dict(status="error", message=_one_line(e))
         return dataclasses.replace(result, message=f"{result.message}; one-step check could not run: "
-                                                   f"{_one_line(e)}"), dict(status="error", message=_one_line(e))
+                                                   f"{_one_line(e)}"), found, traj_c
     if found["status"] == "error":
-        return dataclasses.replace(result, message=f"{result.message}; one-step check: {found['message']}"), found
+        return dataclasses.replace(result, message=f"{result.message}; one-step check: {found['message']}"), found, traj_c
     n = found["pairs"]
-    if found["status"] == "pass":
-        message = (f"{result.message}; one-step check (C's states, one step, converged solver in both; {n} "
-                   f"member-states): pass, worst {found['field']} at {found['ratio']:.2g} of its bound")
-        return dataclasses.replace(result, message=message), found
+    if found["status"] == "pass":  # its own line in the report (mjxdiff.report.format_checks)
+        return result, found, traj_c
     member, step = found["member"], found["step"]
     where = ""
     with contextlib.suppress(Exception):  # the verdict stands without its drill-down
@@ -666,14 +698,86 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
         found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object)
         where = (f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
                  if drill.first_stage else "; every forward stage agrees (the difference is in the integration)")
-    message = (f"one-step check: {found['field']} of {found['object'] or 'member ' + str(member)} after step "
-               f"{step} from C's state, member {member}, converged solver in both: error {found['error']:.3g}, "
-               f"bound {found['bound']:.3g} ({found['ratio']:.3g}x){where}; the rollout alone passed only weakly "
-               f"({result.message})")
+    said = (f"one-step check: {found['field']} of {found['object'] or 'member ' + str(member)} after step "
+            f"{step} from C's state, member {member}, converged solver in both: error {found['error']:.3g}, "
+            f"bound {found['bound']:.3g} ({found['ratio']:.3g}x){where}")
+    if result.status == "fail":
+        return dataclasses.replace(result, message=f"{result.message}; {said}"), found, traj_c
     first = dict(field=found["field"], step=step, time=round((step + 1) * float(m.opt.timestep), 9), member=member,
-                 object=found["object"],
-                 error=found["error"], tolerance=found["bound"], check="onestep")
-    return dataclasses.replace(result, status="fail", message=message, first_divergence=first), found
+                 object=found["object"], error=found["error"], tolerance=found["bound"], check="onestep")
+    return dataclasses.replace(result, status="fail", message=f"{said}; the rollout alone passed ({result.message})",
+                               first_divergence=first), found, traj_c
+
+
+def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
+          mjx_engine: MJXEngine, c_engine: CEngine, clock: dict[str, float]) -> tuple[ScenarioResult, dict | None]:
+    """The converged twin: both engines rerun with a converged solver (:func:`mjxdiff.noise.converged`),
+    judged as sharply as any converged scenario (rounding envelope, never the solver floor); kept
+    in ``info['twin']`` (the dict returned). A twin that fails fails the scenario, naming field, step, member and (from
+    the drill-down at that state) the first stage and field that differ. Never raises."""
+    t = time.perf_counter()
+    twin_inputs = converged(inputs)
+    try:
+        twin, _ = _verdict(result.name, m, twin_inputs, tol, config, mjx_engine, c_engine, clock)
+    except Exception as e:  # noqa: BLE001 - the rollout's verdict stands, and says what is missing
+        return dataclasses.replace(result, message=f"{result.message}; converged twin could not run: "
+                                                   f"{_one_line(e)}"), dict(status="error", message=_one_line(e))
+    worst = max((f for f in twin.fields if f.field in ("qpos", "qvel")), key=lambda f: f.ratio, default=None)
+    found = dict(status=twin.status, message=twin.message, weak=list(twin.weak),
+                 fields={f.field: dict(max_error=f.max_error, ratio=f.ratio, bound_scale=list(f.bound_scale),
+                                       floor=f.floor) for f in twin.fields},
+                 worst=dict(field=worst.field, max_error=worst.max_error, ratio=worst.ratio) if worst else None,
+                 seconds=0.0)
+    if twin.status == "pass":
+        found["seconds"] = time.perf_counter() - t
+        return result, found
+    message = f"converged twin (both engines with a converged solver): {twin.message}"
+    first = dict(twin.first_divergence or {}, check="twin")
+    if twin.status == "fail" and twin.first_divergence:
+        with contextlib.suppress(Exception):  # the verdict stands without its drill-down
+            drill = _drill(twin, twin_inputs, c_engine.rollout(twin_inputs), config.precision, mjx_engine.name)
+            found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object)
+            if drill.first_stage:
+                message += f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
+    found["seconds"] = time.perf_counter() - t
+    status = "fail" if twin.status == "fail" else result.status
+    if status == "pass":  # the twin could not be judged (C unstable with a converged solver): say so
+        return dataclasses.replace(result, message=f"{result.message}; converged twin: {twin.status}: "
+                                                   f"{twin.message}"), found
+    return dataclasses.replace(result, status="fail", message=f"{message}; as configured the rollout passed "
+                                                            f"({result.message})", first_divergence=first), found
+
+
+
+def _truncation(result: ScenarioResult, m, floor: dict, found: dict, twin: dict | None) -> ScenarioResult:
+    """A rollout that parts from C beyond its tolerance and rounding envelope, held only by C's
+    freedom under its own solver settings, is not a pass: a ``fail`` whose cause is
+    :data:`TRUNCATION` (the ``solver-truncation`` entry of :mod:`mjxdiff.known`, accepted by
+    ``--fail-on new``), stating the gap, the converged twin, the one-step check and MJX's truncated
+    step against C's."""
+    gap = floor.get("gap") or {}
+    parts = [f"solver truncation: your solver settings ({m.opt.iterations} iteration(s), {m.opt.ls_iterations} "
+             f"line-search steps, tolerance {m.opt.tolerance:g}) make MJX and C differ by "
+             f"{gap.get('error', float('nan')):.3g} in {gap.get('field')} ({gap.get('object') or 'a member'}) over "
+             f"{gap.get('steps')} steps, from step {gap.get('step')} (tolerance {gap.get('tolerance', float('nan')):.0e}"
+             "; only C's freedom under the same settings, the solver floor, covers it)"]
+    if twin and twin.get("worst"):
+        w = twin["worst"]
+        parts.append(f"with a converged solver they agree (twin: worst {w['field']} {w['max_error']:.2g}, "
+                     f"{w['ratio']:.2g} of its bound)")
+    if found.get("status") in ("pass", "fail"):
+        parts.append(f"the one-step check {'passes' if found['status'] == 'pass' else 'fails'} "
+                     f"({found['ratio']:.2g} of its bound)")
+    evidence = found.get("as_configured")
+    if evidence:
+        f = evidence["fields"][evidence["field"]]
+        parts.append(f"one step as configured from C's states: MJX vs C {f['error']:.2g}, C vs its converged self "
+                     f"{f['truncation']:.2g} ({evidence['field']})")
+    diagnosis = dict(result.diagnosis, cause=dict(cause=TRUNCATION, ablation=None, tried=[],
+                                                  evidence="; ".join(parts[1:])))
+    first = dict(floor["first"], check="rollout") if floor.get("first") else result.first_divergence
+    return dataclasses.replace(result, status="fail", message="; ".join(parts),
+                               diagnosis=diagnosis, first_divergence=first)
 
 
 def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,

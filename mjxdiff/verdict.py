@@ -47,6 +47,10 @@ SERIES_POINTS = 256
 #: A field whose bound at the median step exceeds this fraction of the field's own scale
 #: (:attr:`FieldResult.bound_scale`) could not have seen a bug of that size: its pass is weak.
 WEAK_BOUND = 0.01
+#: The cause (``diagnosis['cause']['cause']``) of a failure that only the model's own solver
+#: settings explain: the engines part as configured, held only by the solver floor, and agree
+#: with a converged solver (:func:`mjxdiff.sweep._truncation`).
+TRUNCATION = "solver truncation"
 
 
 def downsample(error: np.ndarray, bound: np.ndarray, most: int = SERIES_POINTS) -> tuple[tuple[int, float, float], ...]:

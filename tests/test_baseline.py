@@ -51,7 +51,6 @@ def test_a_run_id_of_the_history_is_a_baseline(two_sweeps):
 
 @pytest.mark.parametrize("argv, says", [
     (["--baseline", "no/such/report.json"], "no such report.json, directory or history run id"),
-    (["--fail-on", "new"], "--fail-on new needs --baseline"),
     (["--known", "no_such_file.toml"], "not a known-divergences file"),
 ])
 def test_bad_baseline_options_are_one_line_and_exit_2(argv, says, capsys, tmp_path):

@@ -1,14 +1,17 @@
 """The solver floor: a divergence that starts in the constraint stage is judged again against C's
 own freedom under the model's solver settings (C against C with a converged solver). Chaos
-amplifying where a loose solver stopped passes; a constraint MJX gets wrong still fails."""
+amplifying where a loose solver stopped is a solver truncation (a known, accepted failure whose
+converged twin passes), never a pass; a constraint MJX gets wrong still fails."""
 
 import mujoco
 import pytest
 from mujoco.mjx._src import smooth as mjx_smooth
 from mujoco.mjx._src import solver as mjx_solver
 
+from mjxdiff import known, report
 from mjxdiff.scenario import load_scenario
 from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.verdict import TRUNCATION
 
 #: A ball, a capsule and an ellipsoid resting on the floor; the default randomization
 #: (qpos noise 0.05) presses them into it, so the solver has work from step 0.
@@ -34,16 +37,24 @@ def _scenario(tmp_path, solver: str):
     return load_scenario(str(path))
 
 
-def test_a_loose_solver_passes_within_cs_own_solver_freedom(tmp_path):
+def test_a_loose_solver_is_a_solver_truncation_not_a_pass(tmp_path):
+    """Only C's freedom under the same loose settings covers the gap: not a pass, but a failure
+    whose cause is the settings (a known, accepted label), with the converged twin and the
+    one-step check as evidence that MJX itself agrees with C."""
     scenario = _scenario(tmp_path, LOOSE)
     fixed = run_scenario(scenario, SweepConfig(seed=0, diagnose="none", envelope=False))
     assert fixed.status == "fail", "the tolerance alone cries wolf on this model"
     result = run_scenario(scenario, CONFIG)
-    assert result.status == "pass", result.message
+    assert result.status == "fail" and result.diagnosis["cause"]["cause"] == TRUNCATION, result.message
     check = result.info["solver_floor"]
     assert (check["first_stage"], check["first_field"], check["status"]) == ("constraint", "qfrc_constraint", "pass")
     assert result.field("qvel").floor == "solver" and result.field("qvel").envelope > result.field("qvel").tolerance
-    assert "within C's own solver freedom" in result.message
+    assert result.message.startswith("solver truncation: your solver settings (100 iteration(s), 20 line-search "
+                                     "steps, tolerance 0.0001) make MJX and C differ by "), result.message
+    assert result.info["twin"]["status"] == "pass" and result.info["onestep"]["status"] == "pass"
+    assert "with a converged solver they agree (twin: worst" in result.message
+    assert result.first_divergence["check"] == "rollout" and result.first_divergence["step"] >= 0
+    assert known.match(report.result_dict(result)).id == "solver-truncation"
 
 
 def _one_percent_more_constraint_force(monkeypatch):
@@ -69,13 +80,22 @@ def test_a_wrong_constraint_force_at_a_converged_solver_still_fails(tmp_path, fr
     assert "qfrc_constraint" in result.message and result.first_divergence["step"] < 5
 
 
-def test_a_one_iteration_quadruped_passes_only_weakly(repo_root):
+def test_a_one_iteration_quadruped_is_apart_by_truncation_and_together_when_converged(repo_root):
     """Robots are shipped tuned for speed (iterations=1, ls_iterations=5, implicitfast, elliptic
     cone, position actuators, free base). Unmodified MJX and C end up radians apart there, within
-    C's own solver freedom; such a pass could not have seen a bug, and says so."""
+    C's own solver freedom: that bound could not have seen a bug, so it is no pass. The converged
+    twin and the one-step check, both sharp, say MJX agrees with C; the one-step check also finds
+    the settings unconverged and compares MJX's truncated step with C's."""
     scenario = load_scenario(str(repo_root / "tests" / "data" / "quadruped_1iter.xml"))
     result = run_scenario(scenario, SweepConfig(seed=0, diagnose="none"))
-    assert result.status == "pass" and "within C's own solver freedom" in result.message, result.message
+    assert result.status == "fail" and result.diagnosis["cause"]["cause"] == TRUNCATION, result.message
     assert result.field("qpos").max_error > 0.1, "the trajectories part far"
-    assert {"qpos", "qvel"} <= set(result.weak) and "; weak: the" in result.message
+    assert {"qpos", "qvel"} <= set(result.weak)
     assert result.field("qvel").bound_scale[1] > 1, "the bound is larger than the motion itself"
+    twin, one = result.info["twin"], result.info["onestep"]
+    assert twin["status"] == "pass" and not twin["weak"] and twin["worst"]["ratio"] < 0.5, twin
+    assert one["status"] == "pass" and one["ratio"] < 0.05 and not one["solver"]["converged"], one
+    evidence = one["as_configured"]["fields"]["qvel"]
+    assert evidence["truncation"] > 100 * evidence["error"], "MJX's truncated step is far closer to C's than C's own truncation"
+    line = report.format_line(result)
+    assert line.startswith("FAIL") and "\n" in line and "converged twin pass" in line and "do not converge" in line
