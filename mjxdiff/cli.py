@@ -1,8 +1,9 @@
 """``python -m mjxdiff``: sweep scenarios, replay a failure, fuzz, benchmark, list scenarios.
 
 Exit codes: 0 every scenario consistent (unsupported ones are reported, not
-failing), 1 at least one divergence (fail, or a non-finite rollout), 2 bad
-usage or input.
+failing), 1 at least one divergence (fail, solver truncation included, or a
+non-finite rollout), 2 bad usage or input; ``sweep --fail-on new`` exits 0 on
+failures an accepted known entry explains.
 """
 
 from __future__ import annotations
@@ -37,7 +38,22 @@ and the likely cause); UNSUP MJX refused the model (feature named; try
 itself blew up (an unstable scenario); INPUT the scenario could not be read.
 A line ending in [adjusted: ...] ran a model mjxdiff changed so that MJX could
 run it (e.g. the energy flag disabled); --no-adjust turns that off.
-exit codes: 0 consistent, 1 divergence or engine error, 2 bad usage or input."""
+
+sharp checks (the indented 'checks:' line): every scenario is also stepped
+once from C's own states with a converged solver in both engines (one-step),
+bounded by C's rounding, so chaos cannot hide a bug; where your solver settings
+do not converge (e.g. iterations=1) both engines also run converged (the
+converged twin), judged sharply. 'weak' marks a pass whose bound exceeds 1% of
+the field's own scale: it could not have seen a bug that small.
+FAIL [known: solver-truncation]: your solver settings part MJX and C (the
+rollouts differ beyond tolerance, covered only by C's own freedom under the same
+settings), while the converged twin and the one-step check agree; it is not an
+MJX bug, but the trajectories do differ by what the line says.
+
+exit codes: 0 consistent; 1 a divergence (any FAIL, solver truncation included)
+or an engine error; 2 bad usage or input. With --fail-on new, failures that an
+accepted known entry explains (solver-truncation, or your --known entries with
+accepted = true) and, with --baseline, failures the baseline already had, exit 0."""
 
 
 _BENCH_DEFAULT = ("pendulum", "cartpole", "ant")
@@ -134,10 +150,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "step and test the rest; changes the dynamics, so it is never the default and every "
                          "dropped pair is listed in the result")
     sw.add_argument("--onestep", action=argparse.BooleanOptionalAction, default=True,
-                    help="when a pass is weak (its bound over 1%% of a field's scale: a chaos envelope or solver "
-                         "floor as large as the motion), check MJX one step at a time from C's states with a "
-                         "converged solver in both, bounded by C's own rounding; it can fail the scenario "
-                         "(default on)")
+                    help="check every scenario one step at a time from C's states with a converged solver in "
+                         "both engines, bounded by C's own rounding (sharp where chaos or a truncated solver make "
+                         "the rollout's bound wide); it can fail the scenario on its own (default on)")
     sw.add_argument("--transfer", action=argparse.BooleanOptionalAction, default=True,
                     help="also check MJX's host interface against C at two C states of each scenario "
                          "(default): get_data(put_data(d)) gives C's fields and penetrating contacts back, "

@@ -3,12 +3,15 @@ own freedom under the model's solver settings (C against C with a converged solv
 amplifying where a loose solver stopped is a solver truncation (a known, accepted failure whose
 converged twin passes), never a pass; a constraint MJX gets wrong still fails."""
 
+import json
+
 import mujoco
 import pytest
 from mujoco.mjx._src import smooth as mjx_smooth
 from mujoco.mjx._src import solver as mjx_solver
 
 from mjxdiff import known, report
+from mjxdiff.cli import main
 from mjxdiff.scenario import load_scenario
 from mjxdiff.sweep import SweepConfig, run_scenario
 from mjxdiff.verdict import TRUNCATION
@@ -80,22 +83,26 @@ def test_a_wrong_constraint_force_at_a_converged_solver_still_fails(tmp_path, fr
     assert "qfrc_constraint" in result.message and result.first_divergence["step"] < 5
 
 
-def test_a_one_iteration_quadruped_is_apart_by_truncation_and_together_when_converged(repo_root):
+def test_a_one_iteration_quadruped_is_apart_by_truncation_and_together_when_converged(repo_root, tmp_path, capsys):
     """Robots are shipped tuned for speed (iterations=1, ls_iterations=5, implicitfast, elliptic
     cone, position actuators, free base). Unmodified MJX and C end up radians apart there, within
     C's own solver freedom: that bound could not have seen a bug, so it is no pass. The converged
     twin and the one-step check, both sharp, say MJX agrees with C; the one-step check also finds
-    the settings unconverged and compares MJX's truncated step with C's."""
-    scenario = load_scenario(str(repo_root / "tests" / "data" / "quadruped_1iter.xml"))
-    result = run_scenario(scenario, SweepConfig(seed=0, diagnose="none"))
-    assert result.status == "fail" and result.diagnosis["cause"]["cause"] == TRUNCATION, result.message
-    assert result.field("qpos").max_error > 0.1, "the trajectories part far"
-    assert {"qpos", "qvel"} <= set(result.weak)
-    assert result.field("qvel").bound_scale[1] > 1, "the bound is larger than the motion itself"
-    twin, one = result.info["twin"], result.info["onestep"]
+    the settings unconverged and compares MJX's truncated step with C's. A known, accepted
+    label: ``--fail-on new`` exits 0 on it."""
+    model = str(repo_root / "tests" / "data" / "quadruped_1iter.xml")
+    assert main(["sweep", model, "--seed", "0", "--diagnose", "none", "--no-history", "--out", str(tmp_path),
+                 "--fail-on", "new"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("FAIL") and "\n" + " " * 36 + "checks: one-step pass: " in out and "converged twin pass" in out
+    assert "do not converge" in out and "[known: solver-truncation]" in out and "1 fail (1 solver truncation)" in out
+    result = json.loads((tmp_path / "report.json").read_text())["scenarios"][0]
+    assert result["status"] == "fail" and result["diagnosis"]["cause"]["cause"] == TRUNCATION, result["message"]
+    assert result["fields"]["qpos"]["max_error"] > 0.1, "the trajectories part far"
+    assert {"qpos", "qvel"} <= set(result["weak"])
+    assert result["fields"]["qvel"]["bound_scale"][1] > 1, "the bound is larger than the motion itself"
+    twin, one = result["info"]["twin"], result["info"]["onestep"]
     assert twin["status"] == "pass" and not twin["weak"] and twin["worst"]["ratio"] < 0.5, twin
     assert one["status"] == "pass" and one["ratio"] < 0.05 and not one["solver"]["converged"], one
     evidence = one["as_configured"]["fields"]["qvel"]
     assert evidence["truncation"] > 100 * evidence["error"], "MJX's truncated step is far closer to C's than C's own truncation"
-    line = report.format_line(result)
-    assert line.startswith("FAIL") and "\n" in line and "converged twin pass" in line and "do not converge" in line
