@@ -96,6 +96,12 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("rk4-sensor-stage", "RK4: MJX's sensordata is from the last Runge-Kutta stage",
           "integrator_rk4 notes: after an RK4 step MJX's sensordata is from the last stage, C's from the state "
           "before the step", field="sensordata", integrator=("rk4",)),
+    Entry("implicit-clamped-actuator", "implicit/implicitfast: C leaves a clamped actuator's velocity derivative "
+          "out of the implicit update, MJX 3.17 keeps it",
+          "Unitree G1 (menagerie scene_mjx.xml: position servos with kv, joint actuatorfrcrange, implicitfast): one "
+          "step from the same state 13 rad/s apart in qvel, 1e-13 with the joint clamps removed, with Euler or with "
+          "kv = 0; MuJoCo C commit b466829, mirrored in mujoco_warp PR #1149", cause="actuator force clamping",
+          integrator=("implicitfast", "implicit")),
     Entry("rotation-integration", "implicitfast/RK4: free-body rotation integrated differently (grows like ω²)",
           "integrator_* notes: fast-spinning free bodies", integrator=("implicitfast", "rk4"),
           pattern=r"integration|free"),

@@ -319,3 +319,33 @@ def test_cg_solver_gradients_do_not_couple_unconnected_bodies():
     C, *_ = grad.c_jacobians(rep.model, rep.state, 1e-7)
     assert abs(C[27, 2]) < 1e-6  # C: the slick's height does not move the pill
     np.testing.assert_allclose(A[27, 2], C[27, 2], atol=1e-3)
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="MJX 3.17 keeps a clamped actuator's velocity derivative "
+                                       "in the implicit update (MuJoCo C leaves it out since b466829); found sweeping "
+                                       "the Unitree G1 (13 rad/s apart after one step)")
+def test_a_clamped_servo_under_implicitfast_steps_as_in_c(repo_root):
+    m = mujoco.MjModel.from_xml_path(str(repo_root / "tests" / "data" / "clamped_servo_implicitfast.xml"))
+    d = mujoco.MjData(m)
+    d.qvel[:] = [2.0, -3.0]
+    d.ctrl[:] = [1.5, -1.5]  # both servos saturate at their joints' actuatorfrcrange
+    with jax.enable_x64(True):
+        dx = jax.jit(mjx.step)(mjx.put_model(m), mjx.put_data(m, d))
+    mujoco.mj_step(m, d)
+    np.testing.assert_allclose(np.asarray(dx.qvel), d.qvel, atol=1e-9, err_msg="qvel after one implicitfast step")
+
+
+def test_the_sweep_names_the_clamped_servo_and_the_catalogue_knows_it(repo_root):
+    """The one-step check fails the model at the integration stage, the cause attribution finds
+    that removing the actuator force clamps (with a converged solver) makes it pass, and the
+    catalogue entry says why."""
+    from mjxdiff import known, report
+    from mjxdiff.scenario import load_scenario
+    from mjxdiff.sweep import SweepConfig, run_scenario
+
+    result = run_scenario(load_scenario(str(repo_root / "tests" / "data" / "clamped_servo_implicitfast.xml")),
+                          SweepConfig(seed=0, batch=4, steps=100))
+    assert result.status == "fail" and result.info["onestep"]["status"] == "fail", result.message
+    assert "every forward stage agrees (the difference is in the integration)" in result.message
+    assert result.diagnosis["cause"]["cause"] == "actuator force clamping", result.diagnosis
+    assert known.match(report.result_dict(result)).id == "implicit-clamped-actuator"
