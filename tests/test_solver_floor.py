@@ -7,9 +7,8 @@ import json
 
 import mujoco
 import pytest
-from mujoco.mjx._src import smooth as mjx_smooth
-from mujoco.mjx._src import solver as mjx_solver
 
+from injected_bugs import by_id
 from mjxdiff import known, report
 from mjxdiff.cli import main
 from mjxdiff.scenario import load_scenario
@@ -60,16 +59,8 @@ def test_a_loose_solver_is_a_solver_truncation_not_a_pass(tmp_path):
     assert known.match(report.result_dict(result)).id == "solver-truncation"
 
 
-def _one_percent_more_constraint_force(monkeypatch):
-    """The constraint solver's force comes out 1% too large (and the acceleration follows it)."""
-    orig = mjx_solver.solve
-
-    def buggy(m, d):
-        d = orig(m, d)
-        extra = 0.01 * d.qfrc_constraint
-        return d.replace(qfrc_constraint=d.qfrc_constraint + extra, qacc=d.qacc + mjx_smooth.solve_m(m, d, extra))
-
-    monkeypatch.setattr(mjx_solver, "solve", buggy)
+#: The constraint solver's force comes out 1% too large (and the acceleration follows it).
+_one_percent_more_constraint_force = by_id("constraint_force").patch
 
 
 def test_a_wrong_constraint_force_at_a_converged_solver_still_fails(tmp_path, fresh_mjx, monkeypatch):
