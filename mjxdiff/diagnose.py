@@ -105,22 +105,43 @@ def _object(m: mujoco.MjModel, field: str, index: int) -> str:
 Contacts = dict[tuple[int, int], list[tuple[float, ...]]]
 
 
+def _frame(m: mujoco.MjModel, frame: np.ndarray, friction: np.ndarray, geom: np.ndarray) -> tuple[float, ...]:
+    """The part of a contact frame (9 numbers, rows normal and two tangents) that shapes the
+    constraint, made comparable between engines: the normal, pointing from the lower geom id to
+    the higher; the tangents, each up to its sign (a friction pyramid is the same with either),
+    where friction is directional (a pyramidal cone turns with them, and so does anisotropic
+    friction), else zeros."""
+    rows = np.asarray(frame, float).reshape(3, 3).copy()
+    if geom[0] > geom[1]:
+        rows[0] = -rows[0]
+    directional = m.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL or friction[0] != friction[1]
+    if not directional:
+        rows[1:] = 0.0
+    for t in rows[1:]:
+        t *= np.sign(t[np.abs(t).argmax()]) or 1.0
+    return tuple(map(float, rows.ravel()))
+
+
 def _contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> Contacts:
-    """Active contacts by geom pair: (dist, pos x, y, z, friction[0], friction[1]) each."""
+    """Active contacts by geom pair: (dist, pos x, y, z, friction[0], friction[1], frame (9,),
+    :func:`_frame`) each."""
     out: Contacts = {}
     for c in d.contact[:d.ncon]:
         key = tuple(sorted(int(g) for g in c.geom))  # geom1/geom2 are not filled by mujoco_warp.get_data_into
-        out.setdefault(key, []).append((float(c.dist), *map(float, c.pos), float(c.friction[0]), float(c.friction[1])))
+        out.setdefault(key, []).append((float(c.dist), *map(float, c.pos), float(c.friction[0]), float(c.friction[1]),
+                                        *_frame(m, c.frame, c.friction, c.geom)))
     return out
 
 
-def _contacts_mjx(dx: Any) -> Contacts:
+def _contacts_mjx(m: mujoco.MjModel, dx: Any) -> Contacts:
     c = dx._impl.contact
-    dist, margin, geom, pos, friction = map(np.asarray, (c.dist, c.includemargin, c.geom, c.pos, c.friction))
+    dist, margin, geom, pos, friction, frame = map(np.asarray, (c.dist, c.includemargin, c.geom, c.pos, c.friction,
+                                                                c.frame))
     out: Contacts = {}
     for i in np.flatnonzero(dist < margin):
         key = tuple(sorted(int(g) for g in geom[i]))
-        out.setdefault(key, []).append((float(dist[i]), *map(float, pos[i]), float(friction[i, 0]), float(friction[i, 1])))
+        out.setdefault(key, []).append((float(dist[i]), *map(float, pos[i]), float(friction[i, 0]), float(friction[i, 1]),
+                                        *_frame(m, frame[i], friction[i], geom[i])))
     return out
 
 
@@ -131,12 +152,18 @@ def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float,
     for pair in sorted(set(cc) | set(cx)):
         by_pos = lambda c: (round(c[1], 6), round(c[2], 6), round(c[3], 6))
         a, b = sorted(cc.get(pair, []), key=by_pos), sorted(cx.get(pair, []), key=by_pos)
-        err = np.inf if len(a) != len(b) else float(np.max(np.abs(np.subtract(a, b)), initial=0.0))
+        diff = np.abs(np.subtract(a, b)).max(axis=0) if len(a) == len(b) and a else np.zeros(0)
+        err = np.inf if len(a) != len(b) else float(diff.max(initial=0.0))
         if err > worst:
             names = " / ".join(_name(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in pair)
             kinds = "-".join(mujoco.mjtGeom(t).name[len("mjGEOM_"):].lower() for t in sorted(m.geom_type[list(pair)]))
-            worst, obj = err, f"geoms {names} ({kinds}: C {len(a)}, MJX {len(b)} contacts)"
+            part = f"; {_CONTACT_PARTS[int(diff.argmax())]} differs by {err:.2g}" if diff.size else ""
+            worst, obj = err, f"geoms {names} ({kinds}: C {len(a)}, MJX {len(b)} contacts{part})"
     return worst, obj
+
+
+#: What each number of a collected contact is (:func:`_contacts_c`).
+_CONTACT_PARTS = ("dist",) + ("position",) * 3 + ("friction",) * 2 + ("normal",) * 3 + ("tangent frame",) * 6
 
 
 def drill_down(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, ctrl: np.ndarray,
@@ -172,7 +199,7 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.nd
         dx = engines.forward(mx, mjx.put_data(m, d))
         values_x = {f: np.asarray(getattr(dx, f)).ravel() for _, fs in STAGES for f in fs if f not in ("qM", "contact")}
         qm_x = np.asarray(mjx.full_m(mx, dx))
-        contacts_x = _contacts_mjx(dx)
+        contacts_x = _contacts_mjx(m, dx)
     values_x["qM"] = np.asarray(qm_x).ravel()
     mujoco.mj_forward(m, d)
     c_qm = np.zeros((m.nv, m.nv))

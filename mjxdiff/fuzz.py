@@ -244,7 +244,7 @@ def known_contact_divergence(m, inputs: BatchedInputs, result: ScenarioResult) -
             mujoco.mj_forward(mi, d)
             dx = engines.forward(mx, mjx.make_data(mi).replace(
                 qpos=d.qpos.copy(), qvel=d.qvel.copy(), act=d.act.copy(), ctrl=d.ctrl.copy()))
-            if _cylinder_contact_missing(mi, _contacts_c(mi, d), _contacts_mjx(dx)):
+            if _cylinder_contact_missing(mi, _contacts_c(mi, d), _contacts_mjx(mi, dx)):
                 return "plane-cylinder far cap"
             if _tangent_turned(mi, d, dx):
                 return "contact tangent frames"

@@ -15,8 +15,9 @@ TOML file (``--known FILE``)::
     scenario = "gripper_.*"          # optional regex on the scenario name
     accepted = true                  # counts as accepted by the baseline
 
-Matching (every given condition must hold): ``stage`` equals the drill-down's first stage
-(``collision``, ``sensors``, ``constraint``, ``integration``, ...), ``field`` equals the
+Matching (every given condition must hold): ``stage`` equals the first stage of the rollout's
+drill-down or of the one-step check's (``collision``, ``sensors``, ``constraint``,
+``integration``, ...), ``field`` equals the
 first divergent field (``qpos``, ``qvel``, ``sensordata``, ``transfer``, ...), ``pattern``
 is found in the message plus the drill-down's object, ``cause`` equals the attributed cause
 (``--diagnose full``), ``integrator`` is among the model's integrators, ``scenario``
@@ -56,9 +57,11 @@ class Entry:
         diag = s.get("diagnosis") or {}
         drill = diag.get("drill_down") or {}
         first = s.get("first_divergence") or {}
-        text = " ".join(str(x) for x in (s.get("message", ""), drill.get("object", ""), drill.get("first_field", "")))
+        one = (s.get("info") or {}).get("onestep") or {}  # the one-step check's drill-down, where it failed
+        text = " ".join(str(x) for x in (s.get("message", ""), drill.get("object", ""), drill.get("first_field", ""),
+                                         one.get("stage_object", "")))
         checks = [
-            self.stage is None or drill.get("first_stage") == self.stage,
+            self.stage is None or self.stage in (drill.get("first_stage"), one.get("first_stage")),
             self.field is None or first.get("field") == self.field,
             self.pattern is None or re.search(self.pattern, text) is not None,
             self.cause is None or (diag.get("cause") or {}).get("cause") == self.cause,
@@ -81,6 +84,12 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("plane-cylinder-rim", "plane-cylinder: MJX adds the second rim point only near parallel",
           "primitives_on_plane notes: the second rim point only when the axis is within ~1e-3 of parallel; a "
           "cylinder sunk into a plane: C 4 contacts, MJX 3", stage="collision", pattern=r"\(plane-cylinder:"),
+    Entry("contact-tangent-frame", "contact tangent frames: MJX's plane-capsule (and other) frames differ from C's, "
+          "which turns a pyramidal friction cone",
+          "tests/test_known_divergences.py: a plane-capsule contact's first tangent is (0, 1, 0) in MJX, along the "
+          "capsule's axis in C; Unitree H1 (playground scene_mjx_feetonly.xml, pyramidal): one step from the same "
+          "state with converged solvers, qfrc_constraint 52 apart, same contacts, other efc_aref",
+          stage="collision", pattern=r"tangent frame differs"),
     Entry("box-box-manifold", "box-box: MJX pads the manifold and places points on a surface",
           "primitive_pairs / box_stack notes: edge-first landings C 2, MJX 4 contacts; contact points on a surface "
           "(C halfway): friction arms differ by dist/2", pattern=r"\(box-box:"),

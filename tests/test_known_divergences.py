@@ -94,7 +94,7 @@ def test_a_cylinder_lying_on_a_plane_touches_it_at_both_caps():
     mujoco.mj_forward(m, d)
     dx = engines.forward(mjx.put_model(m), mjx.make_data(m))
     assert len(_contacts_c(m, d)[(0, 1)]) == 2, "C: one contact on each cap's rim"
-    assert len(_contacts_mjx(dx).get((0, 1), [])) == 2
+    assert len(_contacts_mjx(m, dx).get((0, 1), [])) == 2
 
 
 @pytest.mark.xfail(strict=True, raises=AssertionError, reason="MJX 3.17 picks a tendon's wrap side by the older rule "
