@@ -5,6 +5,8 @@ replay reproduces a saved failure."""
 
 import json
 
+import numpy as np
+
 import pytest
 from mujoco.mjx._src import collision_driver as mjx_collision
 from mujoco.mjx._src import constraint as mjx_constraint
@@ -186,3 +188,26 @@ def test_a_collision_stage_divergence_no_ablation_removes_is_still_contact_gener
     cause = result.diagnosis["cause"]
     assert cause["cause"] == "contact generation" and cause["ablation"] is None
     assert "drill-down: geoms" in cause["evidence"] and "something else differs as well" in result.message
+
+
+CAPSULE_ON_PLANE = ("<mujoco><option cone='{cone}'/><worldbody><geom type='plane' size='1 1 .1'/>"
+                    "<body pos='0 0 0.04' euler='1.4 0.3 0.7'><freejoint/><geom type='capsule' size='0.05 0.1'/>"
+                    "</body></worldbody></mujoco>")
+
+
+@pytest.mark.parametrize("cone, differs", [("pyramidal", True), ("elliptic", False)])
+def test_the_drill_down_compares_contact_tangents_where_they_turn_the_friction_cone(cone, differs):
+    """MJX's plane-capsule tangent frame is not C's (a known divergence): a pyramidal cone turns
+    with it, so the drill-down names the collision stage and the tangent frame; an elliptic cone
+    with isotropic friction does not care, and the contacts agree."""
+    import mujoco
+
+    from mjxdiff import diagnose
+
+    m = mujoco.MjModel.from_xml_string(CAPSULE_ON_PLANE.format(cone=cone))
+    drill = diagnose.drill_down(m, m.qpos0, np.zeros(m.nv), np.zeros(0), np.zeros(0), 0.0)
+    if differs:
+        assert drill.first_stage == "collision", drill
+        assert "(plane-capsule: C 1, MJX 1 contacts; tangent frame differs by" in drill.object, drill
+    else:
+        assert drill.first_stage != "collision", drill
