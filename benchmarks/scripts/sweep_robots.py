@@ -43,7 +43,8 @@ def main() -> None:
     parser.add_argument("dest", nargs="?", default=str(Path.home() / ".cache" / "mjxdiff" / "robots"))
     parser.add_argument("--robots", default="")
     parser.add_argument("sweep_args", nargs="*")
-    args = parser.parse_args()
+    args, extra = parser.parse_known_args()
+    args.sweep_args += [x for x in extra if x != "--"]
     dest = Path(args.dest)
     wanted = set(filter(None, args.robots.split(",")))
     for robot in json.loads((dest / "robots.json").read_text()):
