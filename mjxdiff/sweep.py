@@ -711,9 +711,11 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
 
 def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
           mjx_engine: MJXEngine, c_engine: CEngine, clock: dict[str, float]) -> tuple[ScenarioResult, dict | None]:
-    """The converged twin: both engines rerun with a converged solver (:func:`mjxdiff.noise.converged`),
-    judged as sharply as any converged scenario (rounding envelope, never the solver floor); kept
-    in ``info['twin']`` (the dict returned). A twin that fails fails the scenario, naming field, step, member and (from
+    """The converged twin: both engines rerun with a converged solver
+    (:func:`mjxdiff.noise.converged`), judged as sharply as any converged scenario (rounding
+    envelope, never the solver floor). Returns the result and what the twin found (for
+    ``info['twin']``: status, worst qpos/qvel ratio, per-field ratio and ``bound_scale``, weak
+    fields, seconds). A twin that fails fails the scenario, naming field, step, member and (from
     the drill-down at that state) the first stage and field that differ. Never raises."""
     t = time.perf_counter()
     twin_inputs = converged(inputs)
@@ -746,7 +748,6 @@ def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, con
                                                    f"{twin.message}"), found
     return dataclasses.replace(result, status="fail", message=f"{message}; as configured the rollout passed "
                                                             f"({result.message})", first_divergence=first), found
-
 
 
 def _truncation(result: ScenarioResult, m, floor: dict, found: dict, twin: dict | None) -> ScenarioResult:
