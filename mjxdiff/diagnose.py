@@ -319,7 +319,7 @@ ABLATIONS: tuple[tuple[str, str, Callable[[mujoco.MjModel], None]], ...] = (
 
 
 def attribute_cause(passes: Callable[[BatchedInputs, str], bool], inputs: BatchedInputs,
-                    precision: str) -> dict[str, Any]:
+                    precision: str, skip: tuple[str, ...] = ()) -> dict[str, Any]:
     """Tries ablations in order; the first under which the scenario passes names the cause.
 
     An ablation that cannot run (MJX or C raises on the ablated model, e.g. a
@@ -331,6 +331,7 @@ def attribute_cause(passes: Callable[[BatchedInputs, str], bool], inputs: Batche
         and says whether it passes.
       inputs: the failing scenario's inputs.
       precision: the precision it failed at.
+      skip: causes whose ablations are not tried (the one-step check's solver is converged already).
 
     Returns:
       ``{"cause": class, "ablation": label, "tried": [{"ablation", "passed", "error"}, ...]}``;
@@ -353,7 +354,7 @@ def attribute_cause(passes: Callable[[BatchedInputs, str], bool], inputs: Batche
         return found
     m = inputs.models[0]
     for i, (cause, label, edit) in enumerate(ABLATIONS):
-        if edit is _no_actuator_clamps and not _has_actuator_clamps(m):
+        if cause in skip or (edit is _no_actuator_clamps and not _has_actuator_clamps(m)):
             continue
         if i:
             edit = functools.partial(_with_converged_solver, edit)

@@ -93,7 +93,8 @@ def _worst(e: np.ndarray) -> np.ndarray:
 
 
 def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine, c_engine,
-          precision: str = "float64", states: int = STATES, evidence: bool = False) -> dict[str, Any]:
+          precision: str = "float64", states: int = STATES, evidence: bool = False,
+          steps: np.ndarray | None = None) -> dict[str, Any]:
     """The one-step check of ``engine`` (MJX or MJWarp) against ``c_engine`` (C) from states of
     C's rollout ``traj_c`` of ``inputs``, and whether the model's own solver settings converge.
 
@@ -104,6 +105,7 @@ def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine,
     configured too: ``as_configured`` holds, per field, MJX's truncated step against C's
     (``error``), C's truncated step against its converged one (``truncation``), and for the field
     with the largest ``error / truncation`` that ratio (<= 1: MJX's truncation is of the size of C's).
+    ``steps``: the record indices to start from (:func:`sample_steps` when None).
 
     Returns a dict: ``status`` (``pass``, ``fail``, or ``error`` when C itself goes non-finite
     from every state), ``states`` (record indices), ``pairs`` judged, ``solver``, ``bound_scale``
@@ -113,7 +115,7 @@ def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine,
     pair (largest error / bound over fields): ``field``, ``object``, ``member``, ``step`` (the
     step applied, 0-based), ``error``, ``bound``, ``ratio``; ``ratios`` the worst ratio per field.
     """
-    steps = sample_steps(traj_c, states)
+    steps = sample_steps(traj_c, states) if steps is None else np.asarray(steps)
     configured = one_step_inputs(inputs, traj_c, steps, converge=False)
     one = converged(configured)
     P = one.batch

@@ -698,15 +698,39 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
         found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object)
         where = (f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
                  if drill.first_stage else "; every forward stage agrees (the difference is in the integration)")
+    if config.diagnose == "full":
+        found["cause"] = _onestep_cause(m, inputs, traj_c, tol, config, mjx_engine, c_engine, member, step)
+        if found["cause"]["ablation"]:
+            where += f"; one-step cause: {found['cause']['cause']} (passes with {found['cause']['ablation']})"
     said = (f"one-step check: {found['field']} of {found['object'] or 'member ' + str(member)} after step "
             f"{step} from C's state, member {member}, converged solver in both: error {found['error']:.3g}, "
             f"bound {found['bound']:.3g} ({found['ratio']:.3g}x){where}")
+    diagnosis = result.diagnosis
+    if found.get("cause", {}).get("ablation") and (diagnosis.get("cause") or {}).get("cause") in (
+            None, diagnose.GENUINE, diagnose.UNCLASSIFIED):  # the one-step ablation is the sharper witness
+        diagnosis = dict(diagnosis, cause=dict(found["cause"], check="onestep"))
     if result.status == "fail":
-        return dataclasses.replace(result, message=f"{result.message}; {said}"), found, traj_c
+        return dataclasses.replace(result, message=f"{result.message}; {said}", diagnosis=diagnosis), found, traj_c
     first = dict(field=found["field"], step=step, time=round((step + 1) * float(m.opt.timestep), 9), member=member,
                  object=found["object"], error=found["error"], tolerance=found["bound"], check="onestep")
     return dataclasses.replace(result, status="fail", message=f"{said}; the rollout alone passed ({result.message})",
-                               first_divergence=first), found, traj_c
+                               first_divergence=first, diagnosis=diagnosis), found, traj_c
+
+
+def _onestep_cause(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, config: SweepConfig,
+                   mjx_engine: MJXEngine, c_engine: CEngine, member: int, step: int) -> dict:
+    """:func:`mjxdiff.diagnose.attribute_cause` on the one failing member-state of the one-step
+    check: the first ablation under which that one step agrees names the cause. Chaos cannot
+    blur it, unlike the rollout's ablations on a model with several differences (a robot)."""
+    row = int(np.flatnonzero(inputs.ids == member)[0])
+    single, traj_row = inputs.take([row]), jax.tree.map(lambda a: a[row:row + 1], traj_c)
+
+    def passes(ablated: BatchedInputs, precision: str) -> bool:
+        with _precision(precision):
+            return onestep.check(ablated.models[0], ablated, traj_row, tol, mjx_engine, c_engine, precision,
+                                 steps=np.array([step - 1]))["status"] == "pass"
+
+    return diagnose.attribute_cause(passes, single, config.precision, skip=("solver convergence",))
 
 
 def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
