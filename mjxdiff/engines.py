@@ -257,6 +257,17 @@ class CEngine:
     def rollout(self, inputs: BatchedInputs) -> Trajectory:
         return concat(list(self.stream(inputs, inputs.steps)))
 
+    def first_piece(self, inputs: BatchedInputs, chunk: int) -> Trajectory:
+        """The first ``min(chunk, steps)`` steps of :meth:`stream` of ``inputs``, and nothing after:
+        the compiled function of a stream of the same batch, horizon and piece length (a sweep's
+        own rollout), so it costs stepping, never a compile."""
+        B, T = inputs.batch, inputs.steps
+        with _unsupported():
+            run, args, _, _ = self._bound(inputs, chunk)
+            _, rec = run(*args)
+        rec = jax.tree.map(lambda x: np.asarray(x)[:B, :min(chunk, T)], jax.block_until_ready(rec))
+        return _trajectory(rec, B, min(chunk, T))
+
     def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
         """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
 
@@ -784,6 +795,17 @@ class MJXEngine:
         (an unsupported feature) is left for :meth:`stream` to raise and report."""
         with contextlib.suppress(Exception), _unsupported():
             self._bound(inputs, chunk)
+
+    def first_piece(self, inputs: BatchedInputs, chunk: int) -> Trajectory:
+        """The first ``min(chunk, steps)`` steps of :meth:`stream` of ``inputs``, and nothing after:
+        the compiled function of a stream of the same batch, horizon and piece length (a sweep's
+        own rollout), so it costs stepping, never a compile."""
+        B, T = inputs.batch, inputs.steps
+        with _unsupported():
+            run, args, _, _ = self._bound(inputs, chunk)
+            _, rec = run(*args)
+        rec = jax.tree.map(lambda x: np.asarray(x)[:B, :min(chunk, T)], jax.block_until_ready(rec))
+        return _trajectory(rec, B, min(chunk, T))
 
     def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
         """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).

@@ -92,45 +92,93 @@ def _worst(e: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(e), e, np.inf).max(axis=1, initial=0.0)
 
 
+def _first_record(traj: Trajectory) -> Trajectory:
+    """The first step of a rollout, as a one-step Trajectory."""
+    first = jax.tree.map(lambda a: a[:, :1] if np.ndim(a) >= 2 else a, traj)
+    return dataclasses.replace(first, diverged_at=np.where(np.asarray(traj.diverged_at) == 0, 0, -1))
+
+
+def _rows(traj: Trajectory, rows: np.ndarray) -> Trajectory:
+    return jax.tree.map(lambda a: np.asarray(a)[rows], traj)
+
+
+def _through_rollout(inputs: BatchedInputs, configured: BatchedInputs, engine, reuse, S: int):
+    """MJX's step as configured from one sampled state per member of the sweep's first member
+    group, through the sweep's own compiled rollout (``engine.first_piece``: no compile of its
+    own). Returns (pair rows into ``configured``, the one-step Trajectory)."""
+    group, chunk = reuse
+    base = inputs.take(group) if len(group) != inputs.batch or np.any(group != np.arange(inputs.batch)) else inputs
+    row_of = {int(i): r for r, i in enumerate(inputs.ids)}
+    rows = np.array([row_of[int(i)] * S + k % S for k, i in enumerate(base.ids)])
+    ctrl = np.zeros_like(np.asarray(base.ctrl))
+    ctrl[:, 0] = np.asarray(configured.ctrl)[rows, 0]
+    pairs = dataclasses.replace(base, qpos=np.asarray(configured.qpos)[rows], qvel=np.asarray(configured.qvel)[rows],
+                                act=np.asarray(configured.act)[rows], ctrl=ctrl)
+    return rows, _first_record(engine.first_piece(pairs, chunk))
+
+
 def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine, c_engine,
           precision: str = "float64", states: int = STATES, evidence: bool = False,
-          steps: np.ndarray | None = None) -> dict[str, Any]:
+          steps: np.ndarray | None = None, reuse: tuple[np.ndarray, int] | None = None) -> dict[str, Any]:
     """The one-step check of ``engine`` (MJX or MJWarp) against ``c_engine`` (C) from states of
     C's rollout ``traj_c`` of ``inputs``, and whether the model's own solver settings converge.
 
-    From every sampled state C also steps once with the model's own solver settings: where that
-    differs from C's converged step beyond the pair's bound, the solver is **not converged**
+    From every sampled state C steps once with a converged solver and once with the model's own
+    settings: where those differ beyond the pair's bound, the settings are **not converged**
     (``solver['converged']`` False; its ``ratio`` the worst |C as configured - C converged| /
-    bound, ``field`` where). With ``evidence``, for a model not converged, ``engine`` steps as
-    configured too: ``as_configured`` holds, per field, MJX's truncated step against C's
-    (``error``), C's truncated step against its converged one (``truncation``), and for the field
-    with the largest ``error / truncation`` that ratio (<= 1: MJX's truncation is of the size of C's).
-    ``steps``: the record indices to start from (:func:`sample_steps` when None).
+    bound, ``field`` where), and ``engine`` steps every pair with a converged solver (one compile
+    of a one-step function). Where they converge and ``reuse`` = (member indices of the sweep's
+    first group, steps per piece) is given, ``engine`` steps as configured through the sweep's own
+    compiled rollout instead (``engine.first_piece``; one state per member of that group, each
+    member at another sampled state), judged against C as configured: the same check without a
+    compile of its own (``settings`` says which). With ``evidence``, for a model not converged,
+    ``engine`` also steps as configured: ``as_configured`` holds, per field, MJX's truncated step
+    against C's (``error``), C's truncated step against its converged one (``truncation``), and
+    for the field with the largest ``error / truncation`` that ratio (<= 1: MJX's truncation is of
+    the size of C's). ``steps``: the record indices to start from (:func:`sample_steps` when None).
 
     Returns a dict: ``status`` (``pass``, ``fail``, or ``error`` when C itself goes non-finite
-    from every state), ``states`` (record indices), ``pairs`` judged, ``solver``, ``bound_scale``
-    (field -> (tightest, median) over pairs of the bound / RMS of C's values after the step, as
-    :attr:`mjxdiff.verdict.FieldResult.bound_scale`), ``weak`` (fields whose median exceeds
-    :data:`~mjxdiff.verdict.WEAK_BOUND`), and for the worst
-    pair (largest error / bound over fields): ``field``, ``object``, ``member``, ``step`` (the
-    step applied, 0-based), ``error``, ``bound``, ``ratio``; ``ratios`` the worst ratio per field.
+    from every state), ``states`` (record indices), ``pairs`` judged, ``settings``, ``solver``,
+    ``bound_scale`` (field -> (tightest, median) over pairs of the bound / RMS of C's values after
+    the step, as :attr:`mjxdiff.verdict.FieldResult.bound_scale`), ``weak`` (fields whose median
+    exceeds :data:`~mjxdiff.verdict.WEAK_BOUND`), and for the worst pair (largest error / bound
+    over fields): ``field``, ``object``, ``member``, ``step`` (the step applied, 0-based),
+    ``error``, ``bound``, ``ratio``; ``ratios`` the worst ratio per field.
     """
     steps = sample_steps(traj_c, states) if steps is None else np.asarray(steps)
+    S = len(steps)
     configured = one_step_inputs(inputs, traj_c, steps, converge=False)
     one = converged(configured)
     P = one.batch
-    joined = c_engine.rollout(functools.reduce(BatchedInputs.concat, [one, perturb(one, precision), configured]))
-    c, nudged, c_cfg = (jax.tree.map(lambda a, i=i: a[i * P:(i + 1) * P], joined) for i in range(3))
-    x = engine.rollout(one)
+    batches = [one, perturb(one, precision), configured, perturb(configured, precision)]
+    joined = c_engine.rollout(functools.reduce(BatchedInputs.concat, batches))
+    c, nudged, c_cfg, nudged_cfg = (jax.tree.map(lambda a, i=i: a[i * P:(i + 1) * P], joined) for i in range(4))
     layout, mask = metrics.qpos_layout(m), rangefinder_mask(m)
-    err, own, trunc = (_per_pair(a, c, layout, mask) for a in (x, nudged, c_cfg))
+    member_of, step_of = np.repeat(np.asarray(inputs.ids), S), np.tile(steps, inputs.batch)
+    out: dict[str, Any] = dict(states=[int(j) for j in steps], ratios={}, bound_scale={})
     healthy = (c.diverged_at < 0) & (nudged.diverged_at < 0)
-    objects = component_objects(m, layout)
-    S = len(steps)
-    out: dict[str, Any] = dict(states=[int(j) for j in steps], pairs=int(healthy.sum()), ratios={}, bound_scale={})
     if not healthy.any():
-        return dict(out, status="error", message="MuJoCo C goes non-finite from every sampled state")
-    worst, solver = None, dict(converged=True, ratio=0.0, field="")
+        return dict(out, pairs=0, status="error", message="MuJoCo C goes non-finite from every sampled state")
+    own, trunc = _per_pair(nudged, c, layout, mask), _per_pair(c_cfg, c, layout, mask)
+    solver = dict(converged=True, ratio=0.0, field="")
+    for field in FIELDS:
+        if trunc[field].shape[-1]:
+            bound = np.maximum(getattr(tol, field), ROUNDING_FACTOR * np.nan_to_num(_worst(own[field]), posinf=0.0))
+            t = float(np.where(healthy, _worst(trunc[field]) / bound, 0.0).max())
+            if t > solver["ratio"]:
+                solver.update(ratio=t, field=field)
+    solver["converged"] = solver["ratio"] <= 1.0
+    rows = np.arange(P)
+    if solver["converged"] and reuse is not None and hasattr(engine, "first_piece"):
+        rows, x = _through_rollout(inputs, configured, engine, reuse, S)
+        reference, nudged_ref, settings = _rows(c_cfg, rows), _rows(nudged_cfg, rows), "as configured (converged)"
+    else:
+        x, reference, nudged_ref, settings = engine.rollout(one), c, nudged, "converged"
+    err, own = _per_pair(x, reference, layout, mask), _per_pair(nudged_ref, reference, layout, mask)
+    healthy = (reference.diverged_at < 0) & (nudged_ref.diverged_at < 0)
+    objects = component_objects(m, layout)
+    out.update(pairs=int(healthy.sum()), settings=settings)
+    worst = None
     for field in FIELDS:
         e = err[field]
         if e.shape[-1] == 0:
@@ -139,7 +187,7 @@ def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine,
         bound = np.maximum(getattr(tol, field), ROUNDING_FACTOR * np.nan_to_num(_worst(own[field]), posinf=0.0))
         ratio = np.where(healthy, per_pair / bound, 0.0)
         out["ratios"][field] = float(ratio.max())
-        values = np.asarray(getattr(c, field))[healthy]
+        values = np.asarray(getattr(reference, field))[healthy]
         values = np.minimum(np.abs(values), 1.0) if field == "sensordata" else values
         scale = float(np.sqrt(np.mean(np.where(np.isfinite(values), values, 0.0) ** 2)))
         if scale > 0:
@@ -148,24 +196,24 @@ def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine,
         if worst is None or ratio[i] > worst["ratio"]:
             comp = int(np.nan_to_num(e[i], nan=np.inf).argmax())
             worst = dict(field=field, object=objects[field][comp] if objects.get(field) else "",
-                         member=int(inputs.ids[i // S]), step=int(steps[i % S]) + 1,
+                         member=int(member_of[rows[i]]), step=int(step_of[rows[i]]) + 1,
                          error=float(per_pair[i]), bound=float(bound[i]), ratio=float(ratio[i]))
-        t = float(np.where(healthy, _worst(trunc[field]) / bound, 0.0).max())
-        if t > solver["ratio"]:
-            solver.update(ratio=t, field=field)
-    solver["converged"] = solver["ratio"] <= 1.0
     out.update(worst or dict(ratio=0.0), solver=solver,
                weak=[f for f, (_, median) in out["bound_scale"].items() if median > WEAK_BOUND])
     out["status"] = "fail" if out["ratio"] > 1.0 else "pass"
     if evidence and not solver["converged"]:
-        x_cfg = engine.rollout(configured)
-        mjx_cfg = _per_pair(x_cfg, c_cfg, layout, mask)
+        if reuse is not None and hasattr(engine, "first_piece"):
+            rows, x_cfg = _through_rollout(inputs, configured, engine, reuse, S)
+        else:
+            rows, x_cfg = np.arange(P), engine.rollout(configured)
+        mjx_cfg = _per_pair(x_cfg, _rows(c_cfg, rows), layout, mask)
+        ok = (np.asarray(c.diverged_at)[rows] < 0) & (np.asarray(nudged.diverged_at)[rows] < 0)
         fields = {}
         for field in FIELDS:
             if trunc[field].shape[-1] == 0:
                 continue
-            e = float(np.where(healthy, _worst(mjx_cfg[field]), 0.0).max())
-            t = float(np.where(healthy, np.nan_to_num(_worst(trunc[field]), posinf=0.0), 0.0).max())
+            e = float(np.where(ok, _worst(mjx_cfg[field]), 0.0).max())
+            t = float(np.where(ok, np.nan_to_num(_worst(trunc[field][rows]), posinf=0.0), 0.0).max())
             fields[field] = dict(error=e, truncation=t)
         key = max(fields, key=lambda f: fields[f]["error"] / max(fields[f]["truncation"], 1e-300))
         out["as_configured"] = dict(fields=fields, field=key,

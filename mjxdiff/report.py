@@ -201,7 +201,7 @@ def format_checks(info: dict[str, Any]) -> str:
     if one and one.get("status") in ("pass", "fail"):
         scale = (one.get("bound_scale") or {}).get(one.get("field"))
         text = (f"one-step {one['status']}: {one.get('field')} {_num(one.get('ratio')):.2g} of its bound "
-                f"({one.get('pairs')} states of C, converged solver"
+                f"({one.get('pairs')} states of C, {_SETTINGS.get(one.get('settings'), 'converged solver')}"
                 + (f"; bound {scale[1]:.1g} of the field's scale" if scale else "") + ")")
         solver = one.get("solver") or {}
         if not solver.get("converged", True):
@@ -218,6 +218,10 @@ def format_checks(info: dict[str, Any]) -> str:
     elif twin:
         parts.append(f"converged twin {twin.get('status')}: {twin.get('message', '')}")
     return ("checks: " + "; ".join(parts)) if parts else ""
+
+
+#: How the one-step check's solver ran (``info['onestep']['settings']``), as the checks line says it.
+_SETTINGS = {"converged": "converged solver", "as configured (converged)": "solver as configured, which converges"}
 
 
 def _num(x: Any) -> float:

@@ -678,7 +678,9 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
     Returns (result, what the check found, C's whole rollout or None)."""
     try:
         traj_c = traj_c if traj_c is not None else c_engine.rollout(inputs)
-        found = onestep.check(m, inputs, traj_c, tol, mjx_engine, c_engine, config.precision, evidence=evidence)
+        groups, chunk = _plan(m, inputs, config, mjx_engine)
+        found = onestep.check(m, inputs, traj_c, tol, mjx_engine, c_engine, config.precision, evidence=evidence,
+                              reuse=(groups[0], chunk))
     except Exception as e:  # noqa: BLE001 - the rollout's verdict stands
         found = dict(status="error", message=_one_line(e))
         return dataclasses.replace(result, message=f"{result.message}; one-step check could not run: "
@@ -703,7 +705,8 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
         if found["cause"]["ablation"]:
             where += f"; one-step cause: {found['cause']['cause']} (passes with {found['cause']['ablation']})"
     said = (f"one-step check: {found['field']} of {found['object'] or 'member ' + str(member)} after step "
-            f"{step} from C's state, member {member}, converged solver in both: error {found['error']:.3g}, "
+            f"{step} from C's state, member {member}, {found.get('settings', 'converged')} solver in both: "
+            f"error {found['error']:.3g}, "
             f"bound {found['bound']:.3g} ({found['ratio']:.3g}x){where}")
     diagnosis = result.diagnosis
     if found.get("cause", {}).get("ablation") and (diagnosis.get("cause") or {}).get("cause") in (

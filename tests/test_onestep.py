@@ -112,3 +112,13 @@ def test_a_one_step_failure_fails_the_weak_pass_and_names_the_stage(quadruped, m
     assert found["first_stage"] == "actuation" and "first field to differ: actuator_force (actuation" in result.message
     assert result.first_divergence["check"] == "onestep" and result.first_divergence["member"] == found["member"]
     assert "the rollout alone passed (worst qpos 3.1" in result.message
+
+
+def test_a_converged_model_is_checked_through_its_own_compiled_rollout():
+    """Where the model's solver converges, the one-step check steps MJX as configured through the
+    sweep's compiled rollout: no compile of its own (one MJX rollout traced or loaded in all)."""
+    result = run_scenario(load_scenario("double_pendulum"), SweepConfig(seed=0, diagnose="none", transfer=False))
+    one = result.info["onestep"]
+    assert one["status"] == "pass" and one["settings"] == "as configured (converged)" and one["solver"]["converged"]
+    assert one["pairs"] == result.info["batch"] and one["ratio"] < 0.01, one
+    assert result.info["mjx_compiles"] + result.info["mjx_loaded"] == 1, result.info
