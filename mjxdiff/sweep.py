@@ -75,10 +75,10 @@ class SweepConfig:
       transfer: also check MJX's host interface (``put_data``, ``get_data``,
         ``get_state``/``set_state``, names, ``bind``) against C at two C states of member 0
         (:mod:`mjxdiff.transfer`); a mismatch fails the scenario as field ``transfer``.
-      onestep: when a pass is weak (its bound as large as the motion, :attr:`ScenarioResult.weak`),
-        the one-step check (:mod:`mjxdiff.onestep`): from states of C's rollout, one step in
-        both engines with a converged solver, bounded by C's own rounding; it can fail the
-        scenario on its own (``info['onestep']``).
+      onestep: the one-step check on every scenario that ran (:mod:`mjxdiff.onestep`): from
+        states of C's rollout, one step in both engines, bounded by C's own rounding; it can
+        fail the scenario on its own (``info['onestep']``), and it tells whether the model's
+        solver settings converge, which decides the converged twin (:func:`_sharp`).
       impl: the implementation judged against C: ``mjx`` or ``warp`` (MuJoCo Warp on the
         CPU, :mod:`mjxdiff.mjwarp`; float32, so ``precision`` becomes ``float32``: tolerance
         floors, the perturbation of C's rerun and the metrics are float32's; no host-interface
