@@ -352,9 +352,9 @@ def attribute_cause(passes: Callable[[BatchedInputs, str], bool], inputs: Batche
 
     if precision == "float32" and (found := attempt("float64", "precision", lambda: inputs, "float64")):
         return found
-    m = inputs.models[0]
+    m = inputs.models[0] if hasattr(inputs, "models") else getattr(inputs, "m", None)  # or closedloop's one step
     for i, (cause, label, edit) in enumerate(ABLATIONS):
-        if cause in skip or (edit is _no_actuator_clamps and not _has_actuator_clamps(m)):
+        if cause in skip or (edit is _no_actuator_clamps and m is not None and not _has_actuator_clamps(m)):
             continue
         if i:
             edit = functools.partial(_with_converged_solver, edit)
