@@ -257,17 +257,6 @@ class CEngine:
     def rollout(self, inputs: BatchedInputs) -> Trajectory:
         return concat(list(self.stream(inputs, inputs.steps)))
 
-    def first_piece(self, inputs: BatchedInputs, chunk: int) -> Trajectory:
-        """The first ``min(chunk, steps)`` steps of :meth:`stream` of ``inputs``, and nothing after:
-        the compiled function of a stream of the same batch, horizon and piece length (a sweep's
-        own rollout), so it costs stepping, never a compile."""
-        B, T = inputs.batch, inputs.steps
-        with _unsupported():
-            run, args, _, _ = self._bound(inputs, chunk)
-            _, rec = run(*args)
-        rec = jax.tree.map(lambda x: np.asarray(x)[:B, :min(chunk, T)], jax.block_until_ready(rec))
-        return _trajectory(rec, B, min(chunk, T))
-
     def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
         """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
 
@@ -800,12 +789,10 @@ class MJXEngine:
         """The first ``min(chunk, steps)`` steps of :meth:`stream` of ``inputs``, and nothing after:
         the compiled function of a stream of the same batch, horizon and piece length (a sweep's
         own rollout), so it costs stepping, never a compile."""
-        B, T = inputs.batch, inputs.steps
         with _unsupported():
             run, args, _, _ = self._bound(inputs, chunk)
             _, rec = run(*args)
-        rec = jax.tree.map(lambda x: np.asarray(x)[:B, :min(chunk, T)], jax.block_until_ready(rec))
-        return _trajectory(rec, B, min(chunk, T))
+        return _host_piece(rec, inputs.batch, min(chunk, inputs.steps))
 
     def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
         """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
@@ -829,9 +816,7 @@ class MJXEngine:
             first = run(*args)
 
         def piece(rec, start):
-            k = min(chunk, T - start)
-            rec = jax.tree.map(lambda x: np.asarray(x)[:B, :k], jax.block_until_ready(rec))
-            p = _trajectory(rec, B, k)
+            p = _host_piece(rec, B, min(chunk, T - start))
             return dataclasses.replace(p, diverged_at=_shifted(p.diverged_at, start))
 
         def pieces(dx, rec):
@@ -872,6 +857,13 @@ class MJXEngine:
                                     xla_options(self.compile, S * k), (self.compile, S * k))
         rec = {key: np.asarray(v)[:B].reshape(B, S * k, *v.shape[3:])[:, :T] for key, v in rec.items()}
         return _trajectory(rec, B, T)
+
+
+def _host_piece(rec, batch: int, steps: int) -> Trajectory:
+    """A piece's device records, waited for, on the host: the first ``batch`` members (the rest
+    pad the batch to the devices) and ``steps`` steps (the rest pad the last piece)."""
+    rec = jax.tree.map(lambda x: np.asarray(x)[:batch, :steps], jax.block_until_ready(rec))
+    return _trajectory(rec, batch, steps)
 
 
 def _trajectory(rec: dict[str, np.ndarray], batch: int, steps: int) -> Trajectory:

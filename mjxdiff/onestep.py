@@ -92,6 +92,12 @@ def _worst(e: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(e), e, np.inf).max(axis=1, initial=0.0)
 
 
+def _pair_bound(tol: Tolerances, field: str, own: np.ndarray) -> np.ndarray:
+    """(P,) bound of each pair: max(tolerance, ROUNDING_FACTOR x C's own worst difference under a
+    4-ulp nudge, ``own`` (P, n))."""
+    return np.maximum(getattr(tol, field), ROUNDING_FACTOR * np.nan_to_num(_worst(own), posinf=0.0))
+
+
 def _first_record(traj: Trajectory) -> Trajectory:
     """The first step of a rollout, as a one-step Trajectory."""
     first = jax.tree.map(lambda a: a[:, :1] if np.ndim(a) >= 2 else a, traj)
@@ -163,7 +169,7 @@ def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine,
     solver = dict(converged=True, ratio=0.0, field="")
     for field in FIELDS:
         if trunc[field].shape[-1]:
-            bound = np.maximum(getattr(tol, field), ROUNDING_FACTOR * np.nan_to_num(_worst(own[field]), posinf=0.0))
+            bound = _pair_bound(tol, field, own[field])
             t = float(np.where(healthy, _worst(trunc[field]) / bound, 0.0).max())
             if t > solver["ratio"]:
                 solver.update(ratio=t, field=field)
@@ -184,7 +190,7 @@ def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine,
         if e.shape[-1] == 0:
             continue
         per_pair = _worst(e)
-        bound = np.maximum(getattr(tol, field), ROUNDING_FACTOR * np.nan_to_num(_worst(own[field]), posinf=0.0))
+        bound = _pair_bound(tol, field, own[field])
         ratio = np.where(healthy, per_pair / bound, 0.0)
         out["ratios"][field] = float(ratio.max())
         values = np.asarray(getattr(reference, field))[healthy]
