@@ -16,6 +16,10 @@ report line) and can be switched off; nothing is changed silently.
   body against body with ``<exclude>``), so that the rest of the model can be
   tested. This changes the dynamics being compared, so the result says which
   pairs were dropped, including supported pairs between the same bodies.
+* **Costly collision pairs** (:func:`drop_costly`, opt-in with ``--drop-costly-pairs``): the
+  mesh-mesh and box-mesh pairs whose dense separating-axis test makes MJX's compile take
+  minutes and its stepping GBs per member (:mod:`mjxdiff.cost`), removed the same way, so
+  that a robot's plain model gets a verdict on everything else.
 """
 
 from __future__ import annotations
@@ -26,7 +30,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-__all__ = ["HARMLESS_ENABLE_FLAGS", "for_mjx", "harmless", "unsupported_pairs", "drop_unsupported"]
+__all__ = ["HARMLESS_ENABLE_FLAGS", "costly_pairs", "drop_costly", "drop_unsupported", "for_mjx", "harmless",
+           "unsupported_pairs"]
 
 #: Enable flags MJX refuses and C's compared quantities do not depend on, with the label reported.
 HARMLESS_ENABLE_FLAGS: dict[int, str] = {
@@ -86,6 +91,20 @@ def _candidates(m: mujoco.MjModel) -> set[tuple[int, int]]:
     return {tuple(sorted((int(g1), int(g2)))) for g1, g2, _ in collision_driver.geom_pairs(m)}
 
 
+def costly_pairs(m: mujoco.MjModel) -> list[tuple[int, int, int, str]]:
+    """The geom pairs MJX collides with its dense separating-axis test between two hulls (mesh-mesh,
+    box-mesh): ``(geom1, geom2, pair id or -1, reason)``, the pairs that make a model slow to
+    compile and large to step (:mod:`mjxdiff.cost`)."""
+    from mjxdiff import cost
+
+    out = []
+    groups, _ = cost.pair_groups(m)
+    for group in cost.Estimate(0.0, 0, groups).costly:
+        for g1, g2, ip in group.members:
+            out.append((int(g1), int(g2), int(ip), f"{group.label} pair, {group.work:.0f} elements per step"))
+    return out
+
+
 def drop_unsupported(m: mujoco.MjModel, path: str | Path) -> tuple[mujoco.MjModel, list[str]]:
     """``m`` compiled again from ``path`` without the pairs of :func:`unsupported_pairs`, and what was dropped.
 
@@ -95,7 +114,24 @@ def drop_unsupported(m: mujoco.MjModel, path: str | Path) -> tuple[mujoco.MjMode
     is unsupported; otherwise the model compiled from ``path``, so apply
     :func:`harmless` after this (:func:`for_mjx` does).
     """
-    bad = unsupported_pairs(m)
+    return drop_pairs(m, path, unsupported_pairs(m), _UNSUPPORTED)
+
+
+def drop_costly(m: mujoco.MjModel, path: str | Path) -> tuple[mujoco.MjModel, list[str]]:
+    """:func:`drop_unsupported` for the pairs of :func:`costly_pairs` (``--drop-costly-pairs``)."""
+    return drop_pairs(m, path, costly_pairs(m), _COSTLY)
+
+
+#: Dropped pairs a line names; the rest are counted.
+_LISTED = 12
+_UNSUPPORTED = "geom pair(s) MJX cannot collide (--drop-unsupported)"
+_COSTLY = "costly hull-hull geom pair(s) (--drop-costly-pairs)"
+
+
+def drop_pairs(m: mujoco.MjModel, path: str | Path, bad: list[tuple[int, int, int, str]],
+               what: str) -> tuple[mujoco.MjModel, list[str]]:
+    """``m`` compiled again from ``path`` without the geom pairs ``bad`` (see :func:`drop_unsupported`),
+    and one line naming every pair dropped as ``what``."""
     if not bad:
         return m, []
     spec = mujoco.MjSpec.from_file(str(path))
@@ -116,22 +152,23 @@ def drop_unsupported(m: mujoco.MjModel, path: str | Path) -> tuple[mujoco.MjMode
             spec.add_exclude(bodyname1=names[b1], bodyname2=names[b2])
     dropped = spec.compile()
     if dropped.ngeom != m.ngeom or not np.array_equal(dropped.geom_type, m.geom_type):
-        raise ValueError(f"{Path(path).name}: recompiling without the unsupported pairs changed its geoms")
+        raise ValueError(f"{Path(path).name}: recompiling without the dropped pairs changed its geoms")
     reasons = {tuple(sorted((g1, g2))): why for g1, g2, _, why in bad}
     gone = sorted(_candidates(m) - _candidates(dropped))
-    lines = [f"dropped {len(gone)} geom pair(s) MJX cannot collide (--drop-unsupported): "
-             + ", ".join(f"{_geom(m, a)} / {_geom(m, b)} ({reasons.get((a, b), 'same bodies as an unsupported pair')})"
-                         for a, b in gone)]
+    named = [f"{_geom(m, a)} / {_geom(m, b)} ({reasons.get((a, b), 'same bodies as a dropped pair')})"
+             for a, b in gone]
+    more = f", and {len(named) - _LISTED} more" if len(named) > _LISTED else ""
+    lines = [f"dropped {len(gone)} {what}: " + ", ".join(named[:_LISTED]) + more]
     return dropped, lines
 
 
 def for_mjx(m: mujoco.MjModel, path: str | Path, adjust: bool = True,
-            drop: bool = False) -> tuple[mujoco.MjModel, list[str]]:
+            drop: bool = False, costly: bool = False) -> tuple[mujoco.MjModel, list[str]]:
     """The model both engines step and the adjustments made: :func:`drop_unsupported` when
-    ``drop``, then :func:`harmless` when ``adjust``."""
-    lines: list[str] = []
-    if drop:
-        m, lines = drop_unsupported(m, path)
+    ``drop``, :func:`drop_costly` when ``costly``, then :func:`harmless` when ``adjust``."""
+    chosen = [(find, what) for wanted, find, what in ((drop, unsupported_pairs, _UNSUPPORTED),
+                                                       (costly, costly_pairs, _COSTLY)) if wanted]
+    m, lines = drop_pairs(m, path, [p for find, _ in chosen for p in find(m)], " and ".join(w for _, w in chosen))
     if adjust:
         m, more = harmless(m)
         lines += more

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -111,6 +112,28 @@ def _fraction(text: str) -> float:
     return value
 
 
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds (a positive number), got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected seconds (a positive number), got {text!r}")
+    return value
+
+
+def _size(text: str) -> int:
+    from mjxdiff.guard import parse_size
+
+    try:
+        value = parse_size(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive size (e.g. 12G, 800M), got {text!r}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mjxdiff", description=_DESCRIPTION,
                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -149,6 +172,27 @@ def build_parser() -> argparse.ArgumentParser:
                     help="remove geom pairs MJX cannot collide (e.g. cylinder-box) from the model both engines "
                          "step and test the rest; changes the dynamics, so it is never the default and every "
                          "dropped pair is listed in the result")
+    sw.add_argument("--drop-costly-pairs", action="store_true",
+                    help="remove the mesh-mesh and box-mesh geom pairs (MJX's dense separating-axis test: minutes "
+                         "of compile, GBs per member on robots' plain models) from the model both engines step; "
+                         "changes the dynamics, so never the default; every dropped pair is listed")
+    sw.add_argument("--budget", type=_seconds, default=600.0, metavar="SECONDS",
+                    help="wall time per scenario (default 600). A compile estimated past it stops the scenario "
+                         "at once, with the estimate and what to do; a scenario that runs past it ends as an "
+                         "ERROR saying how far it got, and the sweep goes on")
+    sw.add_argument("--sweep-budget", type=_seconds, metavar="SECONDS",
+                    help="wall time for the whole sweep (default: none); scenarios left when it runs out are "
+                         "reported as not run")
+    sw.add_argument("--max-memory", type=_size, metavar="SIZE",
+                    help="resident memory the sweep may hold, e.g. 12G (default: 85%% of what the machine has "
+                         "available at the start). MJX steps fewer members at once to fit; a scenario that would "
+                         "still exceed it ends as an ERROR naming the cause, before the kernel would kill it")
+    sw.add_argument("--isolate", action=argparse.BooleanOptionalAction,
+                    default=os.environ.get("MJXDIFF_ISOLATE", "1") != "0",
+                    help="run the sweep in a child process watched for --max-memory and --budget, which can "
+                         "stop even an XLA compile (default; MJXDIFF_ISOLATE=0 changes the default); "
+                         "--no-isolate runs it in this process, where only the plan and the checks between "
+                         "pieces hold the limits")
     sw.add_argument("--onestep", action=argparse.BooleanOptionalAction, default=True,
                     help="check every scenario one step at a time from C's states with a converged solver in "
                          "both engines, bounded by C's own rounding (sharp where chaos or a truncated solver make "
@@ -382,7 +426,9 @@ def _cmd_list() -> int:
 def _cmd_sweep(args: argparse.Namespace) -> int:
     from mjxdiff import engines, export_cache, report
     from mjxdiff.scenario import ScenarioError, bundled_scenarios, load_scenario, no_bundled_scenarios_message
-    from mjxdiff.sweep import SweepConfig, exit_code, sweep
+    from mjxdiff import guard
+    from mjxdiff.sweep import SweepConfig, exit_code
+    from mjxdiff.sweep import sweep as in_process
     from mjxdiff.verdict import ScenarioResult
 
     from mjxdiff import baseline, known
@@ -410,7 +456,14 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
                          noise_floor=args.noise_floor, diagnose=args.diagnose, adjust=args.adjust,
                          drop_unsupported=args.drop_unsupported, compile=args.compile,
                          compile_workers=args.compile_workers, transfer=args.transfer,
-                         onestep=args.onestep)
+                         onestep=args.onestep, drop_costly=args.drop_costly_pairs, budget=args.budget,
+                         max_memory=args.max_memory)
+    limits = guard.Limits(args.max_memory or guard.default_memory(), args.budget, args.sweep_budget)
+
+    def sweep(scenarios, config, progress, on_result):
+        if args.isolate:
+            return guard.sweep(scenarios, config, limits, progress, on_result, args.cache_dir)
+        return in_process(scenarios, config, progress, on_result)
     scenarios, bad = [], []
     try:
         refs = args.scenarios or [s.name for s in bundled_scenarios()]
@@ -437,7 +490,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     cache_before = export_cache.events()
     results = list(bad)
     if args.impl in ("mjx", "both"):
-        results += sweep(scenarios, config, progress=args.progress, on_result=show)
+        results += sweep(scenarios, config, args.progress, show)
     if args.impl in ("warp", "both"):
         suffix = "@warp" if args.impl == "both" else ""  # a scenario's name seeds its inputs: results renamed
 
@@ -446,13 +499,13 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         warp = dataclasses.replace(config, impl="warp",
                                    reproducers=config.reproducers and str(Path(config.reproducers) / "warp"))
         results += [dataclasses.replace(r, name=r.name + suffix) for r in
-                    sweep(scenarios, warp, progress=args.progress, on_result=show_warp)]
+                    sweep(scenarios, warp, args.progress, show_warp)]
     if args.impl == "both":  # the third pair: MJWarp against MJX, C's envelope as the floor
         def show_pair(r: ScenarioResult) -> None:
             show(dataclasses.replace(r, name=r.name + "@mjx-warp"))
         pair = dataclasses.replace(config, impl="warp", reference="mjx", diagnose="none", reproducers=None)
         results += [dataclasses.replace(r, name=r.name + "@mjx-warp") for r in
-                    sweep(scenarios, pair, progress=args.progress, on_result=show_pair)]
+                    sweep(scenarios, pair, args.progress, show_pair)]
     seconds = time.perf_counter() - t0
     doc = report.to_json(results, dict(vars(args), threshold=args.threshold, seconds=seconds,
                                        mjx_compiles=engines.compile_count()))

@@ -36,7 +36,7 @@ import sys
 import threading
 import types
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 import jax
 import numpy as np
@@ -287,19 +287,26 @@ def _modules(prefixes: tuple[str, ...]) -> list[tuple[str, types.ModuleType]]:
                   if module is not None and _under(name, prefixes) and not _is_test(name))
 
 
-def code_digest(modules: tuple[str, ...] = ("mujoco.mjx",)) -> str:
+def code_digest(modules: tuple[str, ...] = ("mujoco.mjx",), names: Sequence[str] | None = None) -> str:
     """Hex SHA-256 of the code now loaded in ``modules`` (names, with their submodules):
     every module-level function, class and value, functions followed into their closures,
     defaults and the globals they read. Equal for the same code, whichever file it came from;
-    different after any edit or monkeypatch that changes what runs.
+    different after any edit or monkeypatch that changes what runs. ``names``: exactly these
+    modules (imported if they are not), as :func:`loaded_modules` listed them in another process.
 
     ``report.json`` names the MJX that was tested by ``code_digest()``.
     """
     d = _Digest(modules)
-    for name, module in _modules(modules):
+    found = _modules(modules) if names is None else [(n, importlib.import_module(n)) for n in sorted(names)]
+    for name, module in found:
         d.h.update(b"module " + name.encode())
         _feed_module(d, module)
     return d.h.hexdigest()
+
+
+def loaded_modules(modules: tuple[str, ...] = ("mujoco.mjx",)) -> list[str]:
+    """Names of the modules :func:`code_digest` of ``modules`` digests now."""
+    return [name for name, _ in _modules(modules)]
 
 
 def settings_digest() -> str:
@@ -975,6 +982,14 @@ def events() -> dict[str, Any]:
     (artifacts deleted as untrustworthy). :func:`events_since` gives one run's share."""
     with _EVENTS_LOCK:
         return {k: list(v) if isinstance(v, list) else v for k, v in _EVENTS.items()}
+
+
+def merge_events(other: dict[str, Any]) -> None:
+    """Adds :func:`events` of another process (a guarded sweep's child) to this process's."""
+    with _EVENTS_LOCK:
+        for k, v in other.items():
+            if k in _EVENTS:
+                _EVENTS[k] = _EVENTS[k] + v if isinstance(v, (int, float, list)) else _EVENTS[k]
 
 
 def events_since(before: dict[str, Any]) -> dict[str, Any]:

@@ -59,6 +59,7 @@ def summary(results: Sequence[ScenarioResult], threshold: float) -> dict[str, An
     a field's scale (:attr:`~mjxdiff.verdict.ScenarioResult.weak`): they could not have seen
     a bug of that size. ``truncation`` counts failures whose cause is the model's own solver
     settings (:data:`~mjxdiff.verdict.TRUNCATION`: apart as configured, together when converged).
+    ``limited`` counts errors of scenarios stopped by a limit (:data:`LIMIT_KINDS`).
     """
     counts = {s: sum(r.status == s for r in results) for s in ("pass", "fail", "unsupported")}
     counts["weak"] = sum(r.status == "pass" and bool(r.weak) for r in results)
@@ -66,6 +67,7 @@ def summary(results: Sequence[ScenarioResult], threshold: float) -> dict[str, An
                                for r in results)
     counts["error"] = sum(r.status == "error" and r.error_kind != "input" for r in results)
     counts["input_error"] = sum(r.status == "error" and r.error_kind == "input" for r in results)
+    counts["limited"] = sum(r.status == "error" and r.error_kind in LIMIT_KINDS for r in results)
     counts["adjusted"] = sum(bool(r.info.get("adjusted")) for r in results)
     ran = len(results) - counts["unsupported"] - counts["input_error"]
     rate = counts["pass"] / ran if ran else 1.0
@@ -182,6 +184,10 @@ def write_report(out_dir: str | Path, report: dict[str, Any], name: str = "repor
     return path
 
 
+#: ``error_kind`` of a scenario stopped by a limit (:mod:`mjxdiff.guard`, :func:`mjxdiff.cost.plan`).
+LIMIT_KINDS = ("budget", "memory")
+
+
 def format_line(r: ScenarioResult) -> str:
     """One line per scenario: status, name, and what happened; a second, indented line with the
     sharp checks (:func:`format_checks`) when they ran."""
@@ -238,6 +244,9 @@ def format_text(results: Sequence[ScenarioResult], threshold: float, seconds: fl
                "divergent": "DIVERGENT",
                "error": "ERROR (an engine crashed or MuJoCo C itself blew up; see above)",
                "input-error": "INPUT ERROR (fix the input above; nothing diverged in the rest)"}[s["verdict"]]
+    if s["verdict"] == "error" and s["limited"] == s["error"]:
+        verdict = (f"ERROR ({s['limited']} stopped by a limit before a verdict: --budget, --max-memory; "
+                   "each line says what to do)")
     lines = [format_line(r) for r in results]
     inputs = f", {s['input_error']} input error" if s["input_error"] else ""
     inputs += f" ({s['adjusted']} adjusted for MJX)" if s["adjusted"] else ""

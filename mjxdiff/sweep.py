@@ -10,7 +10,9 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import os
 import queue
+import re
 import sys
 import threading
 import time
@@ -21,7 +23,7 @@ import jax
 import mujoco
 import numpy as np
 
-from mjxdiff import adjust, diagnose, engines, export_cache, onestep, report, reproducer, transfer
+from mjxdiff import adjust, cost, diagnose, engines, export_cache, onestep, report, reproducer, transfer
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
 from mjxdiff.inputs import BatchedInputs, make_inputs
 from mjxdiff.scenario import Scenario, ScenarioError, Tolerances, load_model
@@ -86,6 +88,15 @@ class SweepConfig:
         restarts MJWarp from C's states, the cause attribution runs its ablations on MJWarp).
       reference: what ``impl`` is judged against: ``c``, or ``mjx`` (with ``impl='warp'``:
         MJWarp against MJX, in float32, still with C's own envelope and solver floor).
+      budget: seconds a scenario may take (None: no limit). A compile estimated past it
+        (:mod:`mjxdiff.cost`) ends the scenario before it starts, as an ``error`` of kind
+        ``budget``; past it, the diagnosis and the sharp checks are cut short (each says so).
+        :func:`mjxdiff.guard.sweep` also stops a scenario that runs past it.
+      max_memory: bytes of resident memory the process may hold (None: no limit): MJX's member
+        group shrinks until its stepping fits, and a model one member of which cannot fit ends
+        as an ``error`` of kind ``memory``, before it starts (:func:`mjxdiff.cost.plan`).
+      drop_costly: remove the mesh-mesh and box-mesh pairs from the model both engines step
+        (:func:`mjxdiff.adjust.drop_costly`); changes the dynamics, so off by default.
     """
 
     seed: int = 0
@@ -108,6 +119,9 @@ class SweepConfig:
     onestep: bool = True
     impl: str = "mjx"
     reference: str = "c"
+    budget: float | None = None
+    max_memory: float | None = None
+    drop_costly: bool = False
 
     def __post_init__(self):
         if self.impl not in IMPLS:
@@ -146,17 +160,65 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
     scenario is saved there as ``<name>-member<i>.json`` (see :mod:`mjxdiff.reproducer`), the
     name made a plain file name (:func:`mjxdiff.report.safe_filename`) so it stays in that directory.
     """
-    return _finish(_prepare(scenario, config), config, mjx_engine, c_engine)
+    with _running(config):
+        prepared = _prepare(scenario, config)
+        return _finish(prepared, mjx_engine, c_engine)
+
+
+#: The scenario a worker thread runs: its deadline (``time.monotonic()``) and its phase hook.
+_SCENARIO = threading.local()
+
+
+@contextlib.contextmanager
+def _running(config: SweepConfig, hook: Callable[[str, dict], None] | None = None):
+    """Sets this thread's scenario deadline (``config.budget``) and phase hook while it runs."""
+    _SCENARIO.deadline = time.monotonic() + config.budget if config.budget else None
+    _SCENARIO.hook = hook
+    try:
+        yield
+    finally:
+        _SCENARIO.deadline = _SCENARIO.hook = None
+
+
+def _phase(text: str, **detail) -> None:
+    """Tells the phase hook (:func:`sweep`'s ``on_event``) what the scenario is doing now."""
+    hook = getattr(_SCENARIO, "hook", None)
+    if hook is not None:
+        hook(text, detail)
+
+
+def _out_of_time() -> bool:
+    """Whether the running scenario has spent its budget (``config.budget``)."""
+    deadline = getattr(_SCENARIO, "deadline", None)
+    return deadline is not None and time.monotonic() > deadline
+
+
+class BudgetSpent(Exception):
+    """The scenario's budget ran out before this part of it could run."""
+
+    def __init__(self):
+        super().__init__("the scenario's budget (--budget) ran out")
+
+
+def _resident_bytes() -> int:
+    """This process's resident memory, bytes (0 where /proc cannot tell)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
 
 
 @dataclasses.dataclass
 class _Prepared:
     """A scenario made ready to run: its model and inputs, or the result that ends it early
-    (bad input); ``ahead`` is what compiling ahead did (:func:`_compile_ahead`)."""
+    (bad input, a plan that does not fit); ``ahead`` is what compiling ahead did
+    (:func:`_compile_ahead`); ``config`` the sweep's, with the plan's member group."""
 
     scenario: Scenario
     tol: Tolerances
     info: dict
+    config: SweepConfig
     m: object = None
     inputs: BatchedInputs | None = None
     early: ScenarioResult | None = None
@@ -169,7 +231,7 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
     tol = scenario.tolerance.for_precision(config.precision)
     info = dict(batch=batch, steps=steps, model=str(scenario.model), exercises=list(scenario.exercises),
                 notes=scenario.notes)
-    prepared = _Prepared(scenario, tol, info)
+    prepared = _Prepared(scenario, tol, info, config)
     t0 = time.perf_counter()
     try:
         m = load_model(scenario)
@@ -178,7 +240,8 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
                                         info=info, tolerances=tol.as_dict())
         return prepared
     try:
-        m, adjusted = adjust.for_mjx(m, scenario.model_path, config.adjust, config.drop_unsupported)
+        m, adjusted = adjust.for_mjx(m, scenario.model_path, config.adjust, config.drop_unsupported,
+                                     config.drop_costly)
     except Exception as e:  # noqa: BLE001 - the model stays as it is, and says why
         adjusted = [f"--drop-unsupported could not rewrite the model: {_one_line(e)}"]
     if adjusted:
@@ -193,6 +256,27 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
     if scenario.randomize.values:
         info["set"] = {k: list(v) for k, v in sorted(scenario.randomize.values.items())}
     prepared.m, prepared.inputs = m, inputs
+    return _fit(prepared)
+
+
+def _fit(prepared: _Prepared) -> _Prepared:
+    """``prepared`` with MJX's estimated cost (``info['estimate']``, :func:`mjxdiff.cost.estimate`)
+    and the plan that fits the config's budget and memory (``info['plan']``): a smaller member
+    group, or an early ``error`` (kind ``budget`` or ``memory``) that says what to do."""
+    config, info, m = prepared.config, prepared.info, prepared.m
+    if config.impl != "mjx":
+        return prepared
+    est = cost.estimate(m)
+    info["estimate"] = est.as_dict()
+    _phase("estimated", line=est.line(), compile_s=est.compile_s, member_bytes=est.member_bytes)
+    group = min(config.group_size or prepared.inputs.batch, prepared.inputs.batch)
+    fit = cost.plan(est, group, config.budget, config.max_memory, _resident_bytes())
+    info["plan"] = dict(group=fit.group, changed=list(fit.changed), budget=config.budget, max_memory=config.max_memory)
+    if fit.stop:
+        prepared.early = ScenarioResult(name=prepared.scenario.name, status="error", error_kind=fit.kind,
+                                        message=fit.stop, info=info, tolerances=prepared.tol.as_dict())
+    elif fit.group < group:
+        prepared.config = dataclasses.replace(config, group_size=fit.group)
     return prepared
 
 
@@ -203,19 +287,19 @@ def _compile_ahead(scenario: Scenario, config: SweepConfig, mjx_engine: MJXEngin
     with export_cache.tally() as work:
         prepared = _prepare(scenario, config)
         if prepared.early is None:
-            groups, chunk = _plan(prepared.m, prepared.inputs, config, mjx_engine)
+            groups, chunk = _plan(prepared.m, prepared.inputs, prepared.config, mjx_engine)
+            _phase("compiling", estimate_s=prepared.info.get("estimate", {}).get("compile_s"))
             first = prepared.inputs.take(groups[0]) if len(groups) > 1 else prepared.inputs
             mjx_engine.compile_ahead(first, chunk)
     prepared.ahead = dict(work, wall=time.perf_counter() - t)
     return prepared
 
 
-def _finish(prepared: _Prepared, config: SweepConfig, mjx_engine: MJXEngine | None,
-            c_engine: CEngine | None) -> ScenarioResult:
+def _finish(prepared: _Prepared, mjx_engine: MJXEngine | None, c_engine: CEngine | None) -> ScenarioResult:
     """Runs a prepared scenario: both engines, the verdict, a reproducer of a failure."""
     if prepared.early is not None:
         return prepared.early
-    scenario, m, inputs, tol = prepared.scenario, prepared.m, prepared.inputs, prepared.tol
+    scenario, m, inputs, tol, config = prepared.scenario, prepared.m, prepared.inputs, prepared.tol, prepared.config
     result = run_inputs(scenario.name, m, inputs, tol, config, mjx_engine, c_engine, prepared.info, prepared.ahead)
     if result.status == "fail" and config.reproducers is not None:
         member = result.first_divergence["member"]
@@ -483,7 +567,9 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
     judge = Judge(m, tol, B, T)
     floor = NoiseFloor(m, rangefinder_mask(m), B, T) if config.envelope else None
     solver_floor = NoiseFloor(m, rangefinder_mask(m), B, T, SOLVER_MARGIN) if floor and solver else None
+    done: list[np.ndarray] = []
     for idx in groups:
+        _phase("stepping", group=len(done) + 1, groups=len(groups))
         members = idx[:len(np.unique(idx))]  # the padding repeats come last
         n = len(members)
         group = inputs.take(idx) if len(groups) > 1 else inputs
@@ -505,6 +591,10 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
                                          floor is not None and config.noise_floor == "always",
                                          solver_floor is not None)) as c:
             for piece_mjx in mjx:
+                seconds["progress"] = (f"stepped {start} of {T} steps of member group {len(done) + 1} of "
+                                       f"{len(groups)}")
+                if _out_of_time():
+                    raise BudgetSpent()
                 piece_c, piece_p, piece_s = next(c)
                 piece_ref = next(ref) if ref is not None else piece_c
                 t = time.perf_counter()
@@ -519,6 +609,7 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
                 if floor and not c.floor and judge.contacts_exceed_tolerance(members):
                     t += c.start_floor(start, feed)
                 seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
+        done.append(idx)
     t = time.perf_counter()
     noise = floor if floor is not None and floor.fed.any() else None
     result = judge.result(name, config.threshold, noise, solver_floor if noise is not None else None)
@@ -568,7 +659,12 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
         return ScenarioResult(status="unsupported", message=f"MJX does not support: {e.feature}", **base)
     except _EngineFailed as e:
         engine = "MuJoCo C" if e.engine == "c" else "MJX"
+        if e.engine != "c" and _OUT_OF_MEMORY.search(str(e)):
+            return ScenarioResult(status="error", error_kind="memory", message=_out_of_memory(str(e), inputs, info),
+                                  **base)
         return ScenarioResult(status="error", error_kind="engine", message=f"{engine} failed: {e}", **base)
+    except BudgetSpent:
+        return ScenarioResult(status="error", error_kind="budget", message=_stopped(info, clock), **base)
     t = time.perf_counter()
     traj_c = drill = None
     if result.status == "fail" and config.envelope and has_constraints(m) and not any(
@@ -588,6 +684,43 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
                 nq=m.nq, nv=m.nv, nu=m.nu, neq=m.neq,
                 nsensordata=m.nsensordata, **counts)
     return dataclasses.replace(result, info=info)
+
+
+_OUT_OF_MEMORY = re.compile(r"RESOURCE_EXHAUSTED|[Oo]ut of memory")
+
+
+def _out_of_memory(error: str, inputs: BatchedInputs, info: dict) -> str:
+    """The one-line error of an XLA allocation MJX's stepping could not make, with the batch that fits."""
+    found = re.search(r"allocating (\d+) bytes", error)
+    group = info.get("plan", {}).get("group") or inputs.batch
+    line = f"out of memory: MJX's stepping of {group} member(s) at once"
+    if found:
+        per = int(found.group(1)) / group
+        limit = info.get("plan", {}).get("max_memory") or _available_bytes()
+        fits = int(max(limit - _resident_bytes(), 0) // max(per, 1))
+        line += f" asked XLA for {cost.human_bytes(int(found.group(1)))} (~{cost.human_bytes(per)} per member)"
+        line += (f"; a batch of {fits} would fit (--batch {fits})" if fits else
+                 "; not even one member fits: --drop-costly-pairs, or primitive collision geoms")
+    return line + f" [{' '.join(error.split())[:160]}]"
+
+
+def _available_bytes() -> int:
+    """Memory the kernel could still give (``MemAvailable``), bytes; 0 where /proc cannot tell."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError):
+        pass
+    return 0
+
+
+def _stopped(info: dict, clock: dict[str, float]) -> str:
+    """The one-line error of a scenario stopped by its budget: how far it got, and the estimate."""
+    done = clock.get("progress", "MJX's first piece of stepping had not come back")
+    est = info.get("estimate", {}).get("line", "")
+    return f"stopped at its budget of {info.get('plan', {}).get('budget'):g} s: {done}" + (f"; {est}" if est else "")
 
 
 def _drill(result: ScenarioResult, inputs: BatchedInputs, traj_c: Trajectory, precision: str,
@@ -651,9 +784,13 @@ def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, co
     the solver floor, or was weak on a model whose solver settings the one-step check found not
     converged, the converged twin (:func:`_twin`); a pass held only by the solver floor becomes a
     ``solver truncation`` failure (:func:`_truncation`). Never raises."""
+    if _out_of_time():
+        return dataclasses.replace(result, message=f"{result.message}; one-step check and converged twin not run: "
+                                                   f"{BudgetSpent()}")
     excused = result.status == "pass" and info.get("solver_floor", {}).get("status") == "pass"
     found: dict = {}
     if config.onestep:
+        _phase("one-step check")
         result, found, traj_c = _onestep(result, m, inputs, tol, config, mjx_engine, c_engine, traj_c,
                                          evidence=excused or bool(result.weak))
         info["onestep"] = found
@@ -855,7 +992,11 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
             message += "; every stage agrees at that state (an accumulation of small differences)"
         diagnosis["drill_down"] = dataclasses.asdict(drill)
     if config.diagnose == "full":
+        _phase("diagnosing")
+
         def passes(ablated: BatchedInputs, precision: str) -> bool:
+            if _out_of_time():
+                raise BudgetSpent()
             with _precision(precision):
                 return _verdict(result.name, ablated.models[0], ablated, tol, config, mjx_engine, c_engine,
                                 {})[0].status == "pass"
@@ -950,7 +1091,8 @@ MAX_COMPILE_WORKERS = 4
 
 def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
           progress: bool | None = None,
-          on_result: Callable[[ScenarioResult], None] | None = None) -> list[ScenarioResult]:
+          on_result: Callable[[ScenarioResult], None] | None = None,
+          on_event: Callable[[int, str, dict], None] | None = None) -> list[ScenarioResult]:
     """Runs every scenario, returning one verdict each, in order.
 
     ``config.compile_workers`` threads (default one per core) each take the next scenario
@@ -961,6 +1103,11 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
     twice as many scenarios as there are workers (bounding memory) and reports the results
     in order; results are those of running the scenarios one by one (each worker sets its own
     precision: :func:`_precision`). With no workers, the scenarios run here, one by one.
+
+    ``on_event(index, phase, detail)`` hears, from the thread running scenario ``index``, what
+    it does: ``started``, ``estimated`` (``line``, ``compile_s``, ``member_bytes``: MJX's cost,
+    :mod:`mjxdiff.cost`), ``compiling``, ``stepping``, ``one-step check``, ``diagnosing``.
+    Memory and time limits that hold even while XLA compiles are :func:`mjxdiff.guard.sweep`'s.
     """
     mjx_engine, c_engine = simulator(config), CEngine()
     bar = _Progress(len(scenarios), progress)
@@ -968,14 +1115,16 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
     pool = ThreadPoolExecutor(workers, thread_name_prefix="mjxdiff-scenario") if workers else None
     running: dict[int, Future] = {}
 
-    def run(scenario: Scenario) -> ScenarioResult:
-        with _precision(config.precision):
+    def run(i: int, scenario: Scenario) -> ScenarioResult:
+        hook = functools.partial(on_event, i) if on_event is not None else None
+        with _precision(config.precision), _running(config, hook):
+            _phase("preparing")
             prepared = _compile_ahead(scenario, config, mjx_engine) if pool is not None else _prepare(scenario, config)
-            return _finish(prepared, config, mjx_engine, c_engine)
+            return _finish(prepared, mjx_engine, c_engine)
 
     def submit(i: int) -> None:
         if pool is not None and i < len(scenarios):
-            running[i] = pool.submit(run, scenarios[i])
+            running[i] = pool.submit(run, i, scenarios[i])
 
     results = []
     try:
@@ -985,7 +1134,7 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
             submit(i + 2 * workers)
             bar.start(i, scenario.name)
             try:
-                result = running.pop(i).result() if i in running else run(scenario)
+                result = running.pop(i).result() if i in running else run(i, scenario)
             except Exception as e:  # noqa: BLE001 - one scenario's trouble stays that scenario's
                 result = ScenarioResult(name=scenario.name, status="error", error_kind="internal",
                                         message=f"mjxdiff itself failed on this scenario: {_one_line(e)}")

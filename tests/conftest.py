@@ -23,6 +23,10 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "dev"))
 # compiles are shared; monkeypatched MJX traces to other HLO and never hits it.
 os.environ.setdefault("MJXDIFF_CACHE", str(ROOT / ".jax_cache"))
 configure_jax("float64")
+# CLI sweeps run in this process (and in `python -m mjxdiff` children of tests) unless a test
+# asks for the guard's child process (--isolate): many tests patch MJX here, and the guard would
+# sweep in this process anyway when it sees that (tests/test_guard.py).
+os.environ.setdefault("MJXDIFF_ISOLATE", "0")
 # Sweeps run by tests append to a throwaway history, never the user's.
 os.environ["MJXDIFF_HISTORY"] = tempfile.mkdtemp(prefix="mjxdiff-test-history-")
 

@@ -24,6 +24,9 @@ def _run(*args):
     (["sweep", "--batch", "0"], "expected a positive integer"),
     (["sweep", "--precision", "float16"], "invalid choice"),
     (["sweep", "--noise-floor", "sometimes"], "invalid choice"),
+    (["sweep", "--max-memory", "lots"], "not a size"),
+    (["sweep", "--budget", "0"], "expected seconds"),
+    (["sweep", "--sweep-budget", "soon"], "expected seconds"),
     (["frobnicate"], "invalid choice"),
     ([], "required"),
 ])

@@ -87,6 +87,14 @@ ROBOTS: tuple[Robot, ...] = (
     Robot("h1", "humanoid", "unitree_h1", "scene_mjx_feetonly.xml", _PG + "locomotion/h1/xmls"),
     Robot("t1", "humanoid", "booster_t1", "scene_mjx_feetonly_flat_terrain.xml", _PG + "locomotion/t1/xmls"),
     Robot("leap_hand", "hand", "leap_hand", "scene_mjx_cube.xml", _PG + "manipulation/leap_hand/xmls"),
+    # plain (not MJX-tuned) scenes, as a user brings them: full meshes, default solver settings
+    Robot("anymal_c_plain", "quadruped", "anybotics_anymal_c", "scene.xml"),
+    Robot("g1_plain", "humanoid", "unitree_g1", "scene.xml"),
+    Robot("panda_plain", "arm", "franka_emika_panda", "scene.xml"),
+    Robot("iiwa14_plain", "arm", "kuka_iiwa_14", "scene.xml"),
+    Robot("ur5e_plain", "arm", "universal_robots_ur5e", "scene.xml"),
+    Robot("shadow_hand_plain", "hand", "shadow_hand", "scene_right.xml"),
+    Robot("spot_plain", "quadruped", "boston_dynamics_spot", "scene.xml"),
 )
 
 _MENAGERIE_PREFIX = re.compile(r'(?<=")(?:\.\./)+(?:external_deps/)?mujoco_menagerie/')

@@ -1,0 +1,128 @@
+"""Measures what MJX's rollout of a model costs to trace, compile and run, beside the features
+:mod:`mjxdiff.cost` estimates from, to calibrate (and check) its estimate.
+
+    python benchmarks/scripts/cost_calibration.py MODEL.xml [MODEL.xml ...] [--timeout 600] [--rss-gb 18]
+
+Each model runs in a fresh process with an empty compilation cache (so it traces and
+compiles), as a sweep of it with default settings would: the scenario's inputs, the sweep's
+plan (member group, piece length), then :meth:`MJXEngine.compile_ahead`, then one piece.
+The parent kills a child past ``--timeout`` seconds or ``--rss-gb`` resident and says so.
+One JSON line per model: the estimate (made before compiling), the measured seconds
+(trace + lower, compile, first piece), XLA's memory analysis and the child's peak RSS.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+
+def child(path: str) -> None:
+    import resource
+
+    from mjxdiff import cost, engines, export_cache
+    from mjxdiff.scenario import load_scenario
+    from mjxdiff.sweep import SweepConfig, _plan, _prepare
+
+    engines.configure_jax("float64", cache_dir=tempfile.mkdtemp(prefix="calib-"))
+    import jax
+
+    out: dict = dict(model=path)
+    t0 = time.perf_counter()
+    prepared = _prepare(load_scenario(path), SweepConfig())
+    if prepared.early is not None:
+        print(json.dumps(dict(out, error=prepared.early.message)))
+        return
+    m, inputs = prepared.m, prepared.inputs
+    out.update(prepare_s=round(time.perf_counter() - t0, 2))
+    t = time.perf_counter()
+    est = cost.estimate(m, inputs.batch, inputs.steps)
+    out.update(estimate=est.as_dict(), estimate_s=round(time.perf_counter() - t, 2))
+    print(json.dumps(dict(out, phase="estimated")), flush=True)
+    engine = engines.MJXEngine()
+    groups, chunk = _plan(m, inputs, SweepConfig(), engine)
+    group = inputs.take(groups[0]) if len(groups) > 1 else inputs
+    seen = {}
+    choose0 = engines.xla_options
+
+    def xla_options(mode, steps):
+        inner = choose0(mode, steps)
+
+        def choose(lowered):
+            seen["lowered_at"] = time.perf_counter()
+            seen["features"] = cost.hlo_features(lowered.as_text())
+            return inner(lowered)
+        return choose
+
+    engines.xla_options = xla_options
+    with jax.enable_x64(True):
+        t = time.perf_counter()
+        engine.compile_ahead(group, chunk)
+        done = time.perf_counter()
+        out.update(group=group.batch, chunk=chunk, trace_lower_s=round(seen.get("lowered_at", done) - t, 2),
+                   compile_s=round(done - seen.get("lowered_at", t), 2), rollout_features=seen.get("features"))
+        for _, compiled, _ in export_cache._FUNCTIONS.values():
+            with_mem = compiled.memory_analysis()
+            out["xla_temp_bytes"] = int(getattr(with_mem, "temp_size_in_bytes", 0))
+            out["xla_arg_bytes"] = int(getattr(with_mem, "argument_size_in_bytes", 0))
+        print(json.dumps(dict(out, phase="compiled")), flush=True)
+        t = time.perf_counter()
+        try:
+            engine.first_piece(group, chunk)
+            out["first_piece_s"] = round(time.perf_counter() - t, 2)
+        except Exception as e:  # noqa: BLE001 - recorded
+            out["run_error"] = " ".join(str(e).split())[:300]
+    out["peak_rss_gb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2)
+    print(json.dumps(dict(out, phase="done")), flush=True)
+
+
+def rss_gb(pid: int) -> float:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 2**20
+    except OSError:
+        pass
+    return 0.0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("models", nargs="+")
+    ap.add_argument("--timeout", type=float, default=600)
+    ap.add_argument("--rss-gb", type=float, default=18)
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        child(args.models[0])
+        return
+    for path in args.models:
+        t = time.perf_counter()
+        with tempfile.TemporaryFile("w+") as log:
+            proc = subprocess.Popen([sys.executable, __file__, "--child", path], stdout=log,
+                                    stderr=subprocess.DEVNULL, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+            peak, why = 0.0, None
+            while proc.poll() is None:
+                time.sleep(0.5)
+                peak = max(peak, rss_gb(proc.pid))
+                if peak > args.rss_gb:
+                    why = f"killed at {peak:.1f} GB resident"
+                elif time.perf_counter() - t > args.timeout:
+                    why = f"killed after {args.timeout:.0f} s"
+                if why:
+                    proc.kill()
+                    proc.wait()
+            log.seek(0)
+            lines = [json.loads(x) for x in log.read().splitlines() if x.startswith("{")]
+        last = lines[-1] if lines else dict(model=path)
+        print(json.dumps(dict(last, wall_s=round(time.perf_counter() - t, 1), polled_peak_gb=round(peak, 2),
+                              killed=why, rc=proc.returncode)), flush=True)
+
+
+if __name__ == "__main__":
+    main()

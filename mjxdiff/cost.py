@@ -1,0 +1,268 @@
+"""What MJX's rollout of a model will cost, estimated before anything compiles.
+
+A sweep compiles one MJX rollout per model structure. Most models compile in 2-15 s and step
+in a few MiB per member; a model with many mesh-mesh collision pairs can take many minutes to
+compile and many GB per member to step (MJX's separating-axis test is dense over every pair
+of hull edges). This module reads the few model features those costs grow with, from MJX's
+own collision grouping (``collision_driver._geom_groups``) and its convex hulls
+(``mesh.convex``, as ``put_model`` builds them), and turns them into seconds and bytes with
+constants calibrated on compiles measured on a 2-core machine
+(``benchmarks/scripts/cost_calibration.py``; the table is in the README).
+
+Nothing here traces or compiles: an estimate costs what ``put_model`` costs, and it is made
+once per model structure.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import re
+import warnings
+
+import mujoco
+import numpy as np
+
+__all__ = ["Estimate", "PairGroup", "estimate", "hlo_features"]
+
+@dataclasses.dataclass(frozen=True)
+class PairGroup:
+    """One collision function MJX compiles: a geom-type pair (and mesh sizes) with its pairs.
+
+    Attributes:
+      types: geom type names, e.g. ``("mesh", "mesh")``.
+      pairs: geom pairs this function collides (vmapped over, per step and member).
+      hulls: per side, ``(vertices, faces, max vertices per face, edges)`` of MJX's convex
+        hull, for mesh sides (None for primitives).
+      work: dense elements MJX's function evaluates per pair: for two hulls
+        ``E1 E2 + F1 V2 + F2 V1 + F1 F2 P`` (edge pairs of the separating-axis test,
+        face-vertex tests, face clipping); 1 for a primitive pair.
+      geoms: names of the geoms of its first pairs (at most 4), for messages.
+      members: every pair, ``(geom1, geom2, pair id or -1)`` as MJX groups them.
+    """
+
+    types: tuple[str, str]
+    pairs: int
+    hulls: tuple[tuple[int, int, int, int] | None, tuple[int, int, int, int] | None]
+    work: float
+    geoms: tuple[str, ...] = ()
+    members: tuple[tuple[int, int, int], ...] = ()
+
+    @property
+    def label(self) -> str:
+        return "-".join(self.types)
+
+
+#: Compile seconds: ``COMPILE_BASE_S + COMPILE_PER_NV_S x nv + COMPILE_PER_GROUP_S x groups``
+#: ``+ COMPILE_PER_WORK_S x sqrt(sum of convex work)``; calibrated (see module docstring).
+COMPILE_BASE_S = 3.0
+COMPILE_PER_NV_S = 0.15
+COMPILE_PER_GROUP_S = 1.0
+COMPILE_PER_WORK_S = 0.02
+#: Bytes per member while stepping, beyond :func:`mjxdiff.engines.member_bytes`: per element
+#: of convex work (float64; the temporaries of one step's separating-axis tests).
+BYTES_PER_WORK = 200.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Estimate:
+    """MJX's cost for one model structure, before compiling.
+
+    Attributes:
+      compile_s: seconds XLA will take to compile the rollout (one module, about one core).
+      member_bytes: bytes MJX holds per member while stepping (data, solver and collision
+        temporaries).
+      groups: the collision functions MJX will compile, costliest first.
+      advice: MJX's own advice on this model (a mesh with large coplanar faces), one line each.
+    """
+
+    compile_s: float
+    member_bytes: int
+    groups: tuple[PairGroup, ...] = ()
+    advice: tuple[str, ...] = ()
+    nv: int = 0
+
+    def batch_that_fits(self, available_bytes: float) -> int:
+        """Members whose stepping fits ``available_bytes`` (0: not even one)."""
+        return int(available_bytes // max(self.member_bytes, 1))
+
+    @property
+    def costly(self) -> tuple[PairGroup, ...]:
+        """Groups with a mesh and two hulls (mesh-mesh, box-mesh): what makes a model slow and large."""
+        return tuple(g for g in self.groups if "mesh" in g.types and all(h is not None for h in g.hulls))
+
+    def pairs_text(self) -> str:
+        """``mesh-mesh pairs: 12 (hulls up to 120 edges)``; '' when the model has none."""
+        costly = self.costly
+        if not costly:
+            return ""
+        by_type: dict[str, int] = {}
+        for g in costly:
+            by_type[g.label] = by_type.get(g.label, 0) + g.pairs
+        edges = max(h[3] for g in costly for h in g.hulls if h is not None)
+        return ", ".join(f"{k} pairs: {v}" for k, v in by_type.items()) + f" (hulls up to {edges} edges)"
+
+    def line(self) -> str:
+        """``MJX: compile ~3 min (mesh-mesh pairs: 12 ...), ~2.1 GB per member``."""
+        pairs = self.pairs_text()
+        return (f"MJX: compile ~{human_seconds(self.compile_s)}{f' ({pairs})' if pairs else ''}, "
+                f"~{human_bytes(self.member_bytes)} per member")
+
+    def as_dict(self) -> dict:
+        return dict(compile_s=round(self.compile_s, 1), member_bytes=int(self.member_bytes),
+                    nv=self.nv, line=self.line(), advice=list(self.advice),
+                    groups=[dict(types=g.label, pairs=g.pairs, work=g.work, hulls=g.hulls, geoms=list(g.geoms))
+                            for g in self.groups])
+
+
+def human_seconds(s: float) -> str:
+    return f"{s:.0f} s" if s < 90 else f"{s / 60:.0f} min" if s < 5400 else f"{s / 3600:.1f} h"
+
+
+def human_bytes(b: float) -> str:
+    for unit, size in (("GB", 2**30), ("MB", 2**20)):
+        if b >= size:
+            return f"{b / size:.1f} {unit}"
+    return f"{b / 2**10:.0f} kB"
+
+
+def _hull(m: mujoco.MjModel, data_id: int, advice: list[str]) -> tuple[int, int, int, int]:
+    """(vertices, faces, max vertices per face, edges) of MJX's hull of mesh ``data_id``."""
+    from mujoco.mjx._src import mesh
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        c = mesh.convex(m, data_id)
+    for w in caught:
+        if "coplanar" in str(w.message):
+            name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_MESH, data_id) or f"#{data_id}"
+            advice.append(f"decimate mesh {name} (MJX: a coplanar face with more than 20 vertices slows collisions)")
+    return int(c.vert.shape[0]), int(c.face.shape[0]), int(c.face.shape[1]), int(c.edge.shape[0])
+
+
+def _work(hulls) -> float:
+    a, b = hulls
+    if a is None or b is None:  # a primitive against a hull: linear in the hull
+        h = a or b
+        return float(h[0] + h[1] * h[2]) if h else 1.0
+    (v1, f1, p1, e1), (v2, f2, p2, e2) = a, b
+    return float(e1 * e2 + f1 * v2 + f2 * v1 + f1 * f2 * max(p1, p2))
+
+
+def pair_groups(m: mujoco.MjModel) -> tuple[tuple[PairGroup, ...], tuple[str, ...]]:
+    """MJX's collision functions for ``m`` (costliest first) and MJX's mesh advice."""
+    from mujoco.mjx._src import collision_driver
+
+    advice: list[str] = []
+    hulls: dict[int, tuple[int, int, int, int]] = {}
+    out = []
+    for key, pairs in collision_driver._geom_groups(m).items():
+        types = tuple(mujoco.mjtGeom(int(t)).name[len("mjGEOM_"):].lower() for t in key.types)
+        sides = []
+        for t, data_id in zip(types, key.data_ids):
+            if t == "mesh" and data_id >= 0:
+                if data_id not in hulls:
+                    hulls[data_id] = _hull(m, int(data_id), advice)
+                sides.append(hulls[data_id])
+            elif t == "box":
+                sides.append((8, 6, 4, 12))
+            else:
+                sides.append(None)
+        work = _work(sides) if any(s is not None for s in sides) else 1.0
+        names = tuple(f"{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g1) or g1}/"
+                      f"{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g2) or g2}" for g1, g2, _ in pairs[:4])
+        out.append(PairGroup(types, len(pairs), tuple(sides), work, names,
+                             tuple((int(a), int(b), int(c)) for a, b, c in pairs)))
+    out.sort(key=lambda g: -g.work * g.pairs)
+    return tuple(out), tuple(dict.fromkeys(advice))
+
+
+def estimate(m: mujoco.MjModel, batch: int = 1, steps: int = 1) -> Estimate:
+    """MJX's compile seconds and bytes per member for ``m`` (see :class:`Estimate`).
+
+    ``batch`` and ``steps`` do not change either (a rollout compiles once, whatever its
+    size; memory is per member); they are accepted for a plan's convenience.
+    """
+    from mjxdiff import engines
+
+    try:
+        groups, advice = pair_groups(m)
+    except Exception:  # noqa: BLE001 - no grouping (MJX refuses the model): primitives only
+        groups, advice = (), ()
+    convex = sum(g.work * g.pairs for g in groups if g.work > 1)  # every group with a hull
+    compile_s = (COMPILE_BASE_S + COMPILE_PER_NV_S * m.nv + COMPILE_PER_GROUP_S * len(groups)
+                 + COMPILE_PER_WORK_S * convex ** 0.5)
+    member = engines.member_bytes(m) + BYTES_PER_WORK * convex
+    return Estimate(compile_s, int(member), groups, advice, m.nv)
+
+
+_TENSOR = re.compile(r"tensor<((?:\d+x)*)(f64|f32|i64|i32|i1|i8|ui8|f16|bf16|ui32|ui64)>")
+_BITS = dict(f64=64, i64=64, ui64=64, f32=32, i32=32, ui32=32, f16=16, bf16=16, i8=8, ui8=8, i1=8)
+
+
+def hlo_features(text: str) -> dict:
+    """Counts of a lowered module's StableHLO text: ``ops`` (lines defining values), ``whiles``,
+    ``largest_bytes`` (largest tensor type), ``result_bytes`` (sum over op results)."""
+    ops = whiles = 0
+    largest = total = 0
+    for line in text.splitlines():
+        if " = " not in line:
+            continue
+        ops += 1
+        whiles += "stablehlo.while" in line
+        for dims, kind in _TENSOR.findall(line.rsplit("->", 1)[-1]):
+            size = functools.reduce(lambda a, b: a * b, (int(d) for d in dims.split("x") if d), 1)
+            size *= _BITS[kind] // 8
+            largest = max(largest, size)
+            total += size
+    return dict(ops=ops, whiles=whiles, largest_bytes=largest, result_bytes=total)
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """How a scenario runs within its limits (:func:`plan`).
+
+    Attributes:
+      group: members MJX steps at once.
+      stop: why nothing is run (the estimate does not fit, whatever the plan), else None.
+      changed: what the plan changed from the default, one line each ("members stepped at
+        once: 8 -> 2 (...)").
+      kind: with ``stop``, what does not fit: ``budget`` or ``memory``.
+    """
+
+    group: int
+    stop: str | None = None
+    changed: tuple[str, ...] = ()
+    kind: str = ""
+
+
+def plan(est: Estimate, group: int, budget_s: float | None, memory_bytes: float | None,
+         held_bytes: float = 0.0) -> Plan:
+    """The plan that fits ``est`` within ``budget_s`` seconds and ``memory_bytes`` of resident
+    memory (None: no limit), given ``group`` members stepped at once by default and
+    ``held_bytes`` the process holds already.
+
+    A compile cannot be shortened by a smaller batch or horizon, so a compile estimated past
+    the budget stops the scenario before it starts, as does one member that does not fit in
+    the memory left; otherwise the group shrinks until its stepping fits.
+    """
+    todo = ("to get a verdict: give it more time (--budget), drop the costly pairs (--drop-costly-pairs, "
+            "changes the dynamics) or use primitive collision geoms, as MJX variants of models do")
+    if budget_s is not None and est.compile_s > budget_s:
+        return Plan(group, stop=f"{est.line()}: the compile alone exceeds the scenario's budget of "
+                                f"{human_seconds(budget_s)}; nothing was run; {todo}", kind="budget")
+    if memory_bytes is None:
+        return Plan(group)
+    left = memory_bytes - held_bytes - COMPILE_HEADROOM_BYTES
+    fits = est.batch_that_fits(left) if left > 0 else 0
+    if fits < 1:
+        return Plan(group, stop=f"{est.line()}: one member does not fit in the memory left "
+                                f"({human_bytes(max(left, 0))} of the {human_bytes(memory_bytes)} limit); nothing "
+                                f"was run; {todo.replace('more time (--budget)', 'more memory (--max-memory)')}", kind="memory")
+    if fits < group:
+        return Plan(fits, changed=(f"members stepped at once: {group} -> {fits} (~{human_bytes(est.member_bytes)} "
+                                   f"each, {human_bytes(left)} left of the {human_bytes(memory_bytes)} limit)",))
+    return Plan(group)
+
+
+#: Memory a compile of MJX's rollout holds beyond the process's own, set aside before stepping.
+COMPILE_HEADROOM_BYTES = 1 * 2**30

@@ -1,0 +1,116 @@
+"""mjxdiff.guard: a sweep in a watched child process; memory and time limits end a scenario with a
+clean error, the report is written, and the next scenario runs."""
+
+import io
+import json
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from mjxdiff import guard
+from mjxdiff.scenario import load_scenario
+from mjxdiff.sweep import SweepConfig, _out_of_memory, sweep
+
+#: A humanoid stepping far longer than any budget of these tests.
+LONG = """name = "long_humanoid"
+model = "brax:humanoid.xml"
+batch = 4
+steps = 100000
+"""
+#: A humanoid with more members than fit the memory limit of these tests (preparing alone ~2 GB).
+WIDE = """name = "wide_humanoid"
+model = "brax:humanoid.xml"
+batch = 4096
+steps = 100
+"""
+
+
+def _sweep_cli(tmp_path, *args):
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "mjxdiff", "sweep", *args, "--isolate", "--no-history",
+                           "--out", str(out)], capture_output=True, text=True, timeout=600)
+    doc = json.loads((out / "report.json").read_text())
+    return proc, {s["name"]: s for s in doc["scenarios"]}
+
+
+def test_a_scenario_past_its_budget_is_stopped_and_the_next_one_runs(tmp_path):
+    (tmp_path / "long.toml").write_text(LONG)
+    proc, by_name = _sweep_cli(tmp_path, str(tmp_path / "long.toml"), "pendulum", "--budget", "15")
+    assert proc.returncode == 1, proc.stderr
+    long = by_name["long_humanoid"]
+    assert long["status"] == "error" and long["error_kind"] == "budget"
+    assert long["message"].startswith("stopped") and "budget of 15" in long["message"]
+    assert "MJX: compile ~" in long["message"]  # the estimate, for the user to judge
+    assert by_name["pendulum"]["status"] == "pass"
+    assert "stopped by a limit" in proc.stdout.splitlines()[-1]
+
+
+def test_a_scenario_past_the_memory_limit_is_stopped_and_the_next_one_runs(tmp_path):
+    (tmp_path / "wide.toml").write_text(WIDE)
+    proc, by_name = _sweep_cli(tmp_path, str(tmp_path / "wide.toml"), "pendulum", "--max-memory", "1.5G")
+    assert proc.returncode == 1, proc.stderr
+    wide = by_name["wide_humanoid"]
+    assert wide["status"] == "error" and wide["error_kind"] == "memory", wide["message"]
+    assert "limit 1.5 GB (--max-memory)" in wide["message"] and "Traceback" not in proc.stderr
+    assert wide["info"]["guard"]["peak_rss_bytes"] > 1.5 * 2**30
+    assert by_name["pendulum"]["status"] == "pass"
+
+
+def test_a_compile_estimated_past_the_budget_stops_at_once():
+    [r] = sweep([load_scenario("pendulum")], SweepConfig(quick=True, budget=0.5))
+    assert r.status == "error" and r.error_kind == "budget"
+    assert "the compile alone exceeds the scenario's budget" in r.message and "nothing was run" in r.message
+    assert r.info["estimate"]["compile_s"] > 0.5 and "mjx_compiles" not in r.info
+
+
+def test_mjx_patched_in_this_process_is_swept_here_not_in_a_child(monkeypatch, capsys, fresh_mjx):
+    """The child would load the installed MJX: a patch made here must not be tested away."""
+    from mujoco.mjx._src import smooth
+
+    real = smooth.rne
+
+    def rne(m, d, flg_acc=False):  # gravity and bias forces 1% too large
+        d = real(m, d, flg_acc)
+        return d.replace(qfrc_bias=d.qfrc_bias * 1.01)
+
+    monkeypatch.setattr(smooth, "rne", rne)
+    [r] = guard.sweep([load_scenario("pendulum")], SweepConfig(batch=2, steps=60, onestep=False, transfer=False,
+                                                               diagnose="none"), guard.Limits(8 * 2**30))
+    assert "differs from the one a new process loads" in capsys.readouterr().err
+    assert r.status == "fail", r.message  # the patch was swept
+
+
+def test_mjx_and_xla_alarms_become_one_line_of_the_scenario():
+    watch = guard._Watch(1)
+    watch.flying[0] = guard._Flight(0.0)
+    stream = io.BytesIO(
+        b'/x/mesh.py:141: UserWarning: Mesh "link1_c" has a coplanar face with more than 20 vertices. This may\n'
+        b"  warnings.warn(\n"
+        b'/x/mesh.py:141: UserWarning: Mesh "link1_c" has a coplanar face with more than 20 vertices. This may\n'
+        b"2026-11-26 E0000 slow_operation_alarm.cc:73] ****\nVery slow compile? If you want to file a bug\n"
+        b"an ordinary line\n")
+    err = io.StringIO()
+    old, sys.stderr = sys.stderr, err
+    try:
+        guard._read_stderr(stream, watch, threading.Lock())
+    finally:
+        sys.stderr = old
+    assert watch.alarms[0] == ["MJX: mesh link1_c has a coplanar face with more than 20 vertices: decimate it",
+                               "XLA: very slow compile (XLA's own alarm); see the estimate"]
+    assert "an ordinary line" in err.getvalue() and "coplanar" not in err.getvalue()
+
+
+def test_an_xla_allocation_failure_names_the_batch_that_fits():
+    inputs = type("I", (), {"batch": 8})()
+    line = _out_of_memory("RESOURCE_EXHAUSTED: Out of memory allocating 105414900936 bytes.", inputs,
+                          dict(plan=dict(group=8, max_memory=20 * 2**30)))
+    assert line.startswith("out of memory: MJX's stepping of 8 member(s)")
+    assert "98.2 GB" in line and "per member" in line and ("a batch of" in line or "not even one member" in line)
+
+
+@pytest.mark.parametrize("text, size", [("12G", 12 * 2**30), ("800M", 800 * 2**20), ("1.5GB", int(1.5 * 2**30)),
+                                        ("4096", 4096)])
+def test_parse_size(text, size):
+    assert guard.parse_size(text) == size
