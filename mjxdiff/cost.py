@@ -58,6 +58,10 @@ COMPILE_BASE_S = 3.0
 COMPILE_PER_NV_S = 0.15
 COMPILE_PER_GROUP_S = 1.0
 COMPILE_PER_WORK_S = 0.02
+#: A model estimated to compile this long, or to step this many bytes per member, gets the advice
+#: to give its hull-hull pairs primitive collision geoms (:meth:`Estimate.advice_line`).
+ADVISE_COMPILE_S = 60.0
+ADVISE_MEMBER_BYTES = 256 * 2**20
 #: Bytes per member while stepping, beyond :func:`mjxdiff.engines.member_bytes`: per element
 #: of convex work (float64; the temporaries of one step's separating-axis tests).
 BYTES_PER_WORK = 200.0
@@ -107,9 +111,25 @@ class Estimate:
         return (f"MJX: compile ~{human_seconds(self.compile_s)}{f' ({pairs})' if pairs else ''}, "
                 f"~{human_bytes(self.member_bytes)} per member")
 
+    def advice_line(self) -> str:
+        """MJX's advice on this model in one line ('' when it has none): the meshes to decimate and,
+        for a costly model, the pairs to give primitive collision geoms."""
+        parts = []
+        meshes = [a.split()[2] for a in self.advice if a.startswith("decimate mesh ")]
+        if meshes:
+            shown = ", ".join(meshes[:6]) + (f" and {len(meshes) - 6} more" if len(meshes) > 6 else "")
+            parts.append(f"decimate mesh{'es' if len(meshes) > 1 else ''} {shown} (a coplanar face of more "
+                         "than 20 vertices slows MJX's collisions)")
+        costly = self.costly
+        if costly and (self.compile_s >= ADVISE_COMPILE_S or self.member_bytes >= ADVISE_MEMBER_BYTES):
+            pairs = sum(g.pairs for g in costly)
+            parts.append(f"use primitive collision geoms for the {pairs} hull-hull pairs (e.g. {costly[0].geoms[0]}), "
+                         "as the MJX variants of robots do, or --drop-costly-pairs")
+        return "MJX advises: " + "; ".join(parts) if parts else ""
+
     def as_dict(self) -> dict:
         return dict(compile_s=round(self.compile_s, 1), member_bytes=int(self.member_bytes),
-                    nv=self.nv, line=self.line(), advice=list(self.advice),
+                    nv=self.nv, line=self.line(), advice=list(self.advice), advice_line=self.advice_line(),
                     groups=[dict(types=g.label, pairs=g.pairs, work=g.work, hulls=g.hulls, geoms=list(g.geoms))
                             for g in self.groups])
 
@@ -148,6 +168,15 @@ def _work(hulls) -> float:
     return float(e1 * e2 + f1 * v2 + f2 * v1 + f1 * f2 * max(p1, p2))
 
 
+def _geom_name(m: mujoco.MjModel, g: int) -> str:
+    """A geom's name, or its body's name and its id where it has none."""
+    name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, int(g))
+    if name:
+        return name
+    body = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.geom_bodyid[g])) or f"body #{m.geom_bodyid[g]}"
+    return f"geom #{int(g)} of {body}"
+
+
 def pair_groups(m: mujoco.MjModel) -> tuple[tuple[PairGroup, ...], tuple[str, ...]]:
     """MJX's collision functions for ``m`` (costliest first) and MJX's mesh advice."""
     from mujoco.mjx._src import collision_driver
@@ -168,8 +197,7 @@ def pair_groups(m: mujoco.MjModel) -> tuple[tuple[PairGroup, ...], tuple[str, ..
             else:
                 sides.append(None)
         work = _work(sides) if any(s is not None for s in sides) else 1.0
-        names = tuple(f"{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g1) or g1}/"
-                      f"{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g2) or g2}" for g1, g2, _ in pairs[:4])
+        names = tuple(f"{_geom_name(m, g1)} / {_geom_name(m, g2)}" for g1, g2, _ in pairs[:4])
         out.append(PairGroup(types, len(pairs), tuple(sides), work, names,
                              tuple((int(a), int(b), int(c)) for a, b, c in pairs)))
     out.sort(key=lambda g: -g.work * g.pairs)

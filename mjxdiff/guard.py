@@ -127,6 +127,7 @@ class _Flight:
     phase_at: float = 0.0
     estimate: dict = dataclasses.field(default_factory=dict)
     said: float = 0.0
+    peak: int = 0
 
 
 @dataclasses.dataclass
@@ -309,8 +310,11 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
                 elif kind == "result":
                     i = index[done]
                     with lock:
-                        watch.flying.pop(i, None)
-                        watch.results[i] = _with_alarms(msg[1], watch.alarms.pop(i, []))
+                        flight = watch.flying.pop(i, None)
+                        result = msg[1]
+                        if flight is not None:  # what the child held while this scenario ran
+                            result.info["guard"] = dict(peak_rss_bytes=flight.peak)
+                        watch.results[i] = _with_alarms(result, watch.alarms.pop(i, []))
                     done += 1
                     deliver()
             rss = _rss(proc.pid)
@@ -318,6 +322,8 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
             now = time.monotonic()
             with lock:
                 flying = dict(watch.flying)
+                for flight in flying.values():
+                    flight.peak = max(flight.peak, rss)
             for i, flight in flying.items():
                 if progress and flight.phase in ("compiling", "stepping") and now - max(flight.said, flight.phase_at) \
                         > HEARTBEAT_S:

@@ -16,12 +16,14 @@ import re
 import sys
 import threading
 import time
+import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable, Iterable, Iterator, Sequence
 
 import jax
 import mujoco
 import numpy as np
+from mujoco import mjx
 
 from mjxdiff import adjust, cost, diagnose, engines, export_cache, onestep, report, reproducer, transfer
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
@@ -272,12 +274,27 @@ def _fit(prepared: _Prepared) -> _Prepared:
     group = min(config.group_size or prepared.inputs.batch, prepared.inputs.batch)
     fit = cost.plan(est, group, config.budget, config.max_memory, _resident_bytes())
     info["plan"] = dict(group=fit.group, changed=list(fit.changed), budget=config.budget, max_memory=config.max_memory)
+    if fit.stop and _refused_by_mjx(m):  # unsupported is the verdict, whatever it would cost
+        return prepared
     if fit.stop:
         prepared.early = ScenarioResult(name=prepared.scenario.name, status="error", error_kind=fit.kind,
                                         message=fit.stop, info=info, tolerances=prepared.tol.as_dict())
     elif fit.group < group:
         prepared.config = dataclasses.replace(config, group_size=fit.group)
     return prepared
+
+
+def _refused_by_mjx(m) -> bool:
+    """Whether MJX's ``put_model`` refuses ``m`` (the sweep then reports it ``unsupported``)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            mjx.put_model(m)
+    except NotImplementedError:
+        return True
+    except Exception:  # noqa: BLE001 - any other trouble is the sweep's to report
+        return False
+    return False
 
 
 def _compile_ahead(scenario: Scenario, config: SweepConfig, mjx_engine: MJXEngine) -> _Prepared:
@@ -297,10 +314,12 @@ def _compile_ahead(scenario: Scenario, config: SweepConfig, mjx_engine: MJXEngin
 
 def _finish(prepared: _Prepared, mjx_engine: MJXEngine | None, c_engine: CEngine | None) -> ScenarioResult:
     """Runs a prepared scenario: both engines, the verdict, a reproducer of a failure."""
+    advice = prepared.info.get("estimate", {}).get("advice_line")
     if prepared.early is not None:
-        return prepared.early
+        return _advised(prepared.early, advice)
     scenario, m, inputs, tol, config = prepared.scenario, prepared.m, prepared.inputs, prepared.tol, prepared.config
-    result = run_inputs(scenario.name, m, inputs, tol, config, mjx_engine, c_engine, prepared.info, prepared.ahead)
+    result = _advised(run_inputs(scenario.name, m, inputs, tol, config, mjx_engine, c_engine, prepared.info,
+                                 prepared.ahead), advice)
     if result.status == "fail" and config.reproducers is not None:
         member = result.first_divergence["member"]
         file = f"{report.safe_filename(scenario.name)}-member{member}.json"
@@ -316,6 +335,14 @@ def _finish(prepared: _Prepared, mjx_engine: MJXEngine | None, c_engine: CEngine
     if config.transfer and config.impl == "mjx" and result.status in ("pass", "fail"):
         result = _with_transfer(result, inputs, scenario.model_path, config.precision)
     return result
+
+
+def _advised(result: ScenarioResult, advice: str | None) -> ScenarioResult:
+    """``result`` with MJX's advice on its model (:meth:`mjxdiff.cost.Estimate.advice_line`) as the
+    last part of its line, once."""
+    if not advice or advice in result.message:
+        return result
+    return dataclasses.replace(result, message=f"{result.message}; {advice}")
 
 
 def _with_transfer(result: ScenarioResult, inputs: BatchedInputs, model_path, precision: str) -> ScenarioResult:
@@ -1109,6 +1136,9 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
     :mod:`mjxdiff.cost`), ``compiling``, ``stepping``, ``one-step check``, ``diagnosing``.
     Memory and time limits that hold even while XLA compiles are :func:`mjxdiff.guard.sweep`'s.
     """
+    # MJX warns once per mesh with a large coplanar face; the estimate turns that into one line
+    # of the scenario's result (mjxdiff.cost.Estimate.advice_line)
+    warnings.filterwarnings("ignore", message=r"Mesh .* has a coplanar face")
     mjx_engine, c_engine = simulator(config), CEngine()
     bar = _Progress(len(scenarios), progress)
     workers = default_compile_workers() if config.compile_workers is None else config.compile_workers

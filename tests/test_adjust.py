@@ -87,7 +87,7 @@ def test_dropping_by_bodies_lists_the_supported_pairs_it_takes_along(tmp_path):
     dropped, [line] = adjust.drop_unsupported(m, xml)
     assert adjust.unsupported_pairs(dropped) == [] and dropped.nexclude == 1
     assert "dropped 2 geom pair(s)" in line and "box 'top' / cylinder 'can' (no MJX collision function)" in line
-    assert "sphere 'leg' / cylinder 'can' (same bodies as an unsupported pair)" in line
+    assert "sphere 'leg' / cylinder 'can' (same bodies as a dropped pair)" in line
 
 
 def test_explicit_pairs_are_deleted(tmp_path):

@@ -80,6 +80,42 @@ def child(path: str) -> None:
     print(json.dumps(dict(out, phase="done")), flush=True)
 
 
+def features(path: str) -> dict:
+    """The model features :func:`mjxdiff.cost.estimate` reads: nv, collision groups, hull work."""
+    from mjxdiff import cost
+    from mjxdiff.scenario import load_scenario
+    from mjxdiff.sweep import SweepConfig, _prepare
+
+    m = _prepare(load_scenario(path), SweepConfig()).m
+    if m is None:
+        return {}
+    groups, _ = cost.pair_groups(m)
+    work = sum(g.work * g.pairs for g in groups if g.work > 1)
+    return dict(nv=m.nv, groups=len(groups), work=work, ngeom=m.ngeom)
+
+
+def fit(path: str) -> None:
+    """Least squares of measured (trace + compile) seconds on the estimate's features, and the
+    table of estimate against measurement (and peak RSS against the per-member estimate)."""
+    import numpy as np
+
+    from mjxdiff import cost
+
+    rows = [json.loads(x) for x in open(path) if x.startswith("{")]
+    rows = [r for r in rows if r.get("compile_s") and not r.get("killed")]
+    feats = [features(r["model"]) for r in rows]
+    X = np.array([[1.0, f["nv"], f["groups"], f["work"] ** 0.5] for f in feats])
+    y = np.array([r["trace_lower_s"] + r["compile_s"] for r in rows])
+    coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+    print("fitted: base %.2f s, %.3f s per dof, %.2f s per collision function, %.4f s per sqrt(hull work)" % tuple(coef))
+    for r, f, yy in zip(rows, feats, y):
+        now = cost.COMPILE_BASE_S + cost.COMPILE_PER_NV_S * f["nv"] + cost.COMPILE_PER_GROUP_S * f["groups"] \
+            + cost.COMPILE_PER_WORK_S * f["work"] ** 0.5
+        print(f"{r['model'].split('/')[-2] if 'robots' in r['model'] else r['model']:<28} nv {f['nv']:>3} "
+              f"groups {f['groups']:>3} work {f['work']:>9.0f}  measured {yy:6.1f} s  estimate {now:6.1f} s "
+              f"({now / yy:4.1f}x)  peak {r.get('peak_rss_gb')} GB")
+
+
 def rss_gb(pid: int) -> float:
     try:
         with open(f"/proc/{pid}/status") as f:
@@ -97,7 +133,11 @@ def main() -> None:
     ap.add_argument("--timeout", type=float, default=600)
     ap.add_argument("--rss-gb", type=float, default=18)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--fit", action="store_true", help="MODELS is one JSON-lines output of this script: fit it")
     args = ap.parse_args()
+    if args.fit:
+        fit(args.models[0])
+        return
     if args.child:
         child(args.models[0])
         return

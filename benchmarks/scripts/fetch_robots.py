@@ -95,6 +95,10 @@ ROBOTS: tuple[Robot, ...] = (
     Robot("ur5e_plain", "arm", "universal_robots_ur5e", "scene.xml"),
     Robot("shadow_hand_plain", "hand", "shadow_hand", "scene_right.xml"),
     Robot("spot_plain", "quadruped", "boston_dynamics_spot", "scene.xml"),
+    Robot("leap_hand_plain", "hand", "leap_hand", "scene_right.xml"),
+    Robot("fr3_plain", "arm", "franka_fr3", "scene.xml"),
+    Robot("xarm7_plain", "arm", "ufactory_xarm7", "scene.xml"),
+    Robot("aero_hand_plain", "hand", "tetheria_aero_hand_open", "scene_right.xml"),
 )
 
 _MENAGERIE_PREFIX = re.compile(r'(?<=")(?:\.\./)+(?:external_deps/)?mujoco_menagerie/')

@@ -35,13 +35,19 @@ def row(name: str, kind: str, doc: dict, wall: float, rc: int) -> dict:
                      truncation=(one.get("solver") or {}).get("ratio"),
                      as_configured=(one.get("as_configured") or {}).get("ratio"), weak=one.get("weak")) if one else None,
         twin=dict(status=twin.get("status"), worst=twin.get("worst"), weak=twin.get("weak")) if twin else None,
-        message=sc["message"][:400], batch=info.get("batch"), steps=info.get("steps"))
+        message=sc["message"][:400], batch=info.get("batch"), steps=info.get("steps"),
+        error_kind=sc.get("error_kind") or None, estimate=(info.get("estimate") or {}).get("line"),
+        estimate_compile_s=(info.get("estimate") or {}).get("compile_s"),
+        measured_compile_s=(info.get("seconds") or {}).get("compile"),
+        plan=(info.get("plan") or {}).get("changed"), alarms=info.get("alarms"),
+        peak_rss_gb=round((info.get("guard") or {}).get("peak_rss_bytes", 0) / 2**30, 2))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dest", nargs="?", default=str(Path.home() / ".cache" / "mjxdiff" / "robots"))
     parser.add_argument("--robots", default="")
+    parser.add_argument("--timeout", type=float, default=1200, help="seconds per robot before it is killed")
     parser.add_argument("sweep_args", nargs="*")
     args, extra = parser.parse_known_args()
     args.sweep_args += [x for x in extra if x != "--"]
@@ -51,9 +57,14 @@ def main() -> None:
         if robot.get("status") != "ok" or (wanted and robot["name"] not in wanted):
             continue
         out = dest / "sweeps" / robot["name"]
+        (out / "report.json").unlink(missing_ok=True)
         t = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "mjxdiff", "sweep", robot["scene"], "--no-history",
-                               "--out", str(out), *args.sweep_args], capture_output=True, text=True)
+        try:
+            proc = subprocess.run([sys.executable, "-m", "mjxdiff", "sweep", robot["scene"], "--no-history",
+                                   "--out", str(out), *args.sweep_args], capture_output=True, text=True,
+                                  timeout=args.timeout)
+        except subprocess.TimeoutExpired as e:
+            proc = subprocess.CompletedProcess(e.cmd, -9, "", f"no verdict after {args.timeout} s")
         wall = time.perf_counter() - t
         try:
             doc = json.loads((out / "report.json").read_text())
