@@ -16,11 +16,11 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import re
 import warnings
 
 import mujoco
-import numpy as np
 
 __all__ = ["Estimate", "PairGroup", "estimate", "hlo_features"]
 
@@ -52,19 +52,30 @@ class PairGroup:
         return "-".join(self.types)
 
 
-#: Compile seconds: ``COMPILE_BASE_S + COMPILE_PER_NV_S x nv + COMPILE_PER_GROUP_S x groups``
-#: ``+ COMPILE_PER_WORK_S x sqrt(sum of convex work)``; calibrated (see module docstring).
-COMPILE_BASE_S = 3.0
-COMPILE_PER_NV_S = 0.15
-COMPILE_PER_GROUP_S = 1.0
-COMPILE_PER_WORK_S = 0.02
+#: Compile seconds (trace and XLA, one module on about one core): ``COMPILE_BASE_S +
+#: COMPILE_PER_NV_S x nv + COMPILE_PER_GROUP_S x primitive collision functions +
+#: COMPILE_PER_HULL_GROUP_S x collision functions with a hull``; fitted on the compiles of
+#: ``benchmarks/scripts/cost_calibration.py`` (table in the README).
+COMPILE_BASE_S = 5.0
+COMPILE_PER_NV_S = 0.09
+COMPILE_PER_GROUP_S = 0.4
+COMPILE_PER_HULL_GROUP_S = 2.65
+#: Compile seconds per contact under Newton with elliptic cones (see :func:`estimate`).
+COMPILE_PER_CONE_S = 0.05
+#: MJX's seconds per member-step: ``STEP_BASE_S + STEP_PER_WORK_S x hull work`` (the dense
+#: temporaries of the separating-axis tests dominate a robot's plain model: FR3, 22 M elements,
+#: 0.16 s per member-step).
+STEP_BASE_S = 3e-3
+STEP_PER_WORK_S = 7.5e-9
+#: Bytes a compile holds: ``COMPILE_BASE_BYTES + COMPILE_BYTES_PER_HULL_GROUP x hull groups``.
+COMPILE_BASE_BYTES = 0.5 * 2**30
+COMPILE_BYTES_PER_HULL_GROUP = 50 * 2**20
+#: Bytes per member while stepping, per element of hull work (XLA's temporaries, float64).
+BYTES_PER_WORK = 8.0
 #: A model estimated to compile this long, or to step this many bytes per member, gets the advice
 #: to give its hull-hull pairs primitive collision geoms (:meth:`Estimate.advice_line`).
 ADVISE_COMPILE_S = 60.0
 ADVISE_MEMBER_BYTES = 256 * 2**20
-#: Bytes per member while stepping, beyond :func:`mjxdiff.engines.member_bytes`: per element
-#: of convex work (float64; the temporaries of one step's separating-axis tests).
-BYTES_PER_WORK = 200.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,6 +88,10 @@ class Estimate:
         temporaries).
       groups: the collision functions MJX will compile, costliest first.
       advice: MJX's own advice on this model (a mesh with large coplanar faces), one line each.
+      nv: degrees of freedom.
+      step_s: seconds MJX takes per member-step.
+      compile_bytes: bytes the compile holds beyond the process.
+      ncon, nefc: contacts and constraint rows MJX allocates per member.
     """
 
     compile_s: float
@@ -84,6 +99,10 @@ class Estimate:
     groups: tuple[PairGroup, ...] = ()
     advice: tuple[str, ...] = ()
     nv: int = 0
+    step_s: float = STEP_BASE_S
+    compile_bytes: float = COMPILE_BASE_BYTES
+    ncon: int = 0
+    nefc: int = 0
 
     def batch_that_fits(self, available_bytes: float) -> int:
         """Members whose stepping fits ``available_bytes`` (0: not even one)."""
@@ -108,8 +127,9 @@ class Estimate:
     def line(self) -> str:
         """``MJX: compile ~3 min (mesh-mesh pairs: 12 ...), ~2.1 GB per member``."""
         pairs = self.pairs_text()
+        step = f", ~{self.step_s:.2g} s per member-step" if self.step_s >= 0.01 else ""
         return (f"MJX: compile ~{human_seconds(self.compile_s)}{f' ({pairs})' if pairs else ''}, "
-                f"~{human_bytes(self.member_bytes)} per member")
+                f"~{human_bytes(self.member_bytes)} per member{step}")
 
     def advice_line(self) -> str:
         """MJX's advice on this model in one line ('' when it has none): the meshes to decimate and,
@@ -129,6 +149,7 @@ class Estimate:
 
     def as_dict(self) -> dict:
         return dict(compile_s=round(self.compile_s, 1), member_bytes=int(self.member_bytes),
+                    step_s=self.step_s, compile_bytes=int(self.compile_bytes), ncon=self.ncon, nefc=self.nefc,
                     nv=self.nv, line=self.line(), advice=list(self.advice), advice_line=self.advice_line(),
                     groups=[dict(types=g.label, pairs=g.pairs, work=g.work, hulls=g.hulls, geoms=list(g.geoms))
                             for g in self.groups])
@@ -216,11 +237,57 @@ def estimate(m: mujoco.MjModel, batch: int = 1, steps: int = 1) -> Estimate:
         groups, advice = pair_groups(m)
     except Exception:  # noqa: BLE001 - no grouping (MJX refuses the model): primitives only
         groups, advice = (), ()
-    convex = sum(g.work * g.pairs for g in groups if g.work > 1)  # every group with a hull
-    compile_s = (COMPILE_BASE_S + COMPILE_PER_NV_S * m.nv + COMPILE_PER_GROUP_S * len(groups)
-                 + COMPILE_PER_WORK_S * convex ** 0.5)
-    member = engines.member_bytes(m) + BYTES_PER_WORK * convex
-    return Estimate(compile_s, int(member), groups, advice, m.nv)
+    work = sum(g.work * g.pairs for g in groups if g.work > 1)  # every group with a hull
+    hull = sum(any(h is not None for h in g.hulls) for g in groups)
+    data, ncon, nefc = _data_sizes(m)
+    # Newton with elliptic cones: MJX adds each contact's cone Hessian into a dense nefc x nefc
+    # matrix, one unrolled update per contact (solver._update_gradient)
+    elliptic = int(m.opt.solver) == int(mujoco.mjtSolver.mjSOL_NEWTON) and \
+        int(m.opt.cone) == int(mujoco.mjtCone.mjCONE_ELLIPTIC)
+    compile_s = (COMPILE_BASE_S + COMPILE_PER_NV_S * m.nv + COMPILE_PER_GROUP_S * (len(groups) - hull)
+                 + COMPILE_PER_HULL_GROUP_S * hull + (COMPILE_PER_CONE_S * ncon if elliptic else 0.0))
+    # each member steps its own copy of the C model (visual meshes included: 240 MB for
+    # ANYmal C), beside MJX's working set, its hull-hull temporaries and the cone Hessian
+    member = engines.WORKING_SET_FACTOR * data + m.nbuffer + BYTES_PER_WORK * work + (8 * nefc**2 if elliptic else 0)
+    return Estimate(compile_s, int(member), groups, advice, m.nv, STEP_BASE_S + STEP_PER_WORK_S * work,
+                    COMPILE_BASE_BYTES + COMPILE_BYTES_PER_HULL_GROUP * hull, ncon=ncon, nefc=nefc)
+
+
+def _data_sizes(m: mujoco.MjModel) -> tuple[int, int, int]:
+    """Bytes of one member's ``mjx.Data``, its contacts and its constraint rows (zeros where MJX
+    cannot make data for ``m``: the rollout then says why)."""
+    import jax
+    from mujoco import mjx
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            dx = mjx.make_data(m)
+    except Exception:  # noqa: BLE001 - an estimate; put_model names the problem properly
+        return 0, 0, 0
+    data = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(dx))
+    return data, int(dx._impl.contact.dist.shape[0]), int(dx._impl.efc_J.shape[0])
+
+
+def available_bytes() -> int:
+    """Memory the kernel could still give (``MemAvailable``), bytes; 0 where /proc cannot tell."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError):
+        pass
+    return 0
+
+
+def resident_bytes(pid: int | str = "self") -> int:
+    """Resident memory of process ``pid`` (this one by default), bytes; 0 once it is gone."""
+    try:
+        with open(f"/proc/{pid}/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
 
 
 _TENSOR = re.compile(r"tensor<((?:\d+x)*)(f64|f32|i64|i32|i1|i8|ui8|f16|bf16|ui32|ui64)>")
@@ -250,47 +317,80 @@ class Plan:
     """How a scenario runs within its limits (:func:`plan`).
 
     Attributes:
+      batch, steps: members and horizon to run.
       group: members MJX steps at once.
       stop: why nothing is run (the estimate does not fit, whatever the plan), else None.
-      changed: what the plan changed from the default, one line each ("members stepped at
-        once: 8 -> 2 (...)").
+      changed: what the plan changed from the default, one line each ("steps 200 -> 87
+        (...)").
       kind: with ``stop``, what does not fit: ``budget`` or ``memory``.
     """
 
+    batch: int
+    steps: int
     group: int
     stop: str | None = None
     changed: tuple[str, ...] = ()
     kind: str = ""
 
 
-def plan(est: Estimate, group: int, budget_s: float | None, memory_bytes: float | None,
-         held_bytes: float = 0.0) -> Plan:
-    """The plan that fits ``est`` within ``budget_s`` seconds and ``memory_bytes`` of resident
-    memory (None: no limit), given ``group`` members stepped at once by default and
-    ``held_bytes`` the process holds already.
+#: Share of a scenario's budget the plan gives MJX's compile and the rollout's stepping; the
+#: rest is for the one-step check, the host-interface check and a diagnosis.
+PLAN_SHARE = 0.6
+#: MJX stepping the plan counts per member-step of the rollout: the rollout, and the one-step
+#: check's stepping from C's states (up to one piece per member), with a margin.
+STEP_PASSES = 2.5
+#: Least horizon and batch a plan shortens to before it gives up.
+MIN_STEPS = 20
+MIN_BATCH = 2
 
-    A compile cannot be shortened by a smaller batch or horizon, so a compile estimated past
-    the budget stops the scenario before it starts, as does one member that does not fit in
-    the memory left; otherwise the group shrinks until its stepping fits.
+
+def plan(est: Estimate, batch: int, steps: int, group: int, budget_s: float | None,
+         memory_bytes: float | None, held_bytes: float = 0.0) -> Plan:
+    """The plan that fits ``est`` within ``budget_s`` seconds and ``memory_bytes`` of resident
+    memory (None: no limit), for ``batch`` members and ``steps`` steps asked for, ``group``
+    members stepped at once by default, and ``held_bytes`` the process holds already.
+
+    Time: a compile cannot be shortened by a smaller batch or horizon, so a compile estimated
+    past :data:`PLAN_SHARE` of the budget stops the scenario before it starts; otherwise the
+    horizon shortens (to :data:`MIN_STEPS`), then the batch (to :data:`MIN_BATCH`), until
+    :data:`STEP_PASSES` x ``batch x steps x est.step_s`` fits what is left of that share.
+    Memory: one member that does not fit with the compile's own memory stops the scenario;
+    otherwise the member group shrinks until its stepping fits.
     """
     todo = ("to get a verdict: give it more time (--budget), drop the costly pairs (--drop-costly-pairs, "
             "changes the dynamics) or use primitive collision geoms, as MJX variants of models do")
-    if budget_s is not None and est.compile_s > budget_s:
-        return Plan(group, stop=f"{est.line()}: the compile alone exceeds the scenario's budget of "
-                                f"{human_seconds(budget_s)}; nothing was run; {todo}", kind="budget")
+    changed: list[str] = []
+    if budget_s is not None:
+        if est.compile_s > PLAN_SHARE * budget_s:
+            return Plan(batch, steps, group, kind="budget", stop=(
+                f"{est.line()}: the compile alone exceeds the scenario's budget of {human_seconds(budget_s)} "
+                f"(with the checks after it); nothing was run; {todo}"))
+        member_steps = (PLAN_SHARE * budget_s - est.compile_s) / (STEP_PASSES * est.step_s)
+        if batch * steps > member_steps:
+            new_steps = max(min(steps, MIN_STEPS), int(member_steps // batch))
+            new_batch = max(min(batch, MIN_BATCH), min(batch, int(member_steps // new_steps)))
+            if new_batch * new_steps > member_steps:
+                return Plan(batch, steps, group, kind="budget", stop=(
+                    f"{est.line()}, ~{human_seconds(est.step_s)} per member-step: even {new_batch} members x "
+                    f"{new_steps} steps exceed the scenario's budget of {human_seconds(budget_s)}; nothing was "
+                    f"run; {todo}"))
+            why = f"~{est.step_s:.2g} s per member-step, budget {human_seconds(budget_s)}"
+            if new_steps < steps:
+                changed.append(f"steps {steps} -> {new_steps} ({why})")
+            if new_batch < batch:
+                changed.append(f"batch {batch} -> {new_batch} ({why})")
+            batch, steps, group = new_batch, new_steps, min(group, new_batch)
     if memory_bytes is None:
-        return Plan(group)
-    left = memory_bytes - held_bytes - COMPILE_HEADROOM_BYTES
+        return Plan(batch, steps, group, changed=tuple(changed))
+    left = memory_bytes - held_bytes - est.compile_bytes
     fits = est.batch_that_fits(left) if left > 0 else 0
     if fits < 1:
-        return Plan(group, stop=f"{est.line()}: one member does not fit in the memory left "
-                                f"({human_bytes(max(left, 0))} of the {human_bytes(memory_bytes)} limit); nothing "
-                                f"was run; {todo.replace('more time (--budget)', 'more memory (--max-memory)')}", kind="memory")
+        return Plan(batch, steps, group, kind="memory", stop=(
+            f"{est.line()}, ~{human_bytes(est.compile_bytes)} to compile: one member does not fit in the memory "
+            f"left ({human_bytes(max(memory_bytes - held_bytes, 0))} of the {human_bytes(memory_bytes)} limit); "
+            f"nothing was run; {todo.replace('more time (--budget)', 'more memory (--max-memory)')}"))
     if fits < group:
-        return Plan(fits, changed=(f"members stepped at once: {group} -> {fits} (~{human_bytes(est.member_bytes)} "
-                                   f"each, {human_bytes(left)} left of the {human_bytes(memory_bytes)} limit)",))
-    return Plan(group)
-
-
-#: Memory a compile of MJX's rollout holds beyond the process's own, set aside before stepping.
-COMPILE_HEADROOM_BYTES = 1 * 2**30
+        changed.append(f"members stepped at once: {group} -> {fits} (~{human_bytes(est.member_bytes)} each, "
+                       f"{human_bytes(left)} left of the {human_bytes(memory_bytes)} limit)")
+        group = fits
+    return Plan(batch, steps, group, changed=tuple(changed))

@@ -83,21 +83,12 @@ class Limits:
     sweep_budget: float | None = None
 
 
-def _meminfo(key: str) -> int:
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith(key + ":"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError):
-        pass
-    return 0
-
-
 def default_memory() -> int:
     """:data:`MEMORY_SHARE` of the memory the machine has available now, bytes (8 GiB where /proc
     cannot tell)."""
-    return int(MEMORY_SHARE * (_meminfo("MemAvailable") or 8 * 2**30 / MEMORY_SHARE))
+    from mjxdiff import cost
+
+    return int(MEMORY_SHARE * (cost.available_bytes() or 8 * 2**30 / MEMORY_SHARE))
 
 
 def parse_size(text: str) -> int:
@@ -107,15 +98,6 @@ def parse_size(text: str) -> int:
         raise ValueError(f"not a size: {text!r} (e.g. 12G, 800M)")
     scale = {"": 1, "k": 2**10, "m": 2**20, "g": 2**30, "t": 2**40}[found.group(2).lower()]
     return int(float(found.group(1)) * scale)
-
-
-def _rss(pid: int) -> int:
-    """Resident bytes of process ``pid`` (0 once it is gone)."""
-    try:
-        with open(f"/proc/{pid}/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, IndexError):
-        return 0
 
 
 @dataclasses.dataclass
@@ -268,7 +250,7 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
     until it finishes or is killed. Returns ``done``, ``stopped`` (a scenario ended by a limit;
     the rest to be run by another child), ``crowded`` (killed for memory with several scenarios
     in flight: run the rest one at a time), ``patched`` (the child's MJX is not this process's)."""
-    from mjxdiff import export_cache
+    from mjxdiff import cost, export_cache
     read, write = os.pipe()
     proc = subprocess.Popen([sys.executable, "-m", "mjxdiff.guard", str(write)], stdin=subprocess.PIPE,
                             stderr=subprocess.PIPE, pass_fds=(write,), env=dict(os.environ, PYTHONUNBUFFERED="1"))
@@ -297,6 +279,9 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
                     return "patched"
                 if kind == "cache":
                     export_cache.merge_events(msg[1])
+                elif kind == "event" and msg[2] == "finished":
+                    _finished(index[msg[1]], msg[3]["result"], watch, lock)
+                    deliver()
                 elif kind == "event":
                     _, k, phase, detail = msg
                     i = index[k]
@@ -305,19 +290,15 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
                         flight.phase, flight.phase_at = phase, time.monotonic()
                         if phase == "estimated":
                             flight.estimate = dict(line=detail.get("line"), compile_s=detail.get("compile_s"),
-                                                   member_bytes=detail.get("member_bytes"))
+                                                   member_bytes=detail.get("member_bytes"),
+                                                   stepping_s=detail.get("stepping_s"))
                     _say(progress, i, len(watch.results), watch.n, scenarios[k].name, flight, t0)
-                elif kind == "result":
-                    i = index[done]
-                    with lock:
-                        flight = watch.flying.pop(i, None)
-                        result = msg[1]
-                        if flight is not None:  # what the child held while this scenario ran
-                            result.info["guard"] = dict(peak_rss_bytes=flight.peak)
-                        watch.results[i] = _with_alarms(result, watch.alarms.pop(i, []))
+                elif kind == "result":  # in order; a scenario's own "finished" may have brought it
+                    if index[done] not in watch.results:
+                        _finished(index[done], msg[1], watch, lock)
                     done += 1
                     deliver()
-            rss = _rss(proc.pid)
+            rss = cost.resident_bytes(proc.pid)
             watch.peak = max(watch.peak, rss)
             now = time.monotonic()
             with lock:
@@ -375,6 +356,15 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
     return outcome
 
 
+def _finished(i: int, result: ScenarioResult, watch: _Watch, lock: threading.Lock) -> None:
+    """Records scenario ``i``'s result: no longer in flight, with its alarms and the child's peak."""
+    with lock:
+        flight = watch.flying.pop(i, None)
+        if flight is not None:  # what the child held while this scenario ran
+            result.info["guard"] = dict(peak_rss_bytes=flight.peak)
+        watch.results[i] = _with_alarms(result, watch.alarms.pop(i, []))
+
+
 def _kill(proc: subprocess.Popen) -> None:
     if proc.poll() is None:
         proc.kill()
@@ -402,6 +392,9 @@ def _say(progress: bool, i: int, finished: int, n: int, name: str, flight: _Flig
         text = (f"compiling MJX's rollout, {cost.human_seconds(spent)} of ~"
                 f"{cost.human_seconds(flight.estimate['compile_s'])} estimated" if heartbeat else
                 f"compiling MJX's rollout (~{cost.human_seconds(flight.estimate['compile_s'])} estimated)")
+    elif heartbeat and flight.phase == "stepping" and flight.estimate.get("stepping_s"):
+        text = (f"stepping MJX's rollout, {cost.human_seconds(now - flight.phase_at)} of ~"
+                f"{cost.human_seconds(flight.estimate['stepping_s'])} estimated")
     elif heartbeat:
         text = f"still {flight.phase} ({cost.human_seconds(now - flight.phase_at)})"
     elif flight.phase != "preparing":
@@ -411,6 +404,7 @@ def _say(progress: bool, i: int, finished: int, n: int, name: str, flight: _Flig
 
 def _child(fd: int) -> None:
     """The child's side: reads its task from stdin, sweeps, and sends every event and result."""
+    os.dup2(2, 1)  # stdout is the parent's report (--format json): anything printed here goes to stderr
     task = pickle.load(sys.stdin.buffer)
     out = os.fdopen(fd, "wb")
     lock = threading.Lock()

@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-import os
 import queue
 import re
 import sys
@@ -202,15 +201,6 @@ class BudgetSpent(Exception):
         super().__init__("the scenario's budget (--budget) ran out")
 
 
-def _resident_bytes() -> int:
-    """This process's resident memory, bytes (0 where /proc cannot tell)."""
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, IndexError):
-        return 0
-
-
 @dataclasses.dataclass
 class _Prepared:
     """A scenario made ready to run: its model and inputs, or the result that ends it early
@@ -228,7 +218,8 @@ class _Prepared:
 
 
 def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
-    """The scenario's model (adjusted for MJX) and batched inputs; bad input becomes its result."""
+    """The scenario's model (adjusted for MJX), the plan that fits its limits (:func:`_fit`) and
+    its batched inputs; bad input, or a plan that cannot fit, becomes its result."""
     batch, steps = config.sizes(scenario)
     tol = scenario.tolerance.for_precision(config.precision)
     info = dict(batch=batch, steps=steps, model=str(scenario.model), exercises=list(scenario.exercises),
@@ -245,43 +236,51 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
         m, adjusted = adjust.for_mjx(m, scenario.model_path, config.adjust, config.drop_unsupported,
                                      config.drop_costly)
     except Exception as e:  # noqa: BLE001 - the model stays as it is, and says why
-        adjusted = [f"--drop-unsupported could not rewrite the model: {_one_line(e)}"]
+        adjusted = [f"--drop-unsupported/--drop-costly-pairs could not rewrite the model: {_one_line(e)}"]
     if adjusted:
         info["adjusted"] = adjusted
+    prepared.m = m
+    batch, steps = _fit(prepared, batch, steps)
+    if prepared.early is not None:
+        return prepared
     try:
         inputs = make_inputs(scenario, m, config.seed, batch, steps)
     except ScenarioError as e:
         prepared.early = ScenarioResult(name=scenario.name, status="error", error_kind="input", message=str(e),
                                         info=info, tolerances=tol.as_dict())
         return prepared
-    info.update(factors=sorted(inputs.factors), seconds=dict(inputs=time.perf_counter() - t0))
+    info.update(batch=batch, steps=steps, factors=sorted(inputs.factors),
+                seconds=dict(inputs=time.perf_counter() - t0))
     if scenario.randomize.values:
         info["set"] = {k: list(v) for k, v in sorted(scenario.randomize.values.items())}
-    prepared.m, prepared.inputs = m, inputs
-    return _fit(prepared)
+    prepared.inputs = inputs
+    return prepared
 
 
-def _fit(prepared: _Prepared) -> _Prepared:
-    """``prepared`` with MJX's estimated cost (``info['estimate']``, :func:`mjxdiff.cost.estimate`)
-    and the plan that fits the config's budget and memory (``info['plan']``): a smaller member
-    group, or an early ``error`` (kind ``budget`` or ``memory``) that says what to do."""
+def _fit(prepared: _Prepared, batch: int, steps: int) -> tuple[int, int]:
+    """MJX's estimated cost of the prepared model (``info['estimate']``, :func:`mjxdiff.cost.estimate`)
+    and the plan that fits the config's budget and memory (``info['plan']``, :func:`mjxdiff.cost.plan`):
+    the batch and horizon to run (a smaller member group goes into ``prepared.config``), or an
+    early ``error`` of kind ``budget`` or ``memory`` that says what to do."""
     config, info, m = prepared.config, prepared.info, prepared.m
     if config.impl != "mjx":
-        return prepared
+        return batch, steps
     est = cost.estimate(m)
     info["estimate"] = est.as_dict()
-    _phase("estimated", line=est.line(), compile_s=est.compile_s, member_bytes=est.member_bytes)
-    group = min(config.group_size or prepared.inputs.batch, prepared.inputs.batch)
-    fit = cost.plan(est, group, config.budget, config.max_memory, _resident_bytes())
-    info["plan"] = dict(group=fit.group, changed=list(fit.changed), budget=config.budget, max_memory=config.max_memory)
+    group = min(config.group_size or batch, batch)
+    fit = cost.plan(est, batch, steps, group, config.budget, config.max_memory, cost.resident_bytes())
+    _phase("estimated", line=est.line(), compile_s=est.compile_s, member_bytes=est.member_bytes,
+           stepping_s=est.step_s * fit.batch * fit.steps)
+    info["plan"] = dict(batch=fit.batch, steps=fit.steps, group=fit.group, changed=list(fit.changed),
+                        budget=config.budget, max_memory=config.max_memory)
     if fit.stop and _refused_by_mjx(m):  # unsupported is the verdict, whatever it would cost
-        return prepared
+        return batch, steps
     if fit.stop:
         prepared.early = ScenarioResult(name=prepared.scenario.name, status="error", error_kind=fit.kind,
                                         message=fit.stop, info=info, tolerances=prepared.tol.as_dict())
-    elif fit.group < group:
+    elif fit.group < fit.batch:
         prepared.config = dataclasses.replace(config, group_size=fit.group)
-    return prepared
+    return fit.batch, fit.steps
 
 
 def _refused_by_mjx(m) -> bool:
@@ -314,7 +313,9 @@ def _compile_ahead(scenario: Scenario, config: SweepConfig, mjx_engine: MJXEngin
 
 def _finish(prepared: _Prepared, mjx_engine: MJXEngine | None, c_engine: CEngine | None) -> ScenarioResult:
     """Runs a prepared scenario: both engines, the verdict, a reproducer of a failure."""
-    advice = prepared.info.get("estimate", {}).get("advice_line")
+    changed = prepared.info.get("plan", {}).get("changed")
+    advice = "; ".join(([f"plan: {', '.join(changed)}"] if changed else []) +
+                       [prepared.info.get("estimate", {}).get("advice_line") or ""]).strip("; ")
     if prepared.early is not None:
         return _advised(prepared.early, advice)
     scenario, m, inputs, tol, config = prepared.scenario, prepared.m, prepared.inputs, prepared.tol, prepared.config
@@ -723,24 +724,12 @@ def _out_of_memory(error: str, inputs: BatchedInputs, info: dict) -> str:
     line = f"out of memory: MJX's stepping of {group} member(s) at once"
     if found:
         per = int(found.group(1)) / group
-        limit = info.get("plan", {}).get("max_memory") or _available_bytes()
-        fits = int(max(limit - _resident_bytes(), 0) // max(per, 1))
+        limit = info.get("plan", {}).get("max_memory") or cost.available_bytes()
+        fits = int(max(limit - cost.resident_bytes(), 0) // max(per, 1))
         line += f" asked XLA for {cost.human_bytes(int(found.group(1)))} (~{cost.human_bytes(per)} per member)"
         line += (f"; a batch of {fits} would fit (--batch {fits})" if fits else
                  "; not even one member fits: --drop-costly-pairs, or primitive collision geoms")
     return line + f" [{' '.join(error.split())[:160]}]"
-
-
-def _available_bytes() -> int:
-    """Memory the kernel could still give (``MemAvailable``), bytes; 0 where /proc cannot tell."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError):
-        pass
-    return 0
 
 
 def _stopped(info: dict, clock: dict[str, float]) -> str:
@@ -1132,8 +1121,9 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
     precision: :func:`_precision`). With no workers, the scenarios run here, one by one.
 
     ``on_event(index, phase, detail)`` hears, from the thread running scenario ``index``, what
-    it does: ``started``, ``estimated`` (``line``, ``compile_s``, ``member_bytes``: MJX's cost,
-    :mod:`mjxdiff.cost`), ``compiling``, ``stepping``, ``one-step check``, ``diagnosing``.
+    it does: ``preparing``, ``estimated`` (``line``, ``compile_s``, ``member_bytes``,
+    ``stepping_s``: MJX's cost, :mod:`mjxdiff.cost`), ``compiling``, ``stepping``, ``one-step
+    check``, ``diagnosing``, ``finished`` (``result``: the verdict, as soon as it is known).
     Memory and time limits that hold even while XLA compiles are :func:`mjxdiff.guard.sweep`'s.
     """
     # MJX warns once per mesh with a large coplanar face; the estimate turns that into one line
@@ -1150,7 +1140,9 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
         with _precision(config.precision), _running(config, hook):
             _phase("preparing")
             prepared = _compile_ahead(scenario, config, mjx_engine) if pool is not None else _prepare(scenario, config)
-            return _finish(prepared, mjx_engine, c_engine)
+            result = _finish(prepared, mjx_engine, c_engine)
+            _phase("finished", result=result)  # before its turn comes to be reported in order
+            return result
 
     def submit(i: int) -> None:
         if pool is not None and i < len(scenarios):

@@ -37,20 +37,32 @@ def test_estimate_grows_with_hull_pairs(convex_mesh):
 
 def test_a_compile_past_the_budget_stops_before_anything_runs(convex_mesh):
     est = cost.estimate(convex_mesh)
-    stop = cost.plan(est, 8, budget_s=est.compile_s / 2, memory_bytes=None)
+    stop = cost.plan(est, 8, 200, 8, budget_s=est.compile_s, memory_bytes=None)
     assert stop.kind == "budget" and est.line() in stop.stop and "--budget" in stop.stop
-    assert cost.plan(est, 8, budget_s=est.compile_s * 2, memory_bytes=None) == cost.Plan(8)
+    assert cost.plan(est, 8, 200, 8, budget_s=1e6, memory_bytes=None) == cost.Plan(8, 200, 8)
+
+
+def test_stepping_past_the_budget_shortens_the_horizon_then_the_batch():
+    est = cost.Estimate(compile_s=60.0, member_bytes=2**20, step_s=0.1)
+    # 0.6 x 600 s - 60 s of compile leaves 300 s: 300 / (2.5 x 0.1 s) = 1200 member-steps
+    fit = cost.plan(est, 8, 200, 8, budget_s=600.0, memory_bytes=None)
+    assert (fit.batch, fit.steps, fit.stop) == (8, 150, None)
+    assert fit.changed == ("steps 200 -> 150 (~0.1 s per member-step, budget 10 min)",)
+    fit = cost.plan(est, 8, 200, 8, budget_s=150.0, memory_bytes=None)  # 30 s: 120 member-steps
+    assert (fit.batch, fit.steps) == (6, 20) and fit.group == 6 and len(fit.changed) == 2
+    stop = cost.plan(est, 8, 200, 8, budget_s=110.0, memory_bytes=None)  # 6 s: 24 member-steps
+    assert stop.kind == "budget" and "even 2 members x 20 steps" in stop.stop
 
 
 def test_the_group_shrinks_to_the_memory_left_and_says_so():
-    est = cost.Estimate(compile_s=5.0, member_bytes=GB)
+    est = cost.Estimate(compile_s=5.0, member_bytes=GB, compile_bytes=GB)
     held = 2 * GB
-    fit = cost.plan(est, 8, None, memory_bytes=held + cost.COMPILE_HEADROOM_BYTES + 3.5 * GB, held_bytes=held)
-    assert fit.group == 3 and fit.stop is None
+    fit = cost.plan(est, 8, 200, 8, None, memory_bytes=held + GB + 3.5 * GB, held_bytes=held)
+    assert fit.group == 3 and fit.stop is None and (fit.batch, fit.steps) == (8, 200)
     assert fit.changed and "8 -> 3" in fit.changed[0]
-    none = cost.plan(est, 8, None, memory_bytes=held + cost.COMPILE_HEADROOM_BYTES + 0.5 * GB, held_bytes=held)
+    none = cost.plan(est, 8, 200, 8, None, memory_bytes=held + GB + 0.5 * GB, held_bytes=held)
     assert none.kind == "memory" and "one member does not fit" in none.stop and "--max-memory" in none.stop
-    assert cost.plan(est, 8, None, memory_bytes=100 * GB, held_bytes=held).group == 8
+    assert cost.plan(est, 8, 200, 8, None, memory_bytes=100 * GB, held_bytes=held).group == 8
 
 
 def test_hlo_features_count_ops_and_tensor_bytes():

@@ -35,16 +35,33 @@ def _sweep_cli(tmp_path, *args):
     return proc, {s["name"]: s for s in doc["scenarios"]}
 
 
-def test_a_scenario_past_its_budget_is_stopped_and_the_next_one_runs(tmp_path):
+def test_a_horizon_past_the_budget_is_shortened_and_says_so(tmp_path):
     (tmp_path / "long.toml").write_text(LONG)
-    proc, by_name = _sweep_cli(tmp_path, str(tmp_path / "long.toml"), "pendulum", "--budget", "15")
-    assert proc.returncode == 1, proc.stderr
+    proc, by_name = _sweep_cli(tmp_path, str(tmp_path / "long.toml"), "--budget", "20")
     long = by_name["long_humanoid"]
-    assert long["status"] == "error" and long["error_kind"] == "budget"
-    assert long["message"].startswith("stopped") and "budget of 15" in long["message"]
-    assert "MJX: compile ~" in long["message"]  # the estimate, for the user to judge
-    assert by_name["pendulum"]["status"] == "pass"
-    assert "stopped by a limit" in proc.stdout.splitlines()[-1]
+    assert proc.returncode == 0 and long["status"] == "pass", long["message"]
+    assert long["info"]["steps"] < 100000 and long["info"]["plan"]["steps"] == long["info"]["steps"]
+    assert f"plan: steps 100000 -> {long['info']['steps']}" in long["message"]
+
+
+def test_a_scenario_past_its_budget_is_stopped_and_the_next_one_runs():
+    """The child plans for a long budget (as an underestimate would), the guard holds 15 s."""
+    scenarios = [load_scenario(str(_write(LONG))), load_scenario("pendulum")]
+    long, pendulum = guard.sweep(scenarios, SweepConfig(budget=1e4), guard.Limits(8 * 2**30, budget=15))
+    assert long.status == "error" and long.error_kind == "budget"
+    assert long.message.startswith("stopped: its budget of 15 s (--budget) ran out while ")
+    assert "MJX: compile ~" in long.message  # the estimate, for the user to judge
+    assert long.info["guard"]["seconds"] >= 15
+    assert pendulum.status == "pass"
+
+
+def _write(text: str):
+    import tempfile
+    from pathlib import Path
+
+    path = Path(tempfile.mkdtemp()) / "scenario.toml"
+    path.write_text(text)
+    return path
 
 
 def test_a_scenario_past_the_memory_limit_is_stopped_and_the_next_one_runs(tmp_path):
@@ -56,6 +73,7 @@ def test_a_scenario_past_the_memory_limit_is_stopped_and_the_next_one_runs(tmp_p
     assert "limit 1.5 GB (--max-memory)" in wide["message"] and "Traceback" not in proc.stderr
     assert wide["info"]["guard"]["peak_rss_bytes"] > 1.5 * 2**30
     assert by_name["pendulum"]["status"] == "pass"
+    assert "stopped by a limit" in proc.stdout.splitlines()[-1]
 
 
 def test_a_compile_estimated_past_the_budget_stops_at_once():

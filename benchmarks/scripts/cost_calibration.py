@@ -55,12 +55,14 @@ def child(path: str) -> None:
         def choose(lowered):
             seen["lowered_at"] = time.perf_counter()
             seen["features"] = cost.hlo_features(lowered.as_text())
+            print(json.dumps(dict(out, phase="lowered", trace_lower_s=round(seen["lowered_at"] - t, 2),
+                                  rollout_features=seen["features"])), flush=True)
             return inner(lowered)
         return choose
 
     engines.xla_options = xla_options
+    t = time.perf_counter()
     with jax.enable_x64(True):
-        t = time.perf_counter()
         engine.compile_ahead(group, chunk)
         done = time.perf_counter()
         out.update(group=group.batch, chunk=chunk, trace_lower_s=round(seen.get("lowered_at", done) - t, 2),
@@ -89,9 +91,10 @@ def features(path: str) -> dict:
     m = _prepare(load_scenario(path), SweepConfig()).m
     if m is None:
         return {}
-    groups, _ = cost.pair_groups(m)
-    work = sum(g.work * g.pairs for g in groups if g.work > 1)
-    return dict(nv=m.nv, groups=len(groups), work=work, ngeom=m.ngeom)
+    est = cost.estimate(m)
+    hull = sum(any(h is not None for h in g.hulls) for g in est.groups)
+    work = sum(g.work * g.pairs for g in est.groups if g.work > 1)
+    return dict(nv=m.nv, groups=len(est.groups) - hull, hull=hull, work=work, est=est)
 
 
 def fit(path: str) -> None:
@@ -102,18 +105,29 @@ def fit(path: str) -> None:
     from mjxdiff import cost
 
     rows = [json.loads(x) for x in open(path) if x.startswith("{")]
-    rows = [r for r in rows if r.get("compile_s") and not r.get("killed")]
+    rows = [r for r in rows if r.get("compile_s")]  # killed after its compile: that is measured
     feats = [features(r["model"]) for r in rows]
-    X = np.array([[1.0, f["nv"], f["groups"], f["work"] ** 0.5] for f in feats])
+    X = np.array([[1.0, f["nv"], f["groups"], f["hull"]] for f in feats])
     y = np.array([r["trace_lower_s"] + r["compile_s"] for r in rows])
     coef, *_ = np.linalg.lstsq(X, y, rcond=None)
-    print("fitted: base %.2f s, %.3f s per dof, %.2f s per collision function, %.4f s per sqrt(hull work)" % tuple(coef))
+    print("compile fit: base %.2f s, %.3f s per dof, %.2f s per primitive function, %.2f s per hull function"
+          % tuple(coef))
+    steps = [(f["work"], r["first_piece_s"] / (r["group"] * r["chunk"])) for r, f in zip(rows, feats)
+             if r.get("first_piece_s")]
+    print("stepping: " + ", ".join(f"{w:.0f} -> {s * 1e3:.2f} ms" for w, s in steps))
+    print("| model | nv | functions (hull) | hull work | compile measured | estimate | ratio | "
+          "per member-step measured | estimate | XLA temp per member | estimate | peak RSS |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r, f, yy in zip(rows, feats, y):
-        now = cost.COMPILE_BASE_S + cost.COMPILE_PER_NV_S * f["nv"] + cost.COMPILE_PER_GROUP_S * f["groups"] \
-            + cost.COMPILE_PER_WORK_S * f["work"] ** 0.5
-        print(f"{r['model'].split('/')[-2] if 'robots' in r['model'] else r['model']:<28} nv {f['nv']:>3} "
-              f"groups {f['groups']:>3} work {f['work']:>9.0f}  measured {yy:6.1f} s  estimate {now:6.1f} s "
-              f"({now / yy:4.1f}x)  peak {r.get('peak_rss_gb')} GB")
+        est = f["est"]
+        step = r["first_piece_s"] / (r["group"] * r["chunk"]) if r.get("first_piece_s") else None
+        temp = r.get("xla_temp_bytes", 0) / r["group"]
+        name = r["model"].split("/")[-2] if "robots" in r["model"] else r["model"].split("/")[-1]
+        print(f"| {name} | {f['nv']} | {f['groups'] + f['hull']} ({f['hull']}) | {f['work']:.3g} | {yy:.1f} s | "
+              f"{est.compile_s:.1f} s | {est.compile_s / yy:.2f} | "
+              + (f"{step * 1e3:.2f} ms | {est.step_s * 1e3:.2f} ms" if step else "- | -")
+              + f" | {cost.human_bytes(temp)} | {cost.human_bytes(est.member_bytes)} | "
+              f"{r.get('peak_rss_gb') or r.get('polled_peak_gb')} GB{' (killed)' if r.get('killed') else ''} |")
 
 
 def rss_gb(pid: int) -> float:
