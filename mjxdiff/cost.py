@@ -60,8 +60,11 @@ COMPILE_BASE_S = 5.0
 COMPILE_PER_NV_S = 0.09
 COMPILE_PER_GROUP_S = 0.4
 COMPILE_PER_HULL_GROUP_S = 2.65
-#: Compile seconds per contact under Newton with elliptic cones (see :func:`estimate`).
-COMPILE_PER_CONE_S = 0.05
+#: Compile seconds and bytes per contact under Newton with elliptic cones (see :func:`estimate`):
+#: the LEAP hand's plain model (6,728 contacts) traced in 33 s, then XLA compiled for more than
+#: 6 min and reached 19 GB resident before it was stopped.
+COMPILE_PER_CONE_S = 0.08
+COMPILE_BYTES_PER_CONE = 3 * 2**20
 #: MJX's seconds per member-step: ``STEP_BASE_S + STEP_PER_WORK_S x hull work`` (the dense
 #: temporaries of the separating-axis tests dominate a robot's plain model: FR3, 22 M elements,
 #: 0.16 s per member-step).
@@ -92,6 +95,7 @@ class Estimate:
       step_s: seconds MJX takes per member-step.
       compile_bytes: bytes the compile holds beyond the process.
       ncon, nefc: contacts and constraint rows MJX allocates per member.
+      cone_s: the part of ``compile_s`` due to Newton's elliptic-cone Hessian, unrolled per contact.
     """
 
     compile_s: float
@@ -103,6 +107,7 @@ class Estimate:
     compile_bytes: float = COMPILE_BASE_BYTES
     ncon: int = 0
     nefc: int = 0
+    cone_s: float = 0.0
 
     def batch_that_fits(self, available_bytes: float) -> int:
         """Members whose stepping fits ``available_bytes`` (0: not even one)."""
@@ -128,7 +133,8 @@ class Estimate:
         """``MJX: compile ~3 min (mesh-mesh pairs: 12 ...), ~2.1 GB per member``."""
         pairs = self.pairs_text()
         step = f", ~{self.step_s:.2g} s per member-step" if self.step_s >= 0.01 else ""
-        return (f"MJX: compile ~{human_seconds(self.compile_s)}{f' ({pairs})' if pairs else ''}, "
+        held = f" and ~{human_bytes(self.compile_bytes)} of memory" if self.compile_bytes >= 2 * 2**30 else ""
+        return (f"MJX: compile ~{human_seconds(self.compile_s)}{held}{f' ({pairs})' if pairs else ''}, "
                 f"~{human_bytes(self.member_bytes)} per member{step}")
 
     def advice_line(self) -> str:
@@ -145,6 +151,10 @@ class Estimate:
             pairs = sum(g.pairs for g in costly)
             parts.append(f"use primitive collision geoms for the {pairs} hull-hull pairs (e.g. {costly[0].geoms[0]}), "
                          "as the MJX variants of robots do, or --drop-costly-pairs")
+        if self.cone_s >= ADVISE_COMPILE_S:
+            parts.append(f"MJX's Newton solver unrolls the elliptic-cone Hessian over all {self.ncon} contacts "
+                         f"(~{human_seconds(self.cone_s)} of compile, {human_bytes(8 * self.nefc**2)} per member): "
+                         "cone=\"pyramidal\", or fewer contact pairs (contype/conaffinity, <exclude>)")
         return "MJX advises: " + "; ".join(parts) if parts else ""
 
     def as_dict(self) -> dict:
@@ -244,13 +254,15 @@ def estimate(m: mujoco.MjModel, batch: int = 1, steps: int = 1) -> Estimate:
     # matrix, one unrolled update per contact (solver._update_gradient)
     elliptic = int(m.opt.solver) == int(mujoco.mjtSolver.mjSOL_NEWTON) and \
         int(m.opt.cone) == int(mujoco.mjtCone.mjCONE_ELLIPTIC)
+    cone_s = COMPILE_PER_CONE_S * ncon if elliptic else 0.0
     compile_s = (COMPILE_BASE_S + COMPILE_PER_NV_S * m.nv + COMPILE_PER_GROUP_S * (len(groups) - hull)
-                 + COMPILE_PER_HULL_GROUP_S * hull + (COMPILE_PER_CONE_S * ncon if elliptic else 0.0))
+                 + COMPILE_PER_HULL_GROUP_S * hull + cone_s)
     # each member steps its own copy of the C model (visual meshes included: 240 MB for
     # ANYmal C), beside MJX's working set, its hull-hull temporaries and the cone Hessian
     member = engines.WORKING_SET_FACTOR * data + m.nbuffer + BYTES_PER_WORK * work + (8 * nefc**2 if elliptic else 0)
     return Estimate(compile_s, int(member), groups, advice, m.nv, STEP_BASE_S + STEP_PER_WORK_S * work,
-                    COMPILE_BASE_BYTES + COMPILE_BYTES_PER_HULL_GROUP * hull, ncon=ncon, nefc=nefc)
+                    COMPILE_BASE_BYTES + COMPILE_BYTES_PER_HULL_GROUP * hull
+                    + (COMPILE_BYTES_PER_CONE * ncon if elliptic else 0), ncon=ncon, nefc=nefc, cone_s=cone_s)
 
 
 def _data_sizes(m: mujoco.MjModel) -> tuple[int, int, int]:

@@ -84,3 +84,19 @@ def test_drop_costly_pairs_removes_only_hull_hull_pairs(convex_mesh):
     assert lines and "--drop-costly-pairs" in lines[0]
     assert adjust.costly_pairs(dropped) == []
     assert str(len(bad)) in lines[0].split("dropped ")[1]
+
+
+def test_newton_with_elliptic_cones_costs_per_contact_and_nefc_squared():
+    """MJX's Newton solver builds a dense nefc x nefc cone Hessian, one unrolled update per contact."""
+    import copy
+
+    import mujoco
+
+    elliptic = load_model(load_scenario("box_stack"))
+    assert elliptic.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
+    pyramidal = copy.copy(elliptic)
+    pyramidal.opt.cone = mujoco.mjtCone.mjCONE_PYRAMIDAL
+    a, b = cost.estimate(elliptic), cost.estimate(pyramidal)
+    assert a.ncon == b.ncon > 0 and a.cone_s == pytest.approx(cost.COMPILE_PER_CONE_S * a.ncon) and b.cone_s == 0
+    assert a.compile_s - b.compile_s == pytest.approx(a.cone_s)
+    assert a.member_bytes > 8 * a.nefc**2 + elliptic.nbuffer
