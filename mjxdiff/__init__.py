@@ -28,6 +28,7 @@ _PUBLIC = {
     "baseline": None,  # the module: what changed since a trusted run
     "closedloop": None,  # the module: a policy in closed loop on MJX and on C
     "grad": None,  # the module: MJX's one-step Jacobians against C's finite differences
+    "guard": None,  # the module: a sweep in a watched child process, memory and time bounded
     "history": None,  # the module: the Parquet run history and its anomalies
     "known": None,  # the module: the catalogue of known MJX-vs-C approximations
     "onestep": None,  # the module: one step from C's states, converged solver, C's rounding as the bound

@@ -51,6 +51,14 @@ rollouts differ beyond tolerance, covered only by C's own freedom under the same
 settings), while the converged twin and the one-step check agree; it is not an
 MJX bug, but the trajectories do differ by what the line says.
 
+limits: before compiling, each scenario's MJX cost is estimated from its
+collision pairs and solver ('MJX: compile ~3 min (...), ~300 MB per member');
+the horizon, then the batch, shrink to fit --budget (600 s per scenario) and
+the members stepped at once to fit --max-memory (85% of the memory available).
+A scenario that still cannot fit, or runs past a limit (the sweep runs in a
+watched child process: even an XLA compile is stopped), is an ERROR that says
+how far it got and what to do; the report is written and the sweep goes on.
+
 exit codes: 0 consistent; 1 a divergence (any FAIL, solver truncation included)
 or an engine error; 2 bad usage or input. With --fail-on new, failures that an
 accepted known entry explains (solver-truncation, or your --known entries with

@@ -73,6 +73,10 @@ STEP_PER_WORK_S = 7.5e-9
 #: Bytes a compile holds: ``COMPILE_BASE_BYTES + COMPILE_BYTES_PER_HULL_GROUP x hull groups``.
 COMPILE_BASE_BYTES = 0.5 * 2**30
 COMPILE_BYTES_PER_HULL_GROUP = 50 * 2**20
+#: Copies of a member's C model a scenario holds at once (its inputs, the converged copies of
+#: the one-step check and the twin): a sweep of ANYmal C (240 MB of visual meshes per model,
+#: 8 members) peaked at 7.4 GB resident.
+MODEL_COPIES = 3
 #: Bytes per member while stepping, per element of hull work (XLA's temporaries, float64).
 BYTES_PER_WORK = 8.0
 #: A model estimated to compile this long, or to step this many bytes per member, gets the advice
@@ -257,9 +261,10 @@ def estimate(m: mujoco.MjModel, batch: int = 1, steps: int = 1) -> Estimate:
     cone_s = COMPILE_PER_CONE_S * ncon if elliptic else 0.0
     compile_s = (COMPILE_BASE_S + COMPILE_PER_NV_S * m.nv + COMPILE_PER_GROUP_S * (len(groups) - hull)
                  + COMPILE_PER_HULL_GROUP_S * hull + cone_s)
-    # each member steps its own copy of the C model (visual meshes included: 240 MB for
+    # each member has its own copies of the C model (visual meshes included: 240 MB for
     # ANYmal C), beside MJX's working set, its hull-hull temporaries and the cone Hessian
-    member = engines.WORKING_SET_FACTOR * data + m.nbuffer + BYTES_PER_WORK * work + (8 * nefc**2 if elliptic else 0)
+    member = (engines.WORKING_SET_FACTOR * data + MODEL_COPIES * m.nbuffer + BYTES_PER_WORK * work
+              + (8 * nefc**2 if elliptic else 0))
     return Estimate(compile_s, int(member), groups, advice, m.nv, STEP_BASE_S + STEP_PER_WORK_S * work,
                     COMPILE_BASE_BYTES + COMPILE_BYTES_PER_HULL_GROUP * hull
                     + (COMPILE_BYTES_PER_CONE * ncon if elliptic else 0), ncon=ncon, nefc=nefc, cone_s=cone_s)

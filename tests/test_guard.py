@@ -1,6 +1,7 @@
 """mjxdiff.guard: a sweep in a watched child process; memory and time limits end a scenario with a
 clean error, the report is written, and the next scenario runs."""
 
+import dataclasses
 import io
 import json
 import subprocess
@@ -132,3 +133,17 @@ def test_an_xla_allocation_failure_names_the_batch_that_fits():
                                         ("4096", 4096)])
 def test_parse_size(text, size):
     assert guard.parse_size(text) == size
+
+
+def test_in_process_a_scenario_stops_itself_at_its_budget_between_pieces(monkeypatch):
+    """Without the guard (the API's sweep), the budget still holds between pieces of stepping:
+    here the estimate is made to say the long horizon fits, as an underestimate would."""
+    from mjxdiff import cost
+
+    real = cost.estimate
+    monkeypatch.setattr(cost, "estimate", lambda m: dataclasses.replace(real(m), compile_s=0.0, step_s=1e-9))
+    long, pendulum = sweep([load_scenario(str(_write(LONG))), load_scenario("pendulum")],
+                           SweepConfig(budget=5.0, compile_workers=0))
+    assert long.status == "error" and long.error_kind == "budget"
+    assert long.message.startswith("stopped at its budget of 5 s: stepped ") and " of 100000 steps" in long.message
+    assert pendulum.status == "pass"
