@@ -47,6 +47,9 @@ __all__ = ["Limits", "sweep", "default_memory", "parse_size"]
 #: Seconds past a scenario's budget before its child is killed: the child stops by itself
 #: at the next piece or ablation; a compile cannot be stopped but by the kill.
 GRACE_S = 15.0
+#: Memory the machine must keep available (other processes may take what the limit assumed free):
+#: below it the child is stopped as if past its limit.
+MIN_AVAILABLE_BYTES = 256 * 2**20
 #: Seconds between two looks at the child.
 POLL_S = 0.5
 #: Share of the memory available at the start that a sweep may hold by default.
@@ -311,7 +314,7 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
                     flight.said = now
                     _say(progress, i, len(watch.results), watch.n, scenarios[index.index(i)].name, flight, t0,
                          heartbeat=True)
-            if rss > limits.memory:
+            if rss > limits.memory or 0 < cost.available_bytes() < MIN_AVAILABLE_BYTES:
                 _kill(proc)
                 if len(flying) <= 1:  # none in flight: the next one was about to start
                     i = next(iter(flying), next(j for j in index if j not in watch.results))
