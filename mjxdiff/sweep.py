@@ -174,7 +174,7 @@ _SCENARIO = threading.local()
 def _running(config: SweepConfig, hook: Callable[[str, dict], None] | None = None):
     """Sets this thread's scenario deadline (``config.budget``) and phase hook while it runs."""
     _SCENARIO.deadline = time.monotonic() + config.budget if config.budget else None
-    _SCENARIO.hook = hook
+    _SCENARIO.hook, _SCENARIO.rerun_s = hook, 0.0
     try:
         yield
     finally:
@@ -188,10 +188,13 @@ def _phase(text: str, **detail) -> None:
         hook(text, detail)
 
 
-def _out_of_time() -> bool:
-    """Whether the running scenario has spent its budget (``config.budget``)."""
+def _out_of_time(rerun: bool = False) -> bool:
+    """Whether the running scenario has spent its budget (``config.budget``); with ``rerun``,
+    whether what is left is too short for another compile and rollout of it (the estimate's,
+    :func:`_fit`): a rerun started then would be stopped from outside and take the verdict with it."""
     deadline = getattr(_SCENARIO, "deadline", None)
-    return deadline is not None and time.monotonic() > deadline
+    need = getattr(_SCENARIO, "rerun_s", 0.0) if rerun else 0.0
+    return deadline is not None and time.monotonic() + need > deadline
 
 
 class BudgetSpent(Exception):
@@ -271,6 +274,7 @@ def _fit(prepared: _Prepared, batch: int, steps: int) -> tuple[int, int]:
     fit = cost.plan(est, batch, steps, group, config.budget, config.max_memory, cost.resident_bytes())
     _phase("estimated", line=est.line(), compile_s=est.compile_s, member_bytes=est.member_bytes,
            stepping_s=est.step_s * fit.batch * fit.steps)
+    _SCENARIO.rerun_s = est.compile_s + est.step_s * fit.batch * fit.steps
     info["plan"] = dict(batch=fit.batch, steps=fit.steps, group=fit.group, changed=list(fit.changed),
                         budget=config.budget, max_memory=config.max_memory)
     if fit.stop and _refused_by_mjx(m):  # unsupported is the verdict, whatever it would cost
@@ -800,7 +804,7 @@ def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, co
     the solver floor, or was weak on a model whose solver settings the one-step check found not
     converged, the converged twin (:func:`_twin`); a pass held only by the solver floor becomes a
     ``solver truncation`` failure (:func:`_truncation`). Never raises."""
-    if _out_of_time():
+    if _out_of_time(rerun=True):
         return dataclasses.replace(result, message=f"{result.message}; one-step check and converged twin not run: "
                                                    f"{BudgetSpent()}")
     excused = result.status == "pass" and info.get("solver_floor", {}).get("status") == "pass"
@@ -900,6 +904,8 @@ def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, con
     t = time.perf_counter()
     twin_inputs = converged(inputs)
     try:
+        if _out_of_time(rerun=True):  # a converged solver compiles again
+            raise BudgetSpent()
         twin, _ = _verdict(result.name, m, twin_inputs, tol, config, mjx_engine, c_engine, clock)
     except Exception as e:  # noqa: BLE001 - the rollout's verdict stands, and says what is missing
         return dataclasses.replace(result, message=f"{result.message}; converged twin could not run: "
@@ -1011,7 +1017,7 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
         _phase("diagnosing")
 
         def passes(ablated: BatchedInputs, precision: str) -> bool:
-            if _out_of_time():
+            if _out_of_time(rerun=True):  # each ablation compiles and steps again
                 raise BudgetSpent()
             with _precision(precision):
                 return _verdict(result.name, ablated.models[0], ablated, tol, config, mjx_engine, c_engine,
