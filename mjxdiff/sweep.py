@@ -282,9 +282,21 @@ def _fit(prepared: _Prepared, batch: int, steps: int) -> tuple[int, int]:
     if fit.stop:
         prepared.early = ScenarioResult(name=prepared.scenario.name, status="error", error_kind=fit.kind,
                                         message=fit.stop, info=info, tolerances=prepared.tol.as_dict())
-    elif fit.group < fit.batch:
-        prepared.config = dataclasses.replace(config, group_size=fit.group)
+    else:
+        if fit.group < fit.batch:
+            prepared.config = dataclasses.replace(prepared.config, group_size=fit.group)
+        # slow stepping (hull-hull pairs) in short pieces: the budget is checked between pieces
+        piece = max(1, int(PIECE_SECONDS // (est.step_s * fit.group)))
+        if est.step_s >= SLOW_STEP_S and piece < fit.steps and config.piece_steps is None:
+            prepared.config = dataclasses.replace(prepared.config, piece_steps=piece)
+            info["plan"]["piece_steps"] = piece
     return fit.batch, fit.steps
+
+
+#: Seconds of MJX stepping a piece may take (estimated) when a member-step takes at least
+#: SLOW_STEP_S: the budget is checked between pieces.
+PIECE_SECONDS = 10.0
+SLOW_STEP_S = 0.01
 
 
 def _refused_by_mjx(m) -> bool:
@@ -775,6 +787,8 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
         # does not see (control-suite cartpole: 1.9e-6 at step 175, gone with a converged solver)
         if drill.first_stage not in ("constraint", "acceleration", None):
             return result, traj_c, drill, check
+        if _out_of_time(rerun=True):
+            raise BudgetSpent()
         second, _ = _verdict(result.name, m, inputs, tol, config, mjx_engine, c_engine, clock, solver=True)
     except Exception as e:  # noqa: BLE001 - the verdict stands
         return result, traj_c, drill, dict(status=f"could not run: {_one_line(e)}")
