@@ -12,7 +12,8 @@ nothing but results, watches it twice a second:
   one at a time, so that only the one that does not fit is blamed.
 * **time**: each scenario's wall time from its start against ``Limits.budget``. The child stops
   a scenario itself at its budget where it can (between pieces of stepping, ablations of the
-  diagnosis); past the budget plus :data:`GRACE_S` (a compile cannot be interrupted) it is
+  diagnosis); past the budget plus a grace (:data:`GRACE_S`, or :data:`GRACE_SHARE` of the
+  budget; a compile cannot be interrupted) it is
   killed, and the scenario ends as an ``error`` of kind ``budget`` that says how far it got.
   ``Limits.sweep_budget`` bounds the whole sweep; scenarios it leaves unrun are listed as such.
 * **MJX's and XLA's own alarms** (a mesh with a coplanar face of more than 20 vertices, XLA's
@@ -44,9 +45,11 @@ from mjxdiff.verdict import ScenarioResult
 
 __all__ = ["Limits", "sweep", "default_memory", "parse_size"]
 
-#: Seconds past a scenario's budget before its child is killed: the child stops by itself
-#: at the next piece or ablation; a compile cannot be stopped but by the kill.
+#: Seconds past a scenario's budget before its child is killed: the larger of GRACE_S and
+#: GRACE_SHARE of the budget. The child stops by itself at the next piece or ablation and
+#: finishes what it has (the verdict so far); a compile cannot be stopped but by the kill.
 GRACE_S = 15.0
+GRACE_SHARE = 0.1
 #: Memory the machine must keep available (other processes may take what the limit assumed free):
 #: below it the child is stopped as if past its limit.
 MIN_AVAILABLE_BYTES = 256 * 2**20
@@ -326,7 +329,7 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
                     outcome = "crowded"
                 break
             late = [i for i, f in flying.items()
-                    if limits.budget is not None and now - f.started > limits.budget + GRACE_S]
+                    if limits.budget is not None and now - f.started > limits.budget + _grace(limits.budget)]
             if late:
                 _kill(proc)
                 for i in late:
@@ -357,6 +360,11 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
             message=f"the sweep's process died ({how}) while running this scenario; the others go on")
         outcome = "stopped"
     return outcome
+
+
+def _grace(budget: float) -> float:
+    """Seconds past ``budget`` before the guard stops a scenario from outside (see :data:`GRACE_S`)."""
+    return max(GRACE_S, GRACE_SHARE * budget)
 
 
 def _finished(i: int, result: ScenarioResult, watch: _Watch, lock: threading.Lock) -> None:

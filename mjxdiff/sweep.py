@@ -349,7 +349,9 @@ def _finish(prepared: _Prepared, mjx_engine: MJXEngine | None, c_engine: CEngine
             path = None
             result = dataclasses.replace(result, message=f"{result.message}; reproducer not saved: {_one_line(e)}")
         result = dataclasses.replace(result, info={**result.info, "reproducer": path})
-    if config.transfer and config.impl == "mjx" and result.status in ("pass", "fail"):
+    if config.transfer and config.impl == "mjx" and result.status in ("pass", "fail") and _out_of_time():
+        result = dataclasses.replace(result, message=f"{result.message}; host-interface check not run: {BudgetSpent()}")
+    elif config.transfer and config.impl == "mjx" and result.status in ("pass", "fail"):
         result = _with_transfer(result, inputs, scenario.model_path, config.precision)
     return result
 
@@ -709,6 +711,9 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
         return ScenarioResult(status="error", error_kind="engine", message=f"{engine} failed: {e}", **base)
     except BudgetSpent:
         return ScenarioResult(status="error", error_kind="budget", message=_stopped(info, clock), **base)
+    # a rerun costs what this rollout took (measured, whatever the machine's load) and a compile
+    _SCENARIO.rerun_s = max(getattr(_SCENARIO, "rerun_s", 0.0),
+                            clock.get("mjx", 0.0) + info.get("estimate", {}).get("compile_s", 0.0))
     t = time.perf_counter()
     traj_c = drill = None
     if result.status == "fail" and config.envelope and has_constraints(m) and not any(
