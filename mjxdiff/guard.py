@@ -416,6 +416,14 @@ def _say(progress: bool, i: int, finished: int, n: int, name: str, flight: _Flig
 def _child(fd: int) -> None:
     """The child's side: reads its task from stdin, sweeps, and sends every event and result."""
     os.dup2(2, 1)  # stdout is the parent's report (--format json): anything printed here goes to stderr
+    parent = os.getppid()
+
+    def orphaned() -> None:  # the guard was killed (Ctrl-C twice, SIGKILL): stop too, even mid-compile
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(3)
+
+    threading.Thread(target=orphaned, daemon=True).start()
     task = pickle.load(sys.stdin.buffer)
     out = os.fdopen(fd, "wb")
     lock = threading.Lock()

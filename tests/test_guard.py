@@ -147,3 +147,45 @@ def test_in_process_a_scenario_stops_itself_at_its_budget_between_pieces(monkeyp
     assert long.status == "error" and long.error_kind == "budget"
     assert long.message.startswith("stopped at its budget of 5 s: stepped ") and " of 100000 steps" in long.message
     assert pendulum.status == "pass"
+
+
+def test_the_child_stops_when_the_guard_is_killed(tmp_path):
+    """A guard killed outright (SIGKILL) leaves no child compiling or stepping on its own."""
+    import os
+    import signal
+    import time
+
+    (tmp_path / "long.toml").write_text(LONG)
+    parent = subprocess.Popen([sys.executable, "-m", "mjxdiff", "sweep", str(tmp_path / "long.toml"), "--isolate",
+                               "--no-history", "--budget", "10000"], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+
+    def children() -> list[int]:
+        found = []
+        for pid in filter(str.isdigit, os.listdir("/proc")):
+            try:
+                with open(f"/proc/{pid}/stat") as f:
+                    ours = int(f.read().rsplit(")", 1)[1].split()[1]) == parent.pid
+                with open(f"/proc/{pid}/cmdline", "rb") as f:
+                    if ours and b"mjxdiff.guard" in f.read():
+                        found.append(int(pid))
+            except (OSError, ValueError, IndexError):
+                pass
+        return found
+
+    deadline = time.monotonic() + 60
+    while not children() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    [child] = children()
+    time.sleep(20)  # the child is stepping by now: a long phase that sends nothing
+    assert os.path.exists(f"/proc/{child}")
+    os.kill(parent.pid, signal.SIGKILL)
+    parent.wait()
+    deadline = time.monotonic() + 10
+    while os.path.exists(f"/proc/{child}") and time.monotonic() < deadline:
+        with open(f"/proc/{child}/stat") as f:
+            if f.read().rsplit(")", 1)[1].split()[0] == "Z":
+                break
+        time.sleep(0.2)
+    alive = os.path.exists(f"/proc/{child}") and open(f"/proc/{child}/stat").read().rsplit(")", 1)[1].split()[0] != "Z"
+    assert not alive
