@@ -116,6 +116,7 @@ class _Flight:
     estimate: dict = dataclasses.field(default_factory=dict)
     said: float = 0.0
     peak: int = 0
+    verdict: ScenarioResult | None = None
 
 
 @dataclasses.dataclass
@@ -144,6 +145,13 @@ def _stopped(name: str, kind: str, why: str, flight: _Flight | None, limits: Lim
         where = f" while {flight.phase} ({time.monotonic() - flight.started:.0f} s in)"
     else:
         where = ""
+    if flight is not None and flight.verdict is not None and flight.verdict.status in ("pass", "fail"):
+        # the rollout was judged: that verdict stands, without the checks that did not finish
+        verdict = flight.verdict
+        info = dict(verdict.info, guard=info["guard"])
+        reason = why if kind == "budget" else "the memory limit (--max-memory) was reached"
+        note = f"{reason}{where}: the checks after the rollout did not finish"
+        return dataclasses.replace(verdict, info=info, message=f"{verdict.message}; {note}")
     if kind == "memory":
         message = (f"stopped before the machine ran out of memory: {cost.human_bytes(peak)} resident, limit "
                    f"{cost.human_bytes(limits.memory)} (--max-memory){where}{line}; try --batch 1, "
@@ -288,6 +296,9 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
                 elif kind == "event" and msg[2] == "finished":
                     _finished(index[msg[1]], msg[3]["result"], watch, lock)
                     deliver()
+                elif kind == "event" and msg[2] == "verdict":  # the rollout's, before the checks after it
+                    with lock:
+                        watch.flying.setdefault(index[msg[1]], _Flight(time.monotonic())).verdict = msg[3]["result"]
                 elif kind == "event":
                     _, k, phase, detail = msg
                     i = index[k]

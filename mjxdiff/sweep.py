@@ -699,6 +699,7 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     mjx_engine, c_engine = mjx_engine or simulator(config), c_engine or CEngine()
     info["impl"] = mjx_engine.name
     clock: dict[str, float] = {}
+    t0 = time.monotonic()
     try:
         result, counts = _verdict(name, m, inputs, tol, config, mjx_engine, c_engine, clock)
     except UnsupportedError as e:
@@ -711,9 +712,10 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
         return ScenarioResult(status="error", error_kind="engine", message=f"{engine} failed: {e}", **base)
     except BudgetSpent:
         return ScenarioResult(status="error", error_kind="budget", message=_stopped(info, clock), **base)
-    # a rerun costs what this rollout took (measured, whatever the machine's load) and a compile
+    # a rerun costs what this verdict took (measured, whatever the machine's load) and a compile
     _SCENARIO.rerun_s = max(getattr(_SCENARIO, "rerun_s", 0.0),
-                            clock.get("mjx", 0.0) + info.get("estimate", {}).get("compile_s", 0.0))
+                            time.monotonic() - t0 + info.get("estimate", {}).get("compile_s", 0.0))
+    _phase("verdict", result=dataclasses.replace(result, info=dict(info)))  # the guard keeps it, should a check overrun
     t = time.perf_counter()
     traj_c = drill = None
     if result.status == "fail" and config.envelope and has_constraints(m) and not any(

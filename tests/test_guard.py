@@ -189,3 +189,19 @@ def test_the_child_stops_when_the_guard_is_killed(tmp_path):
         time.sleep(0.2)
     alive = os.path.exists(f"/proc/{child}") and open(f"/proc/{child}/stat").read().rsplit(")", 1)[1].split()[0] != "Z"
     assert not alive
+
+
+def test_a_scenario_stopped_after_its_rollout_keeps_the_rollouts_verdict():
+    """Killed in the checks after the rollout (a rerun's compile), the rollout's verdict stands."""
+    from mjxdiff.verdict import ScenarioResult
+
+    flight = guard._Flight(0.0, phase="diagnosing")
+    flight.verdict = ScenarioResult(name="arm", status="fail", message="qpos of joint 'j5' leaves the envelope",
+                                    info=dict(batch=8))
+    r = guard._stopped("arm", "budget", "its budget of 600 s (--budget) ran out", flight, guard.Limits(2**30, 600), 0)
+    assert r.status == "fail" and r.info["batch"] == 8 and r.info["guard"]["phase"] == "diagnosing"
+    assert r.message.startswith("qpos of joint 'j5' leaves the envelope; its budget of 600 s (--budget) ran out "
+                                "while diagnosing")
+    assert r.message.endswith("the checks after the rollout did not finish")
+    flight.verdict = None
+    assert guard._stopped("arm", "budget", "x", flight, guard.Limits(2**30, 600), 0).status == "error"
