@@ -784,6 +784,8 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
       Never raises.
     """
     traj_c = drill = None
+    if _out_of_time(rerun=True):  # its drill-down compiles MJX's stages, its rerun steps again
+        return result, None, None, dict(status=f"not run: {BudgetSpent()}")
     try:
         traj_c = c_engine.rollout(inputs)
         drill = _drill(result, inputs, traj_c, config.precision, mjx_engine.name)
@@ -1009,6 +1011,8 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
 
     def attempt(label: str, fn: Callable[[], object]):
         try:
+            if _out_of_time(rerun=True):  # each part compiles MJX functions of its own
+                raise BudgetSpent()
             return fn()
         except Exception as e:  # noqa: BLE001 - one scenario's diagnosis, never the sweep
             notes.append(f"{label} could not run: {_one_line(e)}")
