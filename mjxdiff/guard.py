@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import importlib
 import os
 import pickle
 import queue
@@ -211,8 +212,9 @@ def sweep(scenarios: Sequence[Scenario], config, limits: Limits | None = None, p
     ``config.budget`` and ``config.max_memory``, when unset, become the limits', so that the
     child plans within them (:func:`mjxdiff.cost.plan`).
     """
-    from mjxdiff import export_cache, sweep as sweep_module
+    from mjxdiff import export_cache
 
+    sweep_module = importlib.import_module("mjxdiff.sweep")  # the module: mjxdiff.sweep may name the function
     limits = limits or Limits(default_memory())
     config = dataclasses.replace(config, budget=config.budget or limits.budget,
                                  max_memory=config.max_memory or limits.memory)
@@ -445,7 +447,8 @@ def _child(fd: int) -> None:
             out.flush()
 
     from mjxdiff import engines, export_cache
-    from mjxdiff import sweep as sweep_module
+
+    sweep_module = importlib.import_module("mjxdiff.sweep")
 
     engines.configure_jax(task["config"].precision, task["cache_dir"], task["devices"])
     send("digest", export_cache.code_digest(names=task["names"]))
