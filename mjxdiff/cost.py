@@ -253,7 +253,7 @@ def estimate(m: mujoco.MjModel, batch: int = 1, steps: int = 1) -> Estimate:
         groups, advice = (), ()
     work = sum(g.work * g.pairs for g in groups if g.work > 1)  # every group with a hull
     hull = sum(any(h is not None for h in g.hulls) for g in groups)
-    data, ncon, nefc = _data_sizes(m)
+    data, ncon, nefc = data_sizes(m)
     # Newton with elliptic cones: MJX adds each contact's cone Hessian into a dense nefc x nefc
     # matrix, one unrolled update per contact (solver._update_gradient)
     elliptic = int(m.opt.solver) == int(mujoco.mjtSolver.mjSOL_NEWTON) and \
@@ -270,7 +270,7 @@ def estimate(m: mujoco.MjModel, batch: int = 1, steps: int = 1) -> Estimate:
                     + (COMPILE_BYTES_PER_CONE * ncon if elliptic else 0), ncon=ncon, nefc=nefc, cone_s=cone_s)
 
 
-def _data_sizes(m: mujoco.MjModel) -> tuple[int, int, int]:
+def data_sizes(m: mujoco.MjModel) -> tuple[int, int, int]:
     """Bytes of one member's ``mjx.Data``, its contacts and its constraint rows (zeros where MJX
     cannot make data for ``m``: the rollout then says why)."""
     import jax

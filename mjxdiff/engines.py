@@ -598,11 +598,9 @@ WORKING_SET_FACTOR = 40
 def member_bytes(m: mujoco.MjModel) -> int:
     """Estimated bytes MJX holds per batch member while stepping ``m``: WORKING_SET_FACTOR x its data;
     0 when MJX cannot make data for ``m`` (the rollout then reports why, e.g. as unsupported)."""
-    try:
-        dx = mjx.make_data(m)
-    except Exception:  # noqa: BLE001 - an estimate; put_model names the problem properly
-        return 0
-    return WORKING_SET_FACTOR * sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(dx))
+    from mjxdiff import cost
+
+    return WORKING_SET_FACTOR * cost.data_sizes(m)[0]
 
 
 def device_count() -> int:
