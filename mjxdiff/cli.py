@@ -332,9 +332,15 @@ def build_parser() -> argparse.ArgumentParser:
     cv = sub.add_parser("coverage", help="measure which MJX code and which model parameters the scenarios exercise",
                         description="Trace MJX (put_model, make_data, one mjx.step) for every scenario under "
                                     "coverage.py and report line and branch coverage of mujoco/mjx/_src per module, "
-                                    "the functions never traced, and which floating-point model fields and options "
-                                    "some member of some scenario moves away from MuJoCo's default. Nothing is "
-                                    "compiled or stepped. --out DIR writes DIR/coverage.json.")
+                                    "the functions never traced, which floating-point model fields and options "
+                                    "some member of some scenario moves away from MuJoCo's default, and which pairs "
+                                    "of the conditions MJX branches on (options and flags, actuator, sensor, tendon, "
+                                    "equality and limit attributes, controls outside their range, limits and "
+                                    "deadbands reached; mjxdiff.interactions.GROUPS) some member holds together, "
+                                    "with the pairs not covered and those no model can hold (and why). MuJoCo C steps "
+                                    "the members for the state-dependent conditions; MJX is traced, not compiled. "
+                                    "'mjxdiff fuzz' reports the same pairs for what it generated. "
+                                    "--out DIR writes DIR/coverage.json.")
     cv.add_argument("scenarios", nargs="*", metavar="SCENARIO",
                     help="bundled scenario name, scenario .toml or MJCF .xml (default: every bundled scenario)")
     cv.add_argument("--seed", type=int, default=0, help="seed of the randomized members (default 0)")
@@ -673,7 +679,7 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
                    examples=result.examples, structures=result.structures, seconds=result.seconds,
                    **result.rates(), failure=result.failure,
                    harness_error=result.harness_error, traceback=result.harness_traceback,
-                   harness_example=result.harness_example)
+                   harness_example=result.harness_example, interactions=result.interactions)
         written = report.write_report(args.out, doc, "fuzz-report.json")
     if result.harness_error is not None:
         # the run proves nothing: not "no divergence", whatever was tried before
@@ -690,6 +696,10 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
     tried = (f"{result.examples} examples ({result.structures} generated models x {result.examples // max(1, result.structures)} "
              f"variants; {rates['examples_per_minute']:.0f} examples, {rates['structures_per_minute']:.1f} models "
              f"per minute)")
+    if result.interactions:
+        from mjxdiff import interactions
+        line = interactions.format_text(result.interactions, "interaction pairs generated", "fuzz-report.json")
+        print(f"{line.splitlines()[0]}; {result.interactions['pairs_per_minute']:.0f} per minute")
     if result.failure is None:
         print(f"no divergence in {tried}, {result.seconds:.0f} s")
         return 0

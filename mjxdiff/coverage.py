@@ -10,6 +10,8 @@ A differential tester only catches bugs in what its scenarios exercise. Two meas
 * **Parameters** (:func:`parameter_coverage`): for every floating-point ``mjModel`` field
   MJX reads and every option, whether some member of some scenario holds a value other
   than MuJoCo's compiler default (the value an MJCF gets when it says nothing).
+* **Interactions** (:mod:`mjxdiff.interactions`): which pairs of the conditions MJX branches
+  on (options, flags, element attributes, state regimes) some member holds together.
 * **Regimes** (:func:`regime_coverage`): which state regimes that switch code paths
   (limits active on either side, friction loss sticking or sliding, contacts making and
   breaking, each friction cone, clamped activations, large rotations) some member
@@ -363,8 +365,14 @@ def measure(scenarios, seed: int = 0, batch: int = 4, code: bool = True) -> dict
         first.append((s.name, inputs.models[0]))
         transfers[s.name] = (inputs.qpos[0], inputs.qvel[0], inputs.act[0], inputs.ctrl[0], s.model_path)
         runs.append((s.name, inputs))
+    from mjxdiff import interactions
+
+    pairs: dict[tuple, list[str]] = {}
+    for name, inputs in runs:
+        for p in interactions.member_pairs(inputs):
+            pairs.setdefault(p, []).append(name)
     out = dict(scenarios=[n for n, _ in members], skipped=skipped, parameters=parameter_coverage(members),
-               regimes=regime_coverage(runs))
+               regimes=regime_coverage(runs), interactions=interactions.pairwise(pairs))
     if code:
         out["code"] = code_coverage(first, transfers)
     return out
@@ -396,4 +404,8 @@ def format_text(doc: dict[str, Any]) -> str:
     r = doc["regimes"]
     lines.append(f"state regimes reached: {len(REGIMES) - len(r['never'])} of {len(REGIMES)}"
                  + (f"; never: {', '.join(r['never'])}" if r["never"] else ""))
+    if "interactions" in doc:
+        from mjxdiff import interactions
+
+        lines.append(interactions.format_text(doc["interactions"]))
     return "\n".join(lines)

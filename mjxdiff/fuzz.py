@@ -31,12 +31,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from hypothesis import HealthCheck, Phase, assume, given, note, seed as hseed, settings
+from hypothesis import HealthCheck, Phase, assume, given, note, seed as hseed, settings, target
 from hypothesis import strategies as st
 from hypothesis.database import DirectoryBasedExampleDatabase
 from hypothesis.errors import Flaky, HypothesisException
 
-from mjxdiff import report, reproducer, strategies
+from mjxdiff import interactions, report, reproducer, strategies
 from mjxdiff.inputs import BatchedInputs
 from mjxdiff.scenario import Tolerances
 from mjxdiff.sweep import release_compiled_if_crowded
@@ -106,6 +106,9 @@ class FuzzResult:
       harness_example: MJCF of the generated model being tried when the harness
         failed (None if it failed before a model was drawn).
       structures: generated models (structures) tried, each compiled once.
+      interactions: pairwise coverage of what was generated
+        (:func:`mjxdiff.interactions.pairwise` without its per-pair sources), with
+        ``pairs_per_minute`` and ``first_seconds`` (pair name -> when it was first covered).
     """
 
     examples: int
@@ -115,6 +118,7 @@ class FuzzResult:
     harness_traceback: str | None = None
     harness_example: str | None = None
     structures: int = 0
+    interactions: dict[str, Any] | None = None
 
     def rates(self) -> dict[str, float]:
         """Examples and structures per minute of wall time."""
@@ -157,6 +161,21 @@ def model_strategy(include_known: bool = False, max_bodies: int = 3) -> st.Searc
     return strategies.mjcf_models(max_bodies=max_bodies, geom_types=("sphere", "capsule", "ellipsoid", "cylinder"),
                                   equality=False, options=options).filter(
         lambda mj: "tendon wrap sidesite" not in mj.features)
+
+
+#: Members of each generated batch whose interaction pairs are read (stepping MuJoCo C): the
+#: randomization that matters (controls outside their range, turned frames, deadbands) reaches
+#: members 1 and 3 of every 4.
+_PAIR_MEMBERS = 4
+
+
+def _interaction_summary(first: dict[tuple, float], seconds: float) -> dict[str, Any]:
+    """Pairwise coverage of the generated models, pairs per minute, when each was first reached."""
+    doc = interactions.pairwise({p: ("fuzz",) for p in first})
+    doc.pop("by")
+    doc["pairs_per_minute"] = round(len(first) / max(seconds / 60, 1e-9), 1)
+    doc["first_seconds"] = {interactions.pair_name(p): round(t, 1) for p, t in sorted(first.items(), key=lambda x: x[1])}
+    return doc
 
 
 #: Spreads :func:`variants` draws from, simplest first (Hypothesis shrinks toward the first).
@@ -326,6 +345,7 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
     t0 = time.perf_counter()
     shrink_budget = max(120.0, 2 * budget) if shrink_budget is None else shrink_budget
     seen = {"examples": 0, "last_failure": None, "xml": None}
+    first: dict[tuple, float] = {}  # interaction pair -> seconds into the run it was first generated
 
     @hseed(seed)
     @settings(max_examples=max_examples, deadline=None, database=DirectoryBasedExampleDatabase(str(db_dir)),
@@ -364,6 +384,14 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
                   f" ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
         release_compiled_if_crowded()  # every generated structure compiles anew
         inputs = variants(m, variant_seed, batch, steps, **spread)
+        if searching:
+            # aim generation at interaction pairs not generated yet (issue 32): Hypothesis's
+            # targeted phase mutates toward examples that score higher
+            pairs = interactions.member_pairs(inputs, max_members=_PAIR_MEMBERS, max_steps=steps)
+            new = pairs - first.keys()
+            target(float(len(new)), label="new interaction pairs")
+            now = time.perf_counter() - t0
+            first.update(dict.fromkeys(new, now))
         result = _divergence(m, inputs, config)
         if not is_divergence(result):
             assume(result.status == "pass")  # C blew up or MJX refused the model: not a divergence either
@@ -395,6 +423,7 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
                       harness_traceback="".join(traceback.format_exception(harness)), harness_example=example_xml)
     found = seen["last_failure"]
     structures = seen["examples"]
+    errors["interactions"] = _interaction_summary(first, seconds)
     if found is None:
         return FuzzResult(structures * batch, seconds, None, structures=structures, **errors)
     mj, result, inputs = found["mj"], found["result"], found["inputs"]

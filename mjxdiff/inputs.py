@@ -147,6 +147,8 @@ def make_controls(m: mujoco.MjModel, randomize: Randomization, batch: int, steps
     ``zero``: 0; ``sinusoid``: c + a sin(2 pi f t + phi), f ~ U[0.5, 2] Hz;
     ``step``: c + a * (a new U[-1, 1] level every ~0.1 s);
     ``smooth``: the same knots, linearly interpolated.
+    The last ``floor(ctrl_outside * B)`` members get c + 1.5 a level, not clipped: they
+    leave the range about a third of the time (the draws are the same as without them).
     """
     nu = m.nu
     lo = np.where(m.actuator_ctrllimited, m.actuator_ctrlrange[:, 0], -1.0)
@@ -171,7 +173,11 @@ def make_controls(m: mujoco.MjModel, randomize: Randomization, batch: int, steps
             i, w = np.floor(s).astype(int), (s - np.floor(s))[None, :, None]
             level = knots[:, i] * (1 - w) + knots[:, i + 1] * w
         ctrl = centre + amp * level
-    return np.clip(ctrl, lo, hi)
+    outside = int(np.floor(randomize.ctrl_outside * batch))
+    clipped = np.clip(ctrl, lo, hi)
+    if outside and family != "zero" and nu:
+        clipped[batch - outside:] = centre + 1.5 * (ctrl[batch - outside:] - centre)
+    return clipped
 
 
 Setter = Callable[[mujoco.MjModel, np.ndarray], None]
@@ -240,6 +246,83 @@ def _scaled_model(m: mujoco.MjModel, factors: dict[str, np.ndarray], i: int, d: 
     return mi
 
 
+def _with_flags(m: mujoco.MjModel, candidates: tuple[str, ...], rng: np.random.Generator) -> mujoco.MjModel:
+    """``m`` or a copy with each of ``candidates`` (disable flag names) disabled with probability 1/2."""
+    drawn = [f for f in candidates if rng.uniform() < 0.5]
+    if not drawn:
+        return m
+    m = copy.copy(m)
+    for f in drawn:
+        m.opt.disableflags |= int(getattr(mujoco.mjtDisableBit, f"mjDSBL_{f.upper()}"))
+    return m
+
+
+#: Sensors whose output depends on their site's frame and nothing else about it (a touch sensor's
+#: site is a volume, a rangefinder's a ray: turning those changes what they see, not how).
+_FRAME_READERS = {int(getattr(mujoco.mjtSensor, f"mjSENS_{k}")) for k in (
+    "FRAMEPOS", "FRAMEQUAT", "FRAMEXAXIS", "FRAMEYAXIS", "FRAMEZAXIS", "FRAMELINVEL", "FRAMEANGVEL",
+    "FRAMELINACC", "FRAMEANGACC", "ACCELEROMETER", "VELOCIMETER", "GYRO", "FORCE", "TORQUE", "MAGNETOMETER")}
+
+
+def _frame_sites(m: mujoco.MjModel) -> np.ndarray:
+    """Sites that frame, velocity and force sensors read and nothing else uses."""
+    site = int(mujoco.mjtObj.mjOBJ_SITE)
+    read = set()
+    for s in range(m.nsensor):
+        if int(m.sensor_type[s]) in _FRAME_READERS:
+            if m.sensor_objtype[s] == site:
+                read.add(int(m.sensor_objid[s]))
+            if m.sensor_reftype[s] == site and m.sensor_refid[s] >= 0:
+                read.add(int(m.sensor_refid[s]))
+    used = {int(m.sensor_objid[s]) for s in range(m.nsensor)
+            if int(m.sensor_type[s]) not in _FRAME_READERS and m.sensor_objtype[s] == site}
+    for a in range(m.nu):
+        if m.actuator_trntype[a] == int(mujoco.mjtTrn.mjTRN_SITE):
+            used |= {int(x) for x in m.actuator_trnid[a] if x >= 0}
+    used |= {int(m.eq_obj1id[e]) for e in range(m.neq) if m.eq_objtype[e] == site}
+    used |= {int(m.eq_obj2id[e]) for e in range(m.neq) if m.eq_objtype[e] == site}
+    return np.array(sorted(read - used), dtype=int)
+
+
+def _frame_turns(m: mujoco.MjModel, std: float, batch: int, rng: np.random.Generator) -> dict:
+    """Per odd member, random rotations (rad, rotation vectors) of :func:`_frame_sites`."""
+    sites = _frame_sites(m)
+    if not std or not sites.size:
+        return {}
+    return {i: (sites, rng.normal(0, std, (sites.size, 3))) for i in range(1, batch, 2)}
+
+
+def _deadbands(m: mujoco.MjModel, width: float, batch: int, rng: np.random.Generator) -> dict:
+    """Per odd member, spring deadbands ``(tendons, half-widths)`` for tendon springs at one length."""
+    if not width or not m.ntendon:
+        return {}
+    tendons = np.flatnonzero((m.tendon_stiffness > 0) & (m.tendon_lengthspring[:, 0] == m.tendon_lengthspring[:, 1]))
+    if not tendons.size:
+        return {}
+    return {i: (tendons, width * rng.uniform(0.5, 1.0, tendons.size)) for i in range(1, batch, 2)}
+
+
+def _interacting(mi: mujoco.MjModel, i: int, turns: dict, deadbands: dict, d: mujoco.MjData) -> mujoco.MjModel:
+    """Member ``i``'s model (a fresh copy) with its turned frames and deadbands."""
+    if i not in turns and i not in deadbands and not turns:
+        return mi
+    if i in turns:
+        sites, rotvec = turns[i]
+        q = quat_mul(mi.site_quat[sites], rotvec_quat(rotvec))
+        mi.site_quat[sites] = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    if i in deadbands:
+        tendons, w = deadbands[i]
+        length = mi.tendon_lengthspring[tendons, 0].copy()
+        mi.tendon_lengthspring[tendons, 0] = length - w
+        mi.tendon_lengthspring[tendons, 1] = length + w
+    mujoco.mj_setConst(mi, d)
+    if turns:
+        # MJX compiles site_sameframe into the rollout: a site turned in some member is "in no body's
+        # frame" in all of them (exact for any frame; it only skips a shortcut, in C as in MJX)
+        mi.site_sameframe[next(iter(turns.values()))[0]] = 0
+    return mi
+
+
 #: Parameter name -> shape of its per-member factors for a model.
 FACTOR_SHAPES = {
     "body_mass": lambda m: (m.nbody,),
@@ -265,6 +348,7 @@ def make_inputs(scenario: Scenario, m: mujoco.MjModel, seed: int,
     batch = batch or scenario.batch
     steps = steps or scenario.steps
     rz = scenario.randomize
+    m_in = m
     rng = _rng(seed, scenario.name)
     d = mujoco.MjData(m)
     if scenario.keyframe is not None:
@@ -287,9 +371,16 @@ def make_inputs(scenario: Scenario, m: mujoco.MjModel, seed: int,
             raise ScenarioError(f"{scenario.name}: {e}") from None
         lo, hi = rz.values[key]
         values[key] = (setter, rng.uniform(lo, hi, (batch, *shape)))
-    if factors or values:
+    # the interaction draws (flags, frames, deadbands) come from a stream of their own, so that
+    # every draw above is what it was before they existed
+    extra = np.random.default_rng([seed, zlib.crc32(scenario.name.encode()), 1])
+    m = _with_flags(m, rz.disable, extra)
+    turns = _frame_turns(m, rz.frame_rotation, batch, extra)
+    deadbands = _deadbands(m, rz.spring_range, batch, extra)
+    if factors or values or turns or deadbands or m is not m_in:
         scratch = mujoco.MjData(m)
-        models = tuple(_scaled_model(m, factors, i, scratch, values) for i in range(batch))
+        models = tuple(_interacting(_scaled_model(m, factors, i, scratch, values), i, turns, deadbands, scratch)
+                       for i in range(batch))
     else:
         models = (m,) * batch
     return BatchedInputs(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl, models=models, factors=factors, seed=seed,

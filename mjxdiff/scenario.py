@@ -25,6 +25,7 @@ __all__ = [
     "BUNDLED_DIR",
     "BUNDLED_PACKAGE",
     "CONTROL_FAMILIES",
+    "DISABLE_FLAGS",
     "SCALED_PARAMETERS",
     "Randomization",
     "Scenario",
@@ -114,6 +115,18 @@ class Randomization:
         and member (``[randomize.set]``), for parameters whose default (often 0) no factor
         can move: ``dof_armature``, ``jnt_stiffness``, ``"geom_solref[0]"`` (one column),
         ``"opt.impratio"``; see :func:`mjxdiff.inputs.settable`.
+      ctrl_outside: fraction of the batch (its last members, rounded down) whose controls
+        are 1.5x as wide and not clipped to ``ctrlrange``: the engines' own clamp (and, with
+        ``clampctrl`` disabled, its absence) is behaviour too.
+      frame_rotation: std (rad) of a random rotation of every site a frame, velocity or
+        force sensor reads (as its object or reference), in odd members; even members keep
+        the model's frames. Sites that actuators, equalities, rangefinders or touch sensors
+        use are left as they are.
+      spring_range: in odd members, a tendon spring at one length L gets the deadband
+        ``[L - w, L + w]``, ``w ~ U[0.5, 1] * spring_range`` (m, or rad for fixed tendons
+        of hinges); even members keep the single length.
+      disable: disable flags (``mjtDisableBit`` names without ``mjDSBL_``, lower case) that
+        each seed draws, each with probability 1/2, for the whole scenario (one compile).
     """
 
     qpos_noise: float = 0.05
@@ -131,6 +144,15 @@ class Randomization:
         }
     )
     values: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
+    ctrl_outside: float = 0.25
+    frame_rotation: float = 0.5
+    spring_range: float = 0.1
+    disable: tuple[str, ...] = ()
+
+
+#: Disable flags a scenario may draw (``[randomize] disable``): those MJX switches on.
+DISABLE_FLAGS = ("constraint", "equality", "frictionloss", "limit", "contact", "spring", "damper", "gravity",
+                 "clampctrl", "warmstart", "filterparent", "actuation", "refsafe", "sensor", "eulerdamp")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,7 +221,8 @@ def _check_keys(table: Mapping[str, Any], allowed: set[str], where: str) -> None
 
 def _parse_randomization(table: Mapping[str, Any], where: str) -> Randomization:
     where = f"{where} [randomize]"
-    _check_keys(table, {"qpos_noise", "qvel_noise", "control", "control_scale", "scale", "set"}, where)
+    _check_keys(table, {"qpos_noise", "qvel_noise", "control", "control_scale", "scale", "set", "ctrl_outside",
+                        "frame_rotation", "spring_range", "disable"}, where)
     default = Randomization()
     control = table.get("control", default.control)
     _expect(control in CONTROL_FAMILIES, where,
@@ -223,6 +246,11 @@ def _parse_randomization(table: Mapping[str, Any], where: str) -> Randomization:
               and rng[0] <= rng[1])
         _expect(ok, f"{where}.set", f"'{key}' must be [lo, hi] with lo <= hi, got {rng!r}")
         values[key] = (float(rng[0]), float(rng[1]))
+    disable = table.get("disable", [])
+    _expect(isinstance(disable, list) and all(f in DISABLE_FLAGS for f in disable), where,
+            f"'disable' must be a list of {list(DISABLE_FLAGS)}, got {disable!r}")
+    ctrl_outside = _nonneg_float(table, "ctrl_outside", default.ctrl_outside, where)
+    _expect(ctrl_outside <= 1, where, f"'ctrl_outside' is a fraction of the batch, in [0, 1], got {ctrl_outside!r}")
     return Randomization(
         qpos_noise=_nonneg_float(table, "qpos_noise", default.qpos_noise, where),
         qvel_noise=_nonneg_float(table, "qvel_noise", default.qvel_noise, where),
@@ -230,6 +258,10 @@ def _parse_randomization(table: Mapping[str, Any], where: str) -> Randomization:
         control_scale=_nonneg_float(table, "control_scale", default.control_scale, where),
         scale=scale,
         values=values,
+        ctrl_outside=ctrl_outside,
+        frame_rotation=_nonneg_float(table, "frame_rotation", default.frame_rotation, where),
+        spring_range=_nonneg_float(table, "spring_range", default.spring_range, where),
+        disable=tuple(disable),
     )
 
 

@@ -305,6 +305,12 @@ class _Spec:
             body.sites.append({"name": f"s{b}", "size": "0.05"})
         return body.sites[0]["name"]
 
+    def world_site(self) -> str:
+        """A site on the world body, turned (a fixed, non-identity reference frame)."""
+        if not any('name="wsite"' in w for w in self.world):
+            self.world.append(_tag("site", {"name": "wsite", "pos": "0 -1 1", "euler": "0.3 0.2 0.1"}))
+        return "wsite"
+
     def scalar_joints(self) -> tuple[str, ...]:
         return tuple(b.joint["name"] for b in self.bodies
                      if b.joint is not None and b.joint.get("type") in ("hinge", "slide"))
@@ -634,6 +640,10 @@ def _tendons(draw: Callable, spec: _Spec, geom_types: tuple[str, ...] = GEOM_TYP
                 attrs[key] = _f(v)
                 spec.features.add(f"tendon {key}")
         if kind == "fixed":
+            limit = draw(_optional(_box((-1.0, -0.2), (0.2, 1.0))))
+            if limit is not None:  # qpos0 (every joint at 0) is inside it
+                attrs["limited"], attrs["range"] = "true", _vec(limit)
+                spec.features.add("tendon limit")
             names = draw(st.lists(_sampled(joints), min_size=1, max_size=min(3, len(joints)), unique=True))
             coefs = [draw(_maybe(1.0, _floats(0.1, 2.0))) * draw(_sampled((1, -1))) for _ in names]
             inner = "".join(_tag("joint", {"joint": j, "coef": _f(c)}) for j, c in zip(names, coefs))
@@ -705,6 +715,10 @@ def _actuators(draw: Callable, spec: _Spec) -> None:
         ctrlrange = draw(_maybe((-1.0, 1.0), _optional(_box((-2, -0.1), (0.1, 2)))))
         if ctrlrange is not None:
             attrs["ctrllimited"], attrs["ctrlrange"] = "true", _vec(ctrlrange)
+        forcerange = draw(_optional(_box((-2.0, -0.05), (0.05, 2.0))))
+        if forcerange is not None:
+            attrs["forcelimited"], attrs["forcerange"] = "true", _vec(forcerange)
+            spec.features.add("actuator force limit")
         if kind == "position":
             attrs["kp"] = _f(draw(_maybe(10.0, _floats(1.0, 50.0))))
         elif kind == "velocity":
@@ -716,6 +730,10 @@ def _actuators(draw: Callable, spec: _Spec) -> None:
                 attrs["dynprm"] = _f(draw(_floats(0.02, 0.2)))  # time constant (s)
             if dyntype != "none":
                 spec.features.add(f"{dyntype} dynamics")
+                actrange = draw(_optional(_box((-1.0, -0.1), (0.1, 1.0))))
+                if actrange is not None:
+                    attrs["actlimited"], attrs["actrange"] = "true", _vec(actrange)
+                    spec.features.add("activation limit")
             gain = [draw(_maybe(1.0, _floats(0.1, 10.0)))]
             if draw(st.booleans()):  # affine gain: gain + gain_length * length + gain_velocity * velocity
                 attrs["gaintype"] = "affine"
@@ -784,7 +802,9 @@ def _equalities(draw: Callable, spec: _Spec) -> None:
 
 
 _SITE_SENSORS = ("accelerometer", "gyro", "velocimeter", "touch", "rangefinder")
-_BODY_SENSORS = ("framepos", "framequat", "subtreecom")
+_BODY_SENSORS = ("framepos", "framequat", "subtreecom", "framexaxis", "framelinvel", "frameangvel")
+#: Frame sensors MJCF lets measure relative to another object's frame (reftype/refname).
+_REFERENCED = ("framepos", "framequat", "framexaxis", "framelinvel", "frameangvel")
 
 
 def _sensors(draw: Callable, spec: _Spec, touch: bool) -> None:
@@ -810,7 +830,17 @@ def _sensors(draw: Callable, spec: _Spec, touch: bool) -> None:
             if kind == "subtreecom":
                 attrs = {"body": f"b{b}"}
             elif kind in _BODY_SENSORS:
-                attrs = {"objtype": "body", "objname": f"b{b}"}
+                objtype = draw(_sampled(("body", "xbody", "site")))
+                attrs = {"objtype": objtype, "objname": spec.site(b) if objtype == "site" else f"b{b}"}
+                if kind in _REFERENCED:
+                    ref = draw(_optional(st.tuples(_sampled(("body", "xbody", "site")),
+                                                   _ints(-1, len(spec.bodies) - 1))))
+                    if ref is not None:  # body -1: the world (an identity frame)
+                        reftype, r = ref
+                        attrs["reftype"] = reftype
+                        attrs["refname"] = ("world" if r < 0 else f"b{r}") if reftype != "site" else (
+                            spec.site(r) if r >= 0 else spec.world_site())
+                        spec.features.add(f"{kind} reference frame")
             else:
                 attrs = {"site": spec.site(b)}
         if kind == "rangefinder" and '<material name="mat0"/>' not in spec.assets:
@@ -859,6 +889,22 @@ def _shape(spec: _Spec, gtype: str, name: str) -> dict[str, str]:
                                            "size": "0.5 0.5 0.1 0.1", "elevation": " ".join(["0"] * 9)}))
         return {"name": name, "type": "hfield", "hfield": f"hf_{name}"}
     return {"name": name, "type": gtype, "size": _SHAPES[gtype]}
+
+
+#: Disable flags the generator draws: each switches an MJX code path without removing the
+#: model's point. "passive" disables springs and dampers together (alone, either is a known
+#: divergence: tests/test_known_divergences.py), and only with eulerdamp disabled too (MJX's
+#: Euler step damps implicitly whatever the damper flag says: a known divergence as well).
+DISABLE_FLAGS = ("eulerdamp", "clampctrl", "warmstart", "refsafe", "gravity", "filterparent", "passive")
+
+
+def _disable_flags(draw: Callable, spec: _Spec) -> None:
+    """At most one of :data:`DISABLE_FLAGS`, shrinking to none."""
+    flag = draw(_optional(_sampled(DISABLE_FLAGS)))
+    if flag is not None:
+        for name in ("spring", "damper", "eulerdamp") if flag == "passive" else (flag,):
+            spec.flags[name] = "disable"
+        spec.features.add(f"{flag} disabled")
 
 
 def _inject_flag(flag: str) -> Callable:
@@ -967,7 +1013,7 @@ def _check_subset(name: str, values: Iterable[str], allowed: tuple[str, ...]) ->
 def mjcf_models(draw: Callable, *, max_bodies: Any = 4, max_geoms_per_body: Any = 2,
                 joint_types: Any = JOINT_TYPES, geom_types: Any = None, actuators: Any = True,
                 tendons: Any = True, equality: Any = True, sensors: Any = True, contacts: Any = True,
-                mjx_only: Any = True, unsupported: Any = False, options: Any = True) -> MjcfModel:
+                mjx_only: Any = True, unsupported: Any = False, options: Any = True, flags: Any = True) -> MjcfModel:
     """Random MJCF models: a kinematic tree of bodies with joints, geoms, and optional extras.
 
     Each body has one joint (free only on children of the world; hinge and
@@ -1005,6 +1051,8 @@ def mjcf_models(draw: Callable, *, max_bodies: Any = 4, max_geoms_per_body: Any 
       options: True to draw ``<option>`` values, False for
         :data:`DEFAULT_OPTIONS`, or a mapping of ``<option>`` attributes
         overriding them (not checked against ``mjx_only``).
+      flags: whether a disable flag may be drawn (one of :data:`DISABLE_FLAGS`, shrinking to
+        none; springs and dampers only together: MJX 3.17 drops both when either is off).
 
     Returns:
       A strategy of :class:`MjcfModel`.
@@ -1036,6 +1084,8 @@ def mjcf_models(draw: Callable, *, max_bodies: Any = 4, max_geoms_per_body: Any 
         _equalities(draw, spec)
     if _value(draw, sensors) and draw(st.booleans()):
         _sensors(draw, spec, touch)
+    if _value(draw, flags):
+        _disable_flags(draw, spec)
     if unsupported:
         name = draw(_sampled(_unsupported_names(unsupported)))
         _INJECTORS[name](draw, spec)

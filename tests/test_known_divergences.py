@@ -349,3 +349,68 @@ def test_the_sweep_names_the_clamped_servo_and_the_catalogue_knows_it(repo_root)
     assert "every forward stage agrees (the difference is in the integration)" in result.message
     assert result.diagnosis["cause"]["cause"] == "actuator force clamping", result.diagnosis
     assert known.match(report.result_dict(result)).id == "implicit-clamped-actuator"
+
+
+SPRING_WITH_DAMPER_DISABLED = """<mujoco>
+  <option><flag damper="disable"/></option>
+  <worldbody>
+    <body><joint name="j" type="hinge" axis="0 1 0" stiffness="2" damping="0.5"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.02"/></body>
+  </worldbody>
+</mujoco>"""
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="MJX 3.17: passive() returns zero passive force (and no gravcomp) "
+                                       "when EITHER the spring or the damper flag is disabled "
+                                       "(`disableflags & (SPRING | DAMPER)`); C 4.0 drops only the disabled "
+                                       "one; found by the combinations_rk4 scenario (issue 32)")
+def test_a_spring_acts_with_only_the_damper_disabled():
+    m = mujoco.MjModel.from_xml_string(SPRING_WITH_DAMPER_DISABLED)
+    d = mujoco.MjData(m)
+    d.qpos[0] = 0.3
+    mujoco.mj_forward(m, d)
+    assert abs(d.qfrc_passive[0] + 0.6) < 1e-12, "C: the spring's -k q"
+    dx = engines.forward(mjx.put_model(m), mjx.make_data(m).replace(qpos=d.qpos.copy()))
+    np.testing.assert_allclose(np.asarray(dx.qfrc_passive), d.qfrc_passive, atol=1e-12, err_msg="qfrc_passive")
+
+
+ACTEARLY_FILTER = """<mujoco>
+  <worldbody>
+    <body><joint name="j" type="hinge" axis="0 1 0"/><geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.02"/></body>
+  </worldbody>
+  <actuator><general joint="j" dyntype="filter" dynprm="0.05" gainprm="0.4" ctrlrange="0 1" actearly="true"/></actuator>
+</mujoco>"""
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="MJX 3.17 ignores actearly: the force uses the current activation "
+                                       "(0.08 here), C 4.0 the next one (0.088); found by the combinations "
+                                       "scenario's actuator bank (issue 32)")
+def test_actearly_uses_the_next_activation():
+    m = mujoco.MjModel.from_xml_string(ACTEARLY_FILTER)
+    d = mujoco.MjData(m)
+    d.ctrl[0], d.act[0] = 0.7, 0.2
+    mujoco.mj_forward(m, d)
+    dx = engines.forward(mjx.put_model(m), mjx.make_data(m).replace(ctrl=d.ctrl.copy(), act=d.act.copy()))
+    np.testing.assert_allclose(np.asarray(dx.actuator_force), d.actuator_force, atol=1e-12, err_msg="actuator_force")
+
+
+DAMPING_WITH_DAMPER_DISABLED = """<mujoco>
+  <option><flag spring="disable" damper="disable"/></option>
+  <worldbody>
+    <body><joint type="hinge" axis="0 1 0" damping="2"/><geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.02"/></body>
+  </worldbody>
+</mujoco>"""
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="MJX 3.17's Euler step adds timestep * dof_damping to the mass "
+                                       "matrix (implicit damping) even with the damper flag disabled; C 4.0 "
+                                       "does not (qvel 1.0713 vs 1.0934 after one step from 1 rad/s); "
+                                       "found while covering the passive flags (issue 32)")
+def test_the_euler_step_damps_nothing_with_the_damper_disabled():
+    m = mujoco.MjModel.from_xml_string(DAMPING_WITH_DAMPER_DISABLED)
+    d = mujoco.MjData(m)
+    d.qvel[0] = 1.0
+    dx = mjx.make_data(m).replace(qvel=d.qvel.copy())
+    mujoco.mj_step(m, d)
+    dx = jax.jit(mjx.step)(mjx.put_model(m), dx)
+    np.testing.assert_allclose(np.asarray(dx.qvel), d.qvel, atol=1e-12, err_msg="qvel after one Euler step")
