@@ -66,6 +66,14 @@ KNOWN_DIVERGENCES = {
                             "around the wrap geom (as MuJoCo Warp 4.0 does); MJX 3.17 by the older rule, the arc "
                             "whose middle is nearest the sidesite's direction: near the sidesite's symmetry plane "
                             "they wrap opposite sides (tests/test_known_divergences.py)",
+    "spring or damper flag alone": "MJX 3.17's passive() drops all passive forces (and gravcomp) when either "
+                                   "flag is disabled, C 4.0 only the one disabled; with the damper disabled "
+                                   "MJX's Euler step still damps implicitly (tests/test_known_divergences.py)",
+    "actearly": "MJX 3.17 ignores actearly: its force uses the current activation, C's the next one "
+                "(tests/test_known_divergences.py)",
+    "damped tendons across trees under implicitfast": "C 4.0 keeps qDeriv within the mass matrix's sparsity, "
+                                                      "MJX 3.17 adds the cross-tree terms "
+                                                      "(tests/test_known_divergences.py)",
     "plane-cylinder far cap": "C adds a contact on a cylinder's far cap when it is within the margin (a cylinder "
                               "lying on its side, or sunk); MJX's plane_cylinder returns the near cap's three "
                               "only (tests/test_known_divergences.py)",

@@ -48,7 +48,7 @@ def test_quaternions_normalised_and_limits_respected(model):
 
 @pytest.mark.parametrize("family", ["zero", "smooth", "sinusoid", "step"])
 def test_controls_clipped_to_ctrlrange(model, family):
-    ctrl = make_controls(model, Randomization(control=family, control_scale=3.0), 4, 200, 0.002,
+    ctrl = make_controls(model, Randomization(control=family, control_scale=3.0, ctrl_outside=0.0), 4, 200, 0.002,
                          np.random.default_rng(0))
     assert ctrl.shape == (4, 200, 2)
     assert ctrl[..., 0].min() >= -2 and ctrl[..., 0].max() <= 3
@@ -79,3 +79,51 @@ def test_concat_then_take_gives_back_both_batches(model):
             np.testing.assert_array_equal(getattr(back, field), getattr(part, field), err_msg=field)
         np.testing.assert_array_equal(back.ids, part.ids)
         np.testing.assert_array_equal(back.factors["body_mass"], part.factors["body_mass"])
+
+
+@pytest.mark.parametrize("family", ["smooth", "sinusoid", "step"])
+def test_the_last_quarter_of_the_batch_drives_controls_outside_ctrlrange(model, family):
+    """Clamping is behaviour too: the last floor(B/4) members leave the range, the others are
+    drawn exactly as without them (the same draws, clipped)."""
+    draw = lambda outside: make_controls(model, Randomization(control=family, ctrl_outside=outside), 8, 400, 0.002,
+                                         np.random.default_rng(0))
+    inside, mixed = draw(0.0), draw(0.25)
+    np.testing.assert_array_equal(mixed[:6], inside[:6])
+    lo, hi = model.actuator_ctrlrange[0]
+    for member in mixed[6:]:
+        assert member[:, 0].max() > hi or member[:, 0].min() < lo
+    assert np.all((inside[..., 0] >= lo) & (inside[..., 0] <= hi))
+
+
+def test_odd_members_get_turned_sensor_frames_and_spring_deadbands():
+    xml = """<mujoco><worldbody><body><joint name="j" axis="0 1 0"/><geom size="0.1"/>
+      <site name="s" pos="0 0 -0.2"/><site name="ray" pos="0 0 -0.1"/></body>
+      <site name="w" pos="0 1 1"/></worldbody>
+      <tendon><fixed name="t" stiffness="1"><joint joint="j" coef="1"/></fixed></tendon>
+      <sensor><framepos objtype="site" objname="s" reftype="site" refname="w"/><rangefinder site="ray"/></sensor>
+    </mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    inp = make_inputs(_scenario(), m, seed=0, batch=4)
+    even, odd = inp.models[0], inp.models[1]
+    np.testing.assert_array_equal(even.site_quat, m.site_quat)
+    turned = np.abs(odd.site_quat - m.site_quat).max(axis=1) > 1e-6
+    site = {n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, n) for n in ("s", "w", "ray")}
+    # s and w (sensor frames), not the rangefinder's ray
+    assert [bool(turned[site[n]]) for n in ("s", "w", "ray")] == [True, True, False]
+    # MJX compiles site_sameframe: every member says "no shortcut" for the turned sites
+    assert all(mi.site_sameframe[site["s"]] == 0 and mi.site_sameframe[site["w"]] == 0 for mi in inp.models)
+    assert even.tendon_lengthspring[0, 0] == even.tendon_lengthspring[0, 1]
+    lo, hi = odd.tendon_lengthspring[0]
+    assert hi - lo > 0.09 and np.isclose((lo + hi) / 2, m.tendon_lengthspring[0, 0])
+
+
+def test_disable_flags_are_drawn_per_scenario():
+    m = mujoco.MjModel.from_xml_string("<mujoco><worldbody><body><joint/><geom size='0.1'/></body></worldbody></mujoco>")
+    bit = int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
+    drawn = {seed: bool(make_inputs(_scenario(disable=("warmstart",)), m, seed=seed).models[0].opt.disableflags & bit)
+             for seed in range(8)}
+    assert set(drawn.values()) == {True, False}, drawn  # some seeds disable it, some do not
+    for seed, off in drawn.items():  # one draw for the whole scenario
+        flags = {mi.opt.disableflags & bit for mi in make_inputs(_scenario(disable=("warmstart",)), m, seed=seed).models}
+        assert flags == {bit if off else 0}
+    assert not make_inputs(_scenario(), m, seed=0).models[0].opt.disableflags & bit

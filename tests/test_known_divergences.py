@@ -414,3 +414,27 @@ def test_the_euler_step_damps_nothing_with_the_damper_disabled():
     mujoco.mj_step(m, d)
     dx = jax.jit(mjx.step)(mjx.put_model(m), dx)
     np.testing.assert_allclose(np.asarray(dx.qvel), d.qvel, atol=1e-12, err_msg="qvel after one Euler step")
+
+
+TENDON_DAMPING_ACROSS_TREES = """<mujoco>
+  <option integrator="implicitfast"/>
+  <worldbody>
+    <body pos="0 0 1"><joint name="a" axis="0 1 0"/><geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.02"/></body>
+    <body pos="1 0 1"><joint name="b" axis="0 1 0"/><geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.02"/></body>
+  </worldbody>
+  <tendon><fixed damping="0.5"><joint joint="a" coef="1"/><joint joint="b" coef="-1"/></fixed></tendon>
+</mujoco>"""
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="implicitfast with a damped tendon coupling two kinematic trees: "
+                                       "C 4.0 keeps qDeriv within the mass matrix's sparsity (the trees' "
+                                       "cross terms dropped), MJX 3.17 adds the dense J^T D J; found by the "
+                                       "combinations_implicit scenario (issue 32)")
+def test_implicitfast_damps_a_tendon_across_two_trees_as_c_does():
+    m = mujoco.MjModel.from_xml_string(TENDON_DAMPING_ACROSS_TREES)
+    d = mujoco.MjData(m)
+    d.qvel[:] = [1.0, -0.5]
+    dx = mjx.make_data(m).replace(qvel=d.qvel.copy())
+    mujoco.mj_step(m, d)
+    dx = jax.jit(mjx.step)(mjx.put_model(m), dx)
+    np.testing.assert_allclose(np.asarray(dx.qvel), d.qvel, atol=1e-12, err_msg="qvel after one implicitfast step")
