@@ -224,14 +224,14 @@ def small(name: str, option: str, damping: float, rk4: bool) -> str:
 
 def main() -> None:
     root = Path(__file__).resolve().parents[2] / "scenarios" / "models"
-    explicit = ('<option timestep="0.002" integrator="Euler" cone="elliptic" solver="CG" impratio="2" iterations="200" '
-                'tolerance="1e-14" ls_iterations="50">\n    <flag eulerdamp="disable" warmstart="disable"/>\n  </option>')
+    explicit = ('<option timestep="0.002" integrator="Euler" cone="elliptic" solver="Newton" impratio="2" iterations="50" '
+                'tolerance="1e-10" ls_iterations="30">\n    <flag eulerdamp="disable" warmstart="disable"/>\n  </option>')
     implicit = ('<option timestep="0.002" integrator="implicitfast" cone="pyramidal" solver="Newton" impratio="1.5" '
                 'iterations="50" tolerance="1e-10" ls_iterations="30">\n'
                 '    <flag refsafe="disable" clampctrl="disable" gravity="disable"/>\n  </option>')
     (root / "combinations.xml").write_text(model("combinations", explicit, implicit=False))
     (root / "combinations_implicit.xml").write_text(model("combinations_implicit", implicit, implicit=True))
-    undamped = ('<option timestep="0.002" integrator="Euler" cone="pyramidal" solver="Newton" iterations="50" '
+    undamped = ('<option timestep="0.002" integrator="Euler" cone="elliptic" solver="CG" impratio="1.5" iterations="100" '
                 'tolerance="1e-10" ls_iterations="30">\n    <flag eulerdamp="disable" spring="disable" damper="disable" warmstart="disable" gravity="disable"/>\n'
                 '  </option>')
     (root / "combinations_undamped.xml").write_text(small("combinations_undamped", undamped, 0.0, rk4=False))
