@@ -232,7 +232,7 @@ def main() -> None:
     (root / "combinations.xml").write_text(model("combinations", explicit, implicit=False))
     (root / "combinations_implicit.xml").write_text(model("combinations_implicit", implicit, implicit=True))
     undamped = ('<option timestep="0.002" integrator="Euler" cone="elliptic" solver="CG" impratio="1.5" iterations="100" '
-                'tolerance="1e-10" ls_iterations="30">\n    <flag eulerdamp="disable" spring="disable" damper="disable" warmstart="disable" gravity="disable"/>\n'
+                'tolerance="1e-12" ls_iterations="30">\n    <flag eulerdamp="disable" spring="disable" damper="disable" warmstart="disable" gravity="disable"/>\n'
                 '  </option>')
     (root / "combinations_undamped.xml").write_text(small("combinations_undamped", undamped, 0.0, rk4=False))
 
