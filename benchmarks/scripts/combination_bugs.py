@@ -33,6 +33,10 @@ from mjxdiff.scenario import bundled_scenarios  # noqa: E402
 from mjxdiff.sweep import SweepConfig, run_scenario  # noqa: E402
 
 
+#: Verdicts that catch a bug (``unsupported`` is the unmodified verdict of unsupported_pair).
+CAUGHT = ("fail", "error")
+
+
 def _sweep(scenarios, config: SweepConfig, stop: bool) -> list[dict]:
     out = []
     for s in scenarios:
@@ -41,7 +45,7 @@ def _sweep(scenarios, config: SweepConfig, stop: bool) -> list[dict]:
         fd = r.first_divergence or {}
         out.append(dict(scenario=s.name, status=r.status, message=r.message.splitlines()[0][:300],
                         field=fd.get("field"), step=fd.get("step"), seconds=round(time.perf_counter() - t, 1)))
-        if stop and r.status != "pass":
+        if stop and r.status in CAUGHT:
             break
     return out
 
@@ -63,8 +67,8 @@ def main(argv=None) -> int:
     if not args.no_baseline:
         engines.clear_compiled()
         base = _sweep(scenarios, config, stop=False)
-        bad = [b for b in base if b["status"] != "pass"]
-        print(f"unmodified: {len(base) - len(bad)}/{len(base)} pass" + "".join(
+        bad = [b for b in base if b["status"] in CAUGHT]
+        print(f"unmodified: {len(base) - len(bad)}/{len(base)} pass or unsupported" + "".join(
             f"\n  {b['scenario']}: {b['status']} {b['message']}" for b in bad), flush=True)
     for bug in bugs:
         t = time.perf_counter()
@@ -73,7 +77,7 @@ def main(argv=None) -> int:
             engines.clear_compiled()
             runs = _sweep(scenarios, config, stop=True)
         engines.clear_compiled()
-        caught = runs[-1] if runs and runs[-1]["status"] != "pass" else None
+        caught = runs[-1] if runs and runs[-1]["status"] in CAUGHT else None
         if caught is None:
             missed.append(bug.id)
         a, b = combination_bugs.COMBINATIONS[bug.id]
