@@ -696,12 +696,15 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
     tried = (f"{result.examples} examples ({result.structures} generated models x {result.examples // max(1, result.structures)} "
              f"variants; {rates['examples_per_minute']:.0f} examples, {rates['structures_per_minute']:.1f} models "
              f"per minute)")
+    pairs = ""
     if result.interactions:
         from mjxdiff import interactions
         line = interactions.format_text(result.interactions, "interaction pairs generated", "fuzz-report.json")
-        print(f"{line.splitlines()[0]}; {result.interactions['pairs_per_minute']:.0f} per minute")
+        pairs = f"{line.splitlines()[0]}; {result.interactions['pairs_per_minute']:.0f} per minute"
     if result.failure is None:
         print(f"no divergence in {tried}, {result.seconds:.0f} s")
+        if pairs:
+            print(pairs)
         return 0
     f = result.failure
     print(f"DIVERGENCE ({f['status']}) after {tried}, {result.seconds:.0f} s: {f['message']}")
@@ -709,6 +712,8 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
     if f["reproducer"]:
         print(f"reproducer: {f['reproducer']} (python -m mjxdiff replay {f['reproducer']})")
     print(f["xml"])
+    if pairs:
+        print(pairs)
     return 1
 
 

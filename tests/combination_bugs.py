@@ -307,6 +307,52 @@ def _joint_limit_upper(mp: pytest.MonkeyPatch) -> None:
                lambda m, d: orig(m.replace(jnt_range=_widen(m.jnt_range, 1, 0.01)), d))
 
 
+# -- flags a model disables, and attributes read in the wrong branch (added with issue 32's
+#    scenarios: each needs a disabled flag or an attribute pair the earlier scenarios never held)
+
+
+def _without(m, bit):
+    """``m`` with disable flag ``bit`` cleared: MJX then runs the code the flag turns off."""
+    return m.replace(opt=m.opt.replace(disableflags=m.opt.disableflags & ~bit))
+
+
+def _clampctrl_flag_ignored(mp: pytest.MonkeyPatch) -> None:
+    orig = mjx_forward.fwd_actuation  # looked up as forward's module global by forward()
+    mp.setattr(mjx_forward, "fwd_actuation", lambda m, d: orig(_without(m, DisableBit.CLAMPCTRL), d))
+
+
+def _refsafe_flag_ignored(mp: pytest.MonkeyPatch) -> None:
+    orig = mjx_constraint._kbi  # looked up by constraint's _row builders at call time
+    mp.setattr(mjx_constraint, "_kbi", lambda m, solref, solimp, pos: orig(_without(m, DisableBit.REFSAFE),
+                                                                          solref, solimp, pos))
+
+
+def _gravcomp_ignores_gravity_flag(mp: pytest.MonkeyPatch) -> None:
+    orig = mjx_passive.passive  # looked up as passive.passive by forward.fwd_velocity
+    mp.setattr(mjx_passive, "passive", lambda m, d: orig(_without(m, DisableBit.GRAVITY), d))
+
+
+def _muscle_bias_needs_muscle_gain(mp: pytest.MonkeyPatch) -> None:
+    orig = mjx_forward.fwd_actuation
+
+    def buggy(m, d):
+        # the muscle bias branch nested under the muscle gain's: other gains drop a muscle bias
+        drop = (np.asarray(m.actuator_biastype) == 2) & (np.asarray(m.actuator_gaintype) != 2)
+        return orig(m.replace(actuator_biastype=np.where(drop, 0, m.actuator_biastype)), d)
+
+    mp.setattr(mjx_forward, "fwd_actuation", buggy)
+
+
+def _tendon_equality_default_solref(mp: pytest.MonkeyPatch) -> None:
+    orig = mjx_constraint._efc_equality_tendon  # looked up by make_constraint at call time
+
+    def buggy(m, d):
+        tendon = (np.asarray(m.eq_type) == 3)[:, None]
+        return orig(m.replace(eq_solref=jnp.where(tendon, jnp.array([0.02, 1.0]), m.eq_solref)), d)
+
+    mp.setattr(mjx_constraint, "_efc_equality_tendon", buggy)
+
+
 BUGS: tuple[Bug, ...] = (
     Bug("ctrl_clamp_upper", ACTUATOR_LIMITS,
         "The control clamp's upper bound sits 2% of the range above ctrlrange[1] (a slack meant "
@@ -434,7 +480,32 @@ COMBINATIONS: dict[str, tuple[str, str]] = {
     "newton_cone_hessian_sign": ("solver Newton", "cone elliptic (with a sliding contact)"),
     "weld_relpose_conjugate": ("weld equality", "rotated relpose (quaternion not identity)"),
     "joint_limit_upper": ("limited slide/hinge joint", "joint reaching its upper range end"),
+    "clampctrl_flag_ignored": ("clampctrl disabled", "a ctrllimited actuator's control outside ctrlrange"),
+    "refsafe_flag_ignored": ("refsafe disabled", "a constraint solref timeconst below 2 timesteps"),
+    "gravcomp_ignores_gravity_flag": ("gravity disabled", "a body with gravcomp"),
+    "muscle_bias_needs_muscle_gain": ("biastype muscle", "gaintype not muscle"),
+    "tendon_equality_default_solref": ("tendon equality", "solref other than the default"),
 }
+
+BUGS += (
+    Bug("clampctrl_flag_ignored", ACTUATOR_LIMITS,
+        "fwd_actuation clamps the controls even with clampctrl disabled (the flag test dropped in a "
+        "refactor). Shows only with the flag disabled AND a limited actuator's control outside its "
+        "range; otherwise clamping is what C does, or changes nothing.", MODEL, _clampctrl_flag_ignored),
+    Bug("refsafe_flag_ignored", LIMITS,
+        "_kbi clamps timeconst to 2 timesteps even with refsafe disabled. Shows only with the flag "
+        "disabled AND a solref timeconst below 2 dt (a stiff limit or equality).", MODEL, _refsafe_flag_ignored),
+    Bug("gravcomp_ignores_gravity_flag", PASSIVE,
+        "passive adds gravity compensation even with gravity disabled (the gravity test dropped). "
+        "Shows only with gravity disabled AND a body with gravcomp.", MODEL, _gravcomp_ignores_gravity_flag),
+    Bug("muscle_bias_needs_muscle_gain", ACTUATOR_LIMITS,
+        "The muscle bias is computed only inside the muscle gain's branch, so an actuator with a muscle "
+        "bias and another gain loses its bias. Shows only for biastype muscle AND gaintype fixed or "
+        "affine (a <muscle> has both).", MODEL, _muscle_bias_needs_muscle_gain),
+    Bug("tendon_equality_default_solref", EQUALITY,
+        "Tendon equality rows use the default solref (0.02, 1) instead of eq_solref. Shows only for a "
+        "tendon equality AND a solref other than the default.", MODEL, _tendon_equality_default_solref),
+)
 
 assert set(COMBINATIONS) == {b.id for b in BUGS}, "COMBINATIONS must name every bug"
 assert len({b.id for b in BUGS}) == len(BUGS), "bug ids must be unique"
