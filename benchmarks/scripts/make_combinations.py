@@ -30,7 +30,9 @@ def _gainprm(gain: str) -> str:
 
 
 def _biasprm(bias: str) -> str:
-    return {"none": "0", "affine": "0 -0.3 -0.03", "muscle": "0.75 1.05 2 200 0.5 1.6 1.5 1.3 1.2"}[bias]
+    # a muscle bias is the passive force, which acts above optimal length (1): this range puts the
+    # pendulums' middle positions there
+    return {"none": "0", "affine": "0 -0.3 -0.03", "muscle": "0.8 1.5 0.5 200 0.5 1.6 1.5 1.3 1.2"}[bias]
 
 
 def _dynprm(dyn: str) -> str:
