@@ -353,6 +353,16 @@ def _tendon_equality_default_solref(mp: pytest.MonkeyPatch) -> None:
     mp.setattr(mjx_constraint, "_efc_equality_tendon", buggy)
 
 
+def _xbody_reads_inertial_frame(mp: pytest.MonkeyPatch) -> None:
+    orig = mjx_sensor.sensor_pos  # looked up as sensor.sensor_pos by forward.forward
+
+    def buggy(m, d):
+        # objtype XBODY mapped to (xipos, ximat) like BODY: a slip in the object-type table
+        return d.replace(sensordata=orig(m, d.replace(xpos=d.xipos, xmat=d.ximat)).sensordata)
+
+    mp.setattr(mjx_sensor, "sensor_pos", buggy)
+
+
 BUGS: tuple[Bug, ...] = (
     Bug("ctrl_clamp_upper", ACTUATOR_LIMITS,
         "The control clamp's upper bound sits 2% of the range above ctrlrange[1] (a slack meant "
@@ -485,6 +495,8 @@ COMBINATIONS: dict[str, tuple[str, str]] = {
     "gravcomp_ignores_gravity_flag": ("gravity disabled", "a body with gravcomp"),
     "muscle_bias_needs_muscle_gain": ("biastype muscle", "gaintype not muscle"),
     "tendon_equality_default_solref": ("tendon equality", "solref other than the default"),
+    "xbody_reads_inertial_frame": ("a frame sensor's object or reference of type xbody",
+                                   "a body whose inertial frame is not its own (centre of mass off the origin)"),
 }
 
 BUGS += (
@@ -505,6 +517,10 @@ BUGS += (
     Bug("tendon_equality_default_solref", EQUALITY,
         "Tendon equality rows use the default solref (0.02, 1) instead of eq_solref. Shows only for a "
         "tendon equality AND a solref other than the default.", MODEL, _tendon_equality_default_solref),
+    Bug("xbody_reads_inertial_frame", SENSORS,
+        "sensor_pos's object-type table maps xbody to the inertial frame (xipos, ximat), as for body. "
+        "Shows only for a frame sensor whose object or reference is an xbody AND a body whose centre of "
+        "mass or principal axes are off its frame.", MODEL, _xbody_reads_inertial_frame),
 )
 
 assert set(COMBINATIONS) == {b.id for b in BUGS}, "COMBINATIONS must name every bug"
