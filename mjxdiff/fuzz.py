@@ -71,6 +71,9 @@ KNOWN_DIVERGENCES = {
                                    "MJX's Euler step still damps implicitly (tests/test_known_divergences.py)",
     "actearly": "MJX 3.17 ignores actearly: its force uses the current activation, C's the next one "
                 "(tests/test_known_divergences.py)",
+    "tendon armature across trees": "a tendon with armature coupling two kinematic trees: C 4.0's mass matrix "
+                                    "keeps the trees' sparsity, MJX 3.17's differs (tests/data/"
+                                    "fuzz_tendon_armature_trees.json, tests/test_known_divergences.py)",
     "damped tendons across trees under implicitfast": "C 4.0 keeps qDeriv within the mass matrix's sparsity, "
                                                       "MJX 3.17 adds the cross-tree terms "
                                                       "(tests/test_known_divergences.py)",
@@ -86,14 +89,33 @@ _ACC_SENSORS = frozenset({"mjSENS_ACCELEROMETER", "mjSENS_FORCE", "mjSENS_TORQUE
 
 def known_divergence(m) -> str | None:
     """The :data:`KNOWN_DIVERGENCES` entry a generated model falls under that only its compiled
-    form shows, or None: acceleration-stage sensors in a model MJX gives no constraint rows."""
+    form shows, or None: acceleration-stage sensors in a model MJX gives no constraint rows, a
+    tendon with armature across kinematic trees."""
     import mujoco
     from mujoco import mjx
 
     types = {mujoco.mjtSensor(t).name for t in m.sensor_type}
     if types & _ACC_SENSORS and mjx.make_data(m)._impl.efc_J.size == 0:
         return "acceleration sensors without constraints"
+    if any(len(_tendon_trees(m, k)) > 1 for k in np.flatnonzero(m.tendon_armature > 0)):
+        return "tendon armature across trees"
     return None
+
+
+def _tendon_trees(m, k: int) -> set[int]:
+    """Kinematic trees tendon ``k`` spans: its joints' (fixed) or its sites' and geoms' bodies'."""
+    import mujoco
+
+    trees = set()
+    for w in range(m.tendon_adr[k], m.tendon_adr[k] + m.tendon_num[k]):
+        kind, obj = int(m.wrap_type[w]), int(m.wrap_objid[w])
+        if kind == int(mujoco.mjtWrap.mjWRAP_JOINT):
+            trees.add(int(m.dof_treeid[m.jnt_dofadr[obj]]))
+        elif kind == int(mujoco.mjtWrap.mjWRAP_SITE):
+            trees.add(int(m.body_treeid[m.site_bodyid[obj]]))
+        elif kind in (int(mujoco.mjtWrap.mjWRAP_SPHERE), int(mujoco.mjtWrap.mjWRAP_CYLINDER)):
+            trees.add(int(m.body_treeid[m.geom_bodyid[obj]]))
+    return trees - {-1}
 
 
 @dataclasses.dataclass(frozen=True)

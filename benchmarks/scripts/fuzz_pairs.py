@@ -19,6 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 _spec = importlib.util.spec_from_file_location("pairs_model", ROOT / "mjxdiff" / "interactions.py")
 interactions = importlib.util.module_from_spec(_spec)
+sys.modules[_spec.name] = interactions  # its dataclasses look their module up
 _spec.loader.exec_module(interactions)
 
 from mjxdiff import engines, fuzz as fuzz_module  # noqa: E402
