@@ -125,8 +125,19 @@ def _forward_both(xml: str, **state):
         for i, v in values.items():
             getattr(d, field)[i] = v
     mujoco.mj_forward(m, d)
-    dx = engines.forward(mjx.put_model(m), mjx.make_data(m).replace(qpos=d.qpos.copy(), qvel=d.qvel.copy()))
+    dx = engines.forward(mjx.put_model(m), mjx.make_data(m).replace(
+        qpos=d.qpos.copy(), qvel=d.qvel.copy(), ctrl=d.ctrl.copy(), act=d.act.copy()))
     return m, d, dx
+
+
+def _step_both(xml: str, qvel: list[float]):
+    """(C's data, MJX's data) after one ``mj_step`` and one ``mjx.step`` from qpos0 and ``qvel``."""
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    d.qvel[:] = qvel
+    dx = mjx.make_data(m).replace(qvel=d.qvel.copy())
+    mujoco.mj_step(m, d)
+    return d, jax.jit(mjx.step)(mjx.put_model(m), dx)
 
 
 POLYNOMIAL_SPRING_DAMPER = """<mujoco>
@@ -365,12 +376,8 @@ SPRING_WITH_DAMPER_DISABLED = """<mujoco>
                                        "(`disableflags & (SPRING | DAMPER)`); C 4.0 drops only the disabled "
                                        "one; found by the combinations_rk4 scenario (issue 32)")
 def test_a_spring_acts_with_only_the_damper_disabled():
-    m = mujoco.MjModel.from_xml_string(SPRING_WITH_DAMPER_DISABLED)
-    d = mujoco.MjData(m)
-    d.qpos[0] = 0.3
-    mujoco.mj_forward(m, d)
+    _, d, dx = _forward_both(SPRING_WITH_DAMPER_DISABLED, qpos={0: 0.3})
     assert abs(d.qfrc_passive[0] + 0.6) < 1e-12, "C: the spring's -k q"
-    dx = engines.forward(mjx.put_model(m), mjx.make_data(m).replace(qpos=d.qpos.copy()))
     np.testing.assert_allclose(np.asarray(dx.qfrc_passive), d.qfrc_passive, atol=1e-12, err_msg="qfrc_passive")
 
 
@@ -386,11 +393,7 @@ ACTEARLY_FILTER = """<mujoco>
                                        "(0.08 here), C 4.0 the next one (0.088); found by the combinations "
                                        "scenario's actuator bank (issue 32)")
 def test_actearly_uses_the_next_activation():
-    m = mujoco.MjModel.from_xml_string(ACTEARLY_FILTER)
-    d = mujoco.MjData(m)
-    d.ctrl[0], d.act[0] = 0.7, 0.2
-    mujoco.mj_forward(m, d)
-    dx = engines.forward(mjx.put_model(m), mjx.make_data(m).replace(ctrl=d.ctrl.copy(), act=d.act.copy()))
+    _, d, dx = _forward_both(ACTEARLY_FILTER, ctrl={0: 0.7}, act={0: 0.2})
     np.testing.assert_allclose(np.asarray(dx.actuator_force), d.actuator_force, atol=1e-12, err_msg="actuator_force")
 
 
@@ -407,12 +410,7 @@ DAMPING_WITH_DAMPER_DISABLED = """<mujoco>
                                        "does not (qvel 1.0713 vs 1.0934 after one step from 1 rad/s); "
                                        "found while covering the passive flags (issue 32)")
 def test_the_euler_step_damps_nothing_with_the_damper_disabled():
-    m = mujoco.MjModel.from_xml_string(DAMPING_WITH_DAMPER_DISABLED)
-    d = mujoco.MjData(m)
-    d.qvel[0] = 1.0
-    dx = mjx.make_data(m).replace(qvel=d.qvel.copy())
-    mujoco.mj_step(m, d)
-    dx = jax.jit(mjx.step)(mjx.put_model(m), dx)
+    d, dx = _step_both(DAMPING_WITH_DAMPER_DISABLED, [1.0])
     np.testing.assert_allclose(np.asarray(dx.qvel), d.qvel, atol=1e-12, err_msg="qvel after one Euler step")
 
 
@@ -431,12 +429,7 @@ TENDON_DAMPING_ACROSS_TREES = """<mujoco>
                                        "cross terms dropped), MJX 3.17 adds the dense J^T D J; found by the "
                                        "combinations_implicit scenario (issue 32)")
 def test_implicitfast_damps_a_tendon_across_two_trees_as_c_does():
-    m = mujoco.MjModel.from_xml_string(TENDON_DAMPING_ACROSS_TREES)
-    d = mujoco.MjData(m)
-    d.qvel[:] = [1.0, -0.5]
-    dx = mjx.make_data(m).replace(qvel=d.qvel.copy())
-    mujoco.mj_step(m, d)
-    dx = jax.jit(mjx.step)(mjx.put_model(m), dx)
+    d, dx = _step_both(TENDON_DAMPING_ACROSS_TREES, [1.0, -0.5])
     np.testing.assert_allclose(np.asarray(dx.qvel), d.qvel, atol=1e-12, err_msg="qvel after one implicitfast step")
 
 
