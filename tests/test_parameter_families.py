@@ -15,10 +15,11 @@ from mujoco.mjx._src import constraint as mjx_constraint
 from mujoco.mjx._src import forward as mjx_forward
 from mujoco.mjx._src import passive as mjx_passive
 
+from combination_bugs import COVERING_SCENARIOS
 from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
 from mjxdiff.sweep import SweepConfig, run_scenario
 
-NEW = ("joint_parameters", "contact_parameters", "muscles_and_limits", "sensing")
+NEW = ("joint_parameters", "contact_parameters", "muscles_and_limits", "sensing", *COVERING_SCENARIOS)
 CONFIG = SweepConfig(seed=0, batch=2, steps=150, diagnose="none")
 _T = mujoco.mjtJoint
 _LIMITED_SCALAR = lambda m: m.jnt_limited.astype(bool) & np.isin(m.jnt_type, [int(_T.mjJNT_HINGE), int(_T.mjJNT_SLIDE)])
