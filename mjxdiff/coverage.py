@@ -278,18 +278,27 @@ REGIMES = ("lower limit active", "upper limit active", "ball limit active", "ten
            "equality active")
 
 
+def active_limits(m: mujoco.MjModel, d: mujoco.MjData) -> list[tuple[int, str]]:
+    """``(joint, side)`` of every active joint-limit row of ``d``: side ``lower`` or ``upper``
+    (whichever end the joint is nearer) for hinges and slides, ``ball`` for ball joints."""
+    out = []
+    for row in np.flatnonzero(d.efc_type == int(mujoco.mjtConstraint.mjCNSTR_LIMIT_JOINT)):
+        j = int(d.efc_id[row])
+        if m.jnt_type[j] == int(mujoco.mjtJoint.mjJNT_BALL):
+            out.append((j, "ball"))
+        else:
+            q = d.qpos[m.jnt_qposadr[j]]
+            out.append((j, "lower" if q - m.jnt_range[j, 0] < m.jnt_range[j, 1] - q else "upper"))
+    return out
+
+
 def _regimes(m: mujoco.MjModel, d: mujoco.MjData, before: int) -> set[str]:
     """The :data:`REGIMES` present in ``d`` (after a step; ``before``: ncon before it)."""
     C, S = mujoco.mjtConstraint, mujoco.mjtConstraintState
     out = set()
     types, ids, state = d.efc_type, d.efc_id, d.efc_state
-    for row in np.flatnonzero(types == int(C.mjCNSTR_LIMIT_JOINT)):
-        j = ids[row]
-        if m.jnt_type[j] == int(mujoco.mjtJoint.mjJNT_BALL):
-            out.add("ball limit active")
-        else:
-            q = d.qpos[m.jnt_qposadr[j]]
-            out.add("lower limit active" if q - m.jnt_range[j, 0] < m.jnt_range[j, 1] - q else "upper limit active")
+    for j, side in active_limits(m, d):
+        out.add(f"{side} limit active")
     if np.any(types == int(C.mjCNSTR_LIMIT_TENDON)):
         out.add("tendon limit active")
     friction = np.isin(types, [int(C.mjCNSTR_FRICTION_DOF), int(C.mjCNSTR_FRICTION_TENDON)])

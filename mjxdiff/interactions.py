@@ -29,6 +29,8 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import mujoco
 import numpy as np
 
+from mjxdiff.coverage import active_limits
+
 __all__ = ["GROUPS", "Factor", "Group", "Observed", "covered_pairs", "feasible_pairs", "format_text", "observe",
            "pair_name", "pairwise", "rows"]
 
@@ -250,7 +252,6 @@ def observe(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarr
             max_steps: int = 200) -> Observed:
     """Steps one member in MuJoCo C (``ctrl``: (T, nu); at most ``max_steps`` steps) and records
     the state-dependent levels (:class:`Observed`)."""
-    C = mujoco.mjtConstraint
     out = Observed()
     d = mujoco.MjData(m)
     d.qpos[:], d.qvel[:] = qpos, qvel
@@ -271,15 +272,8 @@ def observe(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarr
         if not np.all(np.isfinite(d.qpos)):
             break
         out.contacts |= d.ncon > 0
-        types, ids = d.efc_type, d.efc_id
-        for row in np.flatnonzero(types == int(C.mjCNSTR_LIMIT_JOINT)):
-            j = int(ids[row])
-            if m.jnt_type[j] == int(mujoco.mjtJoint.mjJNT_BALL):
-                side = "upper"
-            else:
-                q = d.qpos[m.jnt_qposadr[j]]
-                side = "lower" if q - m.jnt_range[j, 0] < m.jnt_range[j, 1] - q else "upper"
-            out.limit.setdefault(j, set()).add(side)
+        for j, side in active_limits(m, d):  # a ball limit is one cone angle: its "upper" end
+            out.limit.setdefault(j, set()).add("upper" if side == "ball" else side)
         for k in spring:
             length, (a, b) = d.ten_length[k], m.tendon_lengthspring[k]
             out.tendon_length.setdefault(int(k), set()).add("below" if length < a else "above" if length > b
