@@ -12,11 +12,11 @@ import pytest
 
 pytest.importorskip("mujoco_warp")
 
-from mjxdiff.engines import CEngine, MJXEngine  # noqa: E402
-from mjxdiff.inputs import make_inputs  # noqa: E402
-from mjxdiff.mjwarp import MJWarpEngine  # noqa: E402
-from mjxdiff.report import versions  # noqa: E402
-from mjxdiff.scenario import load_model, load_scenario  # noqa: E402
+from mjxdiff.engines import CEngine, MJXEngine
+from mjxdiff.inputs import make_inputs
+from mjxdiff.mjwarp import MJWarpEngine
+from mjxdiff.report import versions
+from mjxdiff.scenario import load_model, load_scenario
 
 BATCH, STEPS = 32, 200
 SCENARIOS = ("pendulum", "cartpole", "ant")

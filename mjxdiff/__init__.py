@@ -42,7 +42,7 @@ _PUBLIC = {
     "sweep": "mjxdiff.sweep",
 }
 
-__all__ = sorted(_PUBLIC)
+__all__ = sorted(_PUBLIC)  # pyright: ignore[reportUnsupportedDunderAll] - the lazy exports below
 
 
 def __getattr__(name: str):

@@ -76,7 +76,8 @@ def unsupported_pairs(m: mujoco.MjModel) -> list[tuple[int, int, int, str]]:
     out = []
     for g1, g2, ip in collision_driver.geom_pairs(m):
         t1, t2 = (int(t) for t in m.geom_type[[g1, g2]])
-        if not collision_driver.has_collision_fn(t1, t2):
+        # MJX annotates its GeomType enum; plain ints are equal to its members (an IntEnum)
+        if not collision_driver.has_collision_fn(t1, t2):  # pyright: ignore[reportArgumentType]
             out.append((int(g1), int(g2), int(ip), "no MJX collision function"))
         elif no_margin & {t1, t2}:
             margin = m.pair_margin[ip] if ip != -1 else m.geom_margin[g1] + m.geom_margin[g2]
@@ -85,7 +86,7 @@ def unsupported_pairs(m: mujoco.MjModel) -> list[tuple[int, int, int, str]]:
     return out
 
 
-def _candidates(m: mujoco.MjModel) -> set[tuple[int, int]]:
+def _candidates(m: mujoco.MjModel) -> set[tuple[int, ...]]:
     from mujoco.mjx._src import collision_driver
 
     return {tuple(sorted((int(g1), int(g2)))) for g1, g2, _ in collision_driver.geom_pairs(m)}

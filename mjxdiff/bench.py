@@ -104,7 +104,8 @@ def _point(inputs: BatchedInputs, repeats: int) -> dict[str, Any]:
     c = _best(lambda: c_engine.rollout(inputs), repeats)
     out = dict(batch=inputs.batch, steps=inputs.steps,
                c_steps_per_s=steps / c.seconds, mjx_steps_per_s=steps / mjx.seconds,
-               mjx_over_c=c.seconds / mjx.seconds, compile_s=max(first.seconds - mjx.seconds, 0.0), first_call=first_call,
+               mjx_over_c=c.seconds / mjx.seconds, compile_s=max(first.seconds - mjx.seconds, 0.0),
+               first_call=first_call,
                c_cpu=c.cpu, mjx_cpu=mjx.cpu, c_peak_mib=c.peak_mib, mjx_peak_mib=max(mjx.peak_mib, first.peak_mib))
     return dict(out, **_warp_point(inputs, repeats))
 
@@ -145,7 +146,7 @@ def bench_scenario(scenario: Scenario, batches: Sequence[int] = DEFAULT_BATCHES,
         curve.append(_point(full.take(slice(b)), repeats))
     best = max(curve, key=lambda p: p["mjx_steps_per_s"])
     inputs = full.take(slice(best["batch"]))
-    split = dict(devices=MJXEngine().split(inputs.batch), steps_per_s=best["mjx_steps_per_s"])
+    split: dict[str, float] = dict(devices=MJXEngine().split(inputs.batch), steps_per_s=best["mjx_steps_per_s"])
     if split["devices"] > 1:
         say(f"{scenario.name}: batch {best['batch']} on one device")
         single = MJXEngine(devices=1)
@@ -176,7 +177,7 @@ def _tester_overhead(scenario: Scenario, m, inputs: BatchedInputs, repeats: int)
         config = SweepConfig(diagnose="none", noise_floor=mode)
         return lambda: run_inputs(scenario.name, m, inputs, tol, config, mjx_engine, c_engine)
 
-    runs = dict(engines=lambda: (c_engine.rollout(inputs), mjx_engine.rollout(inputs)),
+    runs: dict[str, Callable[[], Any]] = dict(engines=lambda: (c_engine.rollout(inputs), mjx_engine.rollout(inputs)),
                 verify=verify("on-demand"), verify_always=verify("always"))
     members = runs["verify"]().info["noise_floor_members"]  # warm: compiles the metrics too
     for fn in runs.values():

@@ -280,8 +280,9 @@ def build_parser() -> argparse.ArgumentParser:
     fz.add_argument("--out", metavar="DIR", help="save the reproducer and the example database under DIR")
     fz.add_argument("--include-known", action="store_true",
                     help="also generate features with known, documented C/MJX divergences "
-                         "(connect/weld, RK4/implicitfast, box and mesh geoms, tendon wrap sidesites) and report the contact "
-                         "differences known by their signature (plane-cylinder far cap, capsule contact frames)")
+                         "(connect/weld, RK4/implicitfast, box and mesh geoms, tendon wrap sidesites) and report "
+                         "the contact differences known by their signature (plane-cylinder far cap, capsule contact "
+                         "frames)")
     fz.add_argument("--cache-dir", metavar="DIR", help="JAX persistent compilation cache (see sweep --help)")
     bn = sub.add_parser("bench", help="measure MJX and MuJoCo C throughput, compile time and memory per scenario",
                         description=_BENCH_DESCRIPTION, epilog=_BENCH_EPILOG,
@@ -368,8 +369,9 @@ def build_parser() -> argparse.ArgumentParser:
     gr.add_argument("--states", type=_positive, default=8, help="states sampled per scenario (default 8)")
     gr.add_argument("--seed", type=int, default=0, help="seed of the randomized members (default 0)")
     gr.add_argument("--out", metavar="DIR", help="write DIR/grad-report.json, DIR/grad-report.html (a heat map of "
-                                                 "each failing scenario's worst state) and, per failing scenario, its worst "
-                                                 "state as DIR/reproducers/NAME-grad-stateI.json for 'mjxdiff replay'")
+                                                 "each failing scenario's worst state) and, per failing scenario, its "
+                                                 "worst state as DIR/reproducers/NAME-grad-stateI.json for "
+                                                 "'mjxdiff replay'")
     gr.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
     hi = sub.add_parser("history", help="query the run history sweeps append to (DuckDB over Parquet)",
                         description="Trends per scenario and field over the runs the sweeps appended (runs, "
@@ -684,6 +686,7 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
     if result.harness_error is not None:
         # the run proves nothing: not "no divergence", whatever was tried before
         print(f"mjxdiff: error: fuzz harness failed: {result.harness_error}", file=sys.stderr)
+        assert result.harness_traceback is not None  # recorded with the harness error
         print(result.harness_traceback.rstrip("\n"), file=sys.stderr)
         if written:
             print(f"fuzz report written to {written}", file=sys.stderr)
@@ -693,9 +696,9 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
     if written:
         print(f"fuzz report written to {written}", file=sys.stderr)
     rates = result.rates()
-    tried = (f"{result.examples} examples ({result.structures} generated models x {result.examples // max(1, result.structures)} "
-             f"variants; {rates['examples_per_minute']:.0f} examples, {rates['structures_per_minute']:.1f} models "
-             f"per minute)")
+    tried = (f"{result.examples} examples ({result.structures} generated models x "
+             f"{result.examples // max(1, result.structures)} variants; {rates['examples_per_minute']:.0f} examples, "
+             f"{rates['structures_per_minute']:.1f} models per minute)")
     pairs = ""
     if result.interactions:
         from mjxdiff import interactions
@@ -741,7 +744,8 @@ def _cmd_policy(args: argparse.Namespace) -> int:
         print(f"mjxdiff policy: {e}", file=sys.stderr)
         return 2
     comparison = closedloop.run(env, policy, args.episodes, args.steps, args.seed, only=only)
-    result = closedloop.judge(closedloop.c_model(env), comparison, seed=args.seed, n_frames=int(env._n_frames))
+    n_frames = int(env._n_frames)  # noqa: SLF001 - brax's substeps per control step
+    result = closedloop.judge(closedloop.c_model(env), comparison, seed=args.seed, n_frames=n_frames)
     config = dict(episodes=args.episodes, steps=args.steps, seed=args.seed, n_frames=args.n_frames)
     doc = dict(kind="policy", versions=report.versions(), target=args.target, policy=args.policy,
                config=dict(config, only=only), **result)
@@ -872,7 +876,8 @@ def _cmd_cache(args: argparse.Namespace) -> int:
                            ("old_format", "directories of an older format")):
             print(f"  {len(found[kind])} {what}" + "".join(f"\n    {p}" for p in found[kind][:10]))
         for key, st in sorted(found["per_structure"].items(), key=lambda kv: -kv[1]["bytes"])[:10]:
-            print(f"  {key[:16]}  {st['artifacts']} artifacts, {st['matching']} matching, {st['bytes'] / 2**20:.2f} MiB")
+            print(f"  {key[:16]}  {st['artifacts']} artifacts, {st['matching']} matching, "
+                  f"{st['bytes'] / 2**20:.2f} MiB")
         if args.fix:
             print(f"removed {found['removed']} untrusted entries")
         elif untrusted:

@@ -110,7 +110,10 @@ class Episodes:
     def concat(chunks: list["Episodes"]) -> "Episodes":
         """Consecutive chunks as one record (the first chunk's starting state)."""
         first = chunks[0]
-        join = lambda name: np.concatenate([getattr(c, name) for c in chunks], axis=1)
+
+        def join(name):
+            return np.concatenate([getattr(c, name) for c in chunks], axis=1)
+
         return dataclasses.replace(
             first, **{f: join(f) for f in ("obs", "action", "reward", "done", "qpos", "qvel", "ctrl")},
             metrics={k: np.concatenate([c.metrics[k] for c in chunks], axis=1) for k in first.metrics},
@@ -193,7 +196,10 @@ def _load_checkpoint(path: Path) -> Callable:
     # which reads back as an observation dict without its "state" key
     loaded["observation_size"] = _size(loaded["observation_size"])
     network = brax_checkpoint.get_network(config_dict.create(**loaded), ppo_networks.make_ppo_networks)
-    return ppo_networks.make_inference_fn(network)(checkpoint.load(path), deterministic=True)
+    # brax types get_network as any of its agents' networks (this one is PPO's, made just above) and
+    # checkpoint.load's path as etils' Path, which a pathlib.Path is at runtime
+    return ppo_networks.make_inference_fn(network)(  # pyright: ignore[reportArgumentType]
+        checkpoint.load(path), deterministic=True)  # pyright: ignore[reportArgumentType]
 
 
 def _size(saved: Any) -> Any:
@@ -262,7 +268,7 @@ def make_env(name: str, **kwargs) -> Any:
     from brax import envs
 
     if name not in envs._envs:  # noqa: SLF001 - brax lists its environments there
-        raise PolicyError(f"{name}: not a brax environment (one of {', '.join(sorted(envs._envs))})")
+        raise PolicyError(f"{name}: not a brax environment (one of {', '.join(sorted(envs._envs))})")  # noqa: SLF001
     return envs.get_environment(name, backend="mjx", **kwargs)
 
 
@@ -281,7 +287,7 @@ def resolve_env(target: str, n_frames: int = 1) -> Any:
     try:
         m = load_model(load_scenario(target))
     except ScenarioError as e:
-        raise PolicyError(f"{target}: not a brax environment ({', '.join(sorted(envs._envs))}) and {e}") from None
+        raise PolicyError(f"{target}: not a brax environment ({', '.join(sorted(envs._envs))}) and {e}") from None  # noqa: SLF001
     return mjcf_env(m, n_frames=n_frames)
 
 
@@ -318,8 +324,11 @@ def mjcf_env(m: mujoco.MjModel, n_frames: int = 1, qpos_noise: float = 0.01, qve
 
         def step(self, state, action):
             ctrl = lo + (jnp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (hi - lo)
-            ps = self.pipeline_step(state.pipeline_state, ctrl)
-            return state.replace(pipeline_state=ps, obs=self._obs(ps), reward=jnp.zeros(()), done=jnp.zeros(()))
+            # numpy + jax.Array is a jax.Array (numpy's stubs say ndarray); brax's State is a flax
+            # dataclass, with the replace its type declarations do not show
+            ps = self.pipeline_step(state.pipeline_state, ctrl)  # pyright: ignore[reportArgumentType]
+            return state.replace(  # pyright: ignore[reportAttributeAccessIssue]
+                pipeline_state=ps, obs=self._obs(ps), reward=jnp.zeros(()), done=jnp.zeros(()))
 
         @property
         def action_size(self):
@@ -456,7 +465,10 @@ def mjx_stream(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: j
                 keys = jnp.concatenate([keys, jnp.repeat(keys[:, -1:], chunk - n, axis=1)], axis=1)
             before, (state, rec) = state, advance(state, keys)
             obs, action, reward, done, qpos, qvel, ctrl, metrics = (_np(x) for x in rec)
-            cut = lambda x: x[:, :n]
+
+            def cut(x):
+                return x[:, :n]
+
             yield Episodes(cut(obs), cut(action), cut(reward), cut(done), cut(qpos), cut(qvel), cut(ctrl),
                            {k: cut(v) for k, v in metrics.items()}, qpos0=np.asarray(before.pipeline_state.qpos),
                            qvel0=np.asarray(before.pipeline_state.qvel), obs0=np.asarray(before.obs))

@@ -219,7 +219,7 @@ def pair_groups(m: mujoco.MjModel) -> tuple[tuple[PairGroup, ...], tuple[str, ..
     advice: list[str] = []
     hulls: dict[int, tuple[int, int, int, int]] = {}
     out = []
-    for key, pairs in collision_driver._geom_groups(m).items():
+    for key, pairs in collision_driver._geom_groups(m).items():  # noqa: SLF001 - MJX's own collision grouping
         types = tuple(mujoco.mjtGeom(int(t)).name[len("mjGEOM_"):].lower() for t in key.types)
         sides = []
         for t, data_id in zip(types, key.data_ids):
@@ -283,7 +283,9 @@ def data_sizes(m: mujoco.MjModel) -> tuple[int, int, int]:
     except Exception:  # noqa: BLE001 - an estimate; put_model names the problem properly
         return 0, 0, 0
     data = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(dx))
-    return data, int(dx._impl.contact.dist.shape[0]), int(dx._impl.efc_J.shape[0])
+    impl = dx._impl  # noqa: SLF001 - MJX's contact and constraint sizes
+    # the JAX implementation's Data, whose fields MJX's union of implementations does not show
+    return data, int(impl.contact.dist.shape[0]), int(impl.efc_J.shape[0])  # pyright: ignore[reportAttributeAccessIssue]
 
 
 def available_bytes() -> int:

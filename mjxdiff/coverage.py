@@ -69,7 +69,10 @@ def _src_dir() -> Path:
     import importlib.util
 
     # found without importing mujoco.mjx: the recording process must import it after starting
-    return Path(importlib.util.find_spec("mujoco.mjx").submodule_search_locations[0], "_src")
+    spec = importlib.util.find_spec("mujoco.mjx")
+    if spec is None or not spec.submodule_search_locations:
+        raise RuntimeError("mujoco.mjx is not installed as a package: no MJX sources to measure")
+    return Path(spec.submodule_search_locations[0], "_src")
 
 
 def _trace_one(m: mujoco.MjModel) -> None:
@@ -82,7 +85,7 @@ def _trace_one(m: mujoco.MjModel) -> None:
     jax.make_jaxpr(mjx.step)(mx, dx)
 
 
-def _record(folder: str) -> None:
+def _record(folder: str | Path) -> None:
     """In a fresh process: records coverage from before ``mujoco.mjx`` is imported (so code MJX
     runs at import, its decorators and dataclass machinery, counts) while tracing the models
     ``folder`` holds (``names.json``, ``<i>.mjb``) and, where ``<i>.npz`` gives member 0's
@@ -98,7 +101,7 @@ def _record(folder: str) -> None:
     errors = {}
     cov.start()
     try:
-        import mujoco.mjx  # noqa: F401 - recorded
+        import mujoco.mjx  # recorded
 
         from mjxdiff import adjust, transfer
 
@@ -152,7 +155,8 @@ def code_coverage(models: Sequence[tuple[str, mujoco.MjModel]],
     import jax
 
     transfers = transfers or {}
-    precision = "float64" if jax.config.jax_enable_x64 else "float32"
+    # jax's Config class declares none of its flags
+    precision = "float64" if jax.config.jax_enable_x64 else "float32"  # pyright: ignore[reportAttributeAccessIssue]
     with tempfile.TemporaryDirectory() as tmp:
         entries = []
         for i, (name, m) in enumerate(models):
@@ -163,7 +167,7 @@ def code_coverage(models: Sequence[tuple[str, mujoco.MjModel]],
                 np.savez(Path(tmp) / f"{i}.npz", qpos=qpos, qvel=qvel, act=act, ctrl=ctrl)
                 entries[-1]["path"] = str(path)
         (Path(tmp) / "names.json").write_text(json.dumps(entries))
-        env = dict(os.environ, JAX_ENABLE_X64=str(bool(jax.config.jax_enable_x64)))
+        env = dict(os.environ, JAX_ENABLE_X64=str(bool(jax.config.jax_enable_x64)))  # pyright: ignore[reportAttributeAccessIssue]
         done = subprocess.run([sys.executable, "-c", _RECORDER, tmp], env=env, capture_output=True, text=True)
         if done.returncode:
             raise RuntimeError(f"recording MJX coverage failed: {done.stderr.strip()[-2000:]}")
@@ -172,10 +176,10 @@ def code_coverage(models: Sequence[tuple[str, mujoco.MjModel]],
         excluded_ran = json.loads(Path(tmp, "excluded_ran.json").read_text())
     # Function bodies only: module-level statements ran at import, before recording started.
     modules, never, warp = {}, [], []
-    totals = dict.fromkeys(("lines", "lines_covered", "branches", "branches_covered"), 0)
+    totals: dict[str, float] = dict.fromkeys(("lines", "lines_covered", "branches", "branches_covered"), 0)
     for path, data in sorted(raw["files"].items()):
         name = Path(path).name
-        mod = dict.fromkeys(totals, 0)
+        mod: dict[str, float] = dict.fromkeys(totals, 0)
         for fn, fd in data.get("functions", {}).items():
             if not fn:
                 continue
@@ -224,7 +228,8 @@ def _parameter_fields(defaults: mujoco.MjModel) -> list[str]:
     """Floating-point per-element fields MJX's model holds, that an MJCF sets (not derived)."""
     from mujoco.mjx._src import types
 
-    mjx_fields = {f.name for f in dataclasses.fields(types.Model)}
+    # MJX's Model is a dataclass at runtime that its type declarations do not show as one
+    mjx_fields = {f.name for f in dataclasses.fields(types.Model)}  # pyright: ignore[reportArgumentType]
     out = []
     for name in sorted(mjx_fields):
         if not name.startswith(_ELEMENT_PREFIXES) or any(name.endswith(s) for s in _DERIVED):
@@ -296,7 +301,7 @@ def _regimes(m: mujoco.MjModel, d: mujoco.MjData, before: int) -> set[str]:
     """The :data:`REGIMES` present in ``d`` (after a step; ``before``: ncon before it)."""
     C, S = mujoco.mjtConstraint, mujoco.mjtConstraintState
     out = set()
-    types, ids, state = d.efc_type, d.efc_id, d.efc_state
+    types, state = d.efc_type, d.efc_state
     for j, side in active_limits(m, d):
         out.add(f"{side} limit active")
     if np.any(types == int(C.mjCNSTR_LIMIT_TENDON)):
@@ -408,7 +413,8 @@ def format_text(doc: dict[str, Any]) -> str:
             lines.append(f"  {name}: traced until {err}")
     p = doc["parameters"]
     lines.append(f"parameters moved from their default: {p['percent']:.1f}% "
-                 f"({len(p['fields']) + len(p['options']) - len(p['never'])} of {len(p['fields']) + len(p['options'])})")
+                 f"({len(p['fields']) + len(p['options']) - len(p['never'])} of "
+                 f"{len(p['fields']) + len(p['options'])})")
     lines.append(f"  never moved ({len(p['never'])}): {', '.join(p['never'])}")
     r = doc["regimes"]
     lines.append(f"state regimes reached: {len(REGIMES) - len(r['never'])} of {len(REGIMES)}"

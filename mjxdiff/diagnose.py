@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Protocol, Self, TypeVar
 
+import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
@@ -27,6 +28,9 @@ from mjxdiff import engines, export_cache
 from mjxdiff.engines import MJXEngine, Trajectory, mjx
 from mjxdiff.inputs import BatchedInputs
 from mjxdiff.noise import converge_solver
+
+if TYPE_CHECKING:
+    from mjxdiff.mjwarp import MJWarpEngine
 
 __all__ = ["STAGES", "StageDiff", "DrillDown", "drill_down", "local_error", "attribute_cause", "ABLATIONS", "GENUINE",
            "UNCLASSIFIED"]
@@ -102,7 +106,7 @@ def _object(m: mujoco.MjModel, field: str, index: int) -> str:
     return ""
 
 
-Contacts = dict[tuple[int, int], list[tuple[float, ...]]]
+Contacts = dict[tuple[int, ...], list[tuple[float, ...]]]
 
 
 def _frame(m: mujoco.MjModel, frame: np.ndarray, friction: np.ndarray, geom: np.ndarray) -> tuple[float, ...]:
@@ -134,14 +138,14 @@ def _contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> Contacts:
 
 
 def _contacts_mjx(m: mujoco.MjModel, dx: Any) -> Contacts:
-    c = dx._impl.contact
+    c = dx._impl.contact  # noqa: SLF001 - MJX's contacts
     dist, margin, geom, pos, friction, frame = map(np.asarray, (c.dist, c.includemargin, c.geom, c.pos, c.friction,
                                                                 c.frame))
     out: Contacts = {}
     for i in np.flatnonzero(dist < margin):
         key = tuple(sorted(int(g) for g in geom[i]))
-        out.setdefault(key, []).append((float(dist[i]), *map(float, pos[i]), float(friction[i, 0]), float(friction[i, 1]),
-                                        *_frame(m, frame[i], friction[i], geom[i])))
+        out.setdefault(key, []).append((float(dist[i]), *map(float, pos[i]), float(friction[i, 0]),
+                                        float(friction[i, 1]), *_frame(m, frame[i], friction[i], geom[i])))
     return out
 
 
@@ -150,7 +154,10 @@ def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float,
     largest |dist|, |pos| or |friction| difference, each engine's contacts matched by position."""
     worst, obj = 0.0, ""
     for pair in sorted(set(cc) | set(cx)):
-        by_pos = lambda c: (round(c[1], 6), round(c[2], 6), round(c[3], 6))
+
+        def by_pos(c):
+            return (round(c[1], 6), round(c[2], 6), round(c[3], 6))
+
         a, b = sorted(cc.get(pair, []), key=by_pos), sorted(cx.get(pair, []), key=by_pos)
         diff = np.abs(np.subtract(a, b)).max(axis=0) if len(a) == len(b) and a else np.zeros(0)
         err = np.inf if len(a) != len(b) else float(diff.max(initial=0.0))
@@ -166,9 +173,10 @@ def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float,
 _CONTACT_PARTS = ("dist",) + ("position",) * 3 + ("friction",) * 2 + ("normal",) * 3 + ("tangent frame",) * 6
 
 
-def drill_down(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, ctrl: np.ndarray,
-               time: float, precision: str = "float64", member: int = 0, step: int = 0,
-               qacc_warmstart: np.ndarray | None = None, impl: str = "mjx") -> DrillDown:
+def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray | jax.Array,
+               act: np.ndarray | jax.Array, ctrl: np.ndarray, time: float, precision: str = "float64",
+               member: int = 0, step: int = 0, qacc_warmstart: np.ndarray | None = None,
+               impl: str = "mjx") -> DrillDown:
     """Compares every stage of ``mj_forward`` and the other implementation's forward from one state.
 
     Args:
@@ -191,7 +199,8 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.nd
         d_x = mjwarp.forward(m, d)
         qm_x = np.zeros((m.nv, m.nv))
         mujoco.mj_fullM(m, d_x, qm_x)
-        values_x = {f: np.asarray(getattr(d_x, f)).ravel() for _, fs in STAGES for f in fs if f not in ("qM", "contact")}
+        values_x = {f: np.asarray(getattr(d_x, f)).ravel()
+                    for _, fs in STAGES for f in fs if f not in ("qM", "contact")}
         contacts_x = _contacts_c(m, d_x)
     else:
         export_cache.fresh_digest()  # engines.forward is jitted: never its trace of code since changed
@@ -236,7 +245,7 @@ def state_before(inputs: BatchedInputs, traj_c: Trajectory, member: int, step: i
 
 
 def local_error(inputs: BatchedInputs, traj_c: Trajectory, m: mujoco.MjModel, rf_mask: np.ndarray,
-                every: int = 1, engine: MJXEngine | None = None) -> dict[str, float]:
+                every: int = 1, engine: MJXEngine | MJWarpEngine | None = None) -> dict[str, float]:
     """Worst re-synchronised error per field: MJX restarted from C every ``every`` steps.
 
     Returns:
@@ -318,7 +327,17 @@ ABLATIONS: tuple[tuple[str, str, Callable[[mujoco.MjModel], None]], ...] = (
 )
 
 
-def attribute_cause(passes: Callable[[BatchedInputs, str], bool], inputs: BatchedInputs,
+class Ablatable(Protocol):
+    """What :func:`attribute_cause` ablates: inputs whose models can be edited
+    (:class:`~mjxdiff.inputs.BatchedInputs`, or :mod:`mjxdiff.closedloop`'s one control step)."""
+
+    def edit_models(self, edit: Callable[[mujoco.MjModel], None]) -> Self: ...
+
+
+_Inputs = TypeVar("_Inputs", bound=Ablatable)
+
+
+def attribute_cause(passes: Callable[[_Inputs, str], bool], inputs: _Inputs,
                     precision: str, skip: tuple[str, ...] = ()) -> dict[str, Any]:
     """Tries ablations in order; the first under which the scenario passes names the cause.
 
@@ -341,7 +360,7 @@ def attribute_cause(passes: Callable[[BatchedInputs, str], bool], inputs: Batche
     """
     tried: list[dict[str, Any]] = []
 
-    def attempt(label: str, cause: str, ablated: Callable[[], BatchedInputs], at: str) -> dict[str, Any] | None:
+    def attempt(label: str, cause: str, ablated: Callable[[], _Inputs], at: str) -> dict[str, Any] | None:
         try:
             ok = bool(passes(ablated(), at))
         except Exception as e:  # noqa: BLE001 - recorded; the verdict stands
@@ -352,7 +371,8 @@ def attribute_cause(passes: Callable[[BatchedInputs, str], bool], inputs: Batche
 
     if precision == "float32" and (found := attempt("float64", "precision", lambda: inputs, "float64")):
         return found
-    m = inputs.models[0] if hasattr(inputs, "models") else getattr(inputs, "m", None)  # or closedloop's one step
+    # BatchedInputs' first model, or closedloop's one step's (pyright does not narrow a protocol by hasattr)
+    m = inputs.models[0] if hasattr(inputs, "models") else getattr(inputs, "m", None)  # pyright: ignore[reportAttributeAccessIssue]
     for i, (cause, label, edit) in enumerate(ABLATIONS):
         if cause in skip or (edit is _no_actuator_clamps and m is not None and not _has_actuator_clamps(m)):
             continue

@@ -62,11 +62,11 @@ import numpy as np  # noqa: E402
 
 with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import warp" to stdout
     from mujoco import mjx
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from mujoco.batch import Batch, SimulationError
+from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
+from mujoco.batch import Batch, SimulationError  # noqa: E402
 
-from mjxdiff import export_cache
-from mjxdiff.inputs import BatchedInputs
+from mjxdiff import export_cache  # noqa: E402
+from mjxdiff.inputs import BatchedInputs  # noqa: E402
 
 __all__ = [
     "CEngine",
@@ -104,14 +104,14 @@ class Trajectory:
         state or stopped on a MuJoCo instability warning; -1 if never.
     """
 
-    qpos: jax.Array
-    qvel: jax.Array
-    act: jax.Array
-    sensordata: jax.Array
-    time: jax.Array
-    ncon: jax.Array
-    energy: jax.Array
-    diverged_at: jax.Array
+    qpos: np.ndarray | jax.Array
+    qvel: np.ndarray | jax.Array
+    act: np.ndarray | jax.Array
+    sensordata: np.ndarray | jax.Array
+    time: np.ndarray | jax.Array
+    ncon: np.ndarray | jax.Array
+    energy: np.ndarray | jax.Array
+    diverged_at: np.ndarray | jax.Array
 
     def to_numpy(self) -> "Trajectory":
         return jax.tree.map(np.asarray, self)
@@ -293,7 +293,8 @@ class CEngine:
             warned = (b.warning[:, :, 1].sum(axis=1) > 0) | raised
             stalled = _first_true(time <= np.concatenate([last_time, time[:, :-1]], axis=1))
             last_time = time[:, -1:]
-            nonfinite = _first_true(~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1))
+            # numpy's stubs type .all(axis) as maybe a scalar
+            nonfinite = _first_true(~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1))  # pyright: ignore[reportArgumentType]
             diverged = np.where(warned, np.maximum(stalled, 0), nonfinite)
             yield Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"],
                              sensordata=out["sensordata"], time=time, ncon=out["ncon"].astype(np.int64),
@@ -310,12 +311,12 @@ def concat(pieces: list[Trajectory]) -> Trajectory:
     return Trajectory(**fields, diverged_at=first_diverged([p.diverged_at for p in pieces]))
 
 
-def _shifted(diverged_at: np.ndarray, start: int) -> np.ndarray:
+def _shifted(diverged_at: np.ndarray | jax.Array, start: int) -> np.ndarray:
     """A piece's ``diverged_at`` (steps within the piece, -1 if none) counted from the rollout's start."""
     return np.where(diverged_at >= 0, diverged_at + start, -1)
 
 
-def first_diverged(diverged_at: list[np.ndarray]) -> np.ndarray:
+def first_diverged(diverged_at: list[np.ndarray | jax.Array]) -> np.ndarray:
     """(B,) the first non-negative ``diverged_at`` of consecutive pieces, -1 if none."""
     out = np.asarray(diverged_at[0])
     for later in diverged_at[1:]:
@@ -427,10 +428,10 @@ _COMPILE_EVENTS = frozenset({"/jax/core/compile/jaxpr_trace_duration",
                              "/jax/core/compile/backend_compile_duration"})
 
 
-def _on_duration(event: str, duration: float, **_) -> None:
+def _on_duration(event: str, duration_secs: float, **_) -> None:
     if event in _COMPILE_EVENTS:
-        _COMPILES["seconds"] += duration
-        export_cache.count("seconds", duration)
+        _COMPILES["seconds"] += duration_secs
+        export_cache.count("seconds", duration_secs)
 
 
 def _traced() -> None:
@@ -458,14 +459,15 @@ def compile_seconds() -> float:
 def clear_compiled() -> None:
     """Forgets compiled MJX rollouts, so the next rollout re-traces MJX's (possibly patched) Python code."""
     export_cache.clear()
-    _rollout.clear_cache()
-    _resync_rollout.clear_cache()
-    forward.clear_cache()
+    # jax's JitWrapped protocol leaves out the clear_cache every jitted function has
+    _rollout.clear_cache()  # pyright: ignore[reportAttributeAccessIssue]
+    _resync_rollout.clear_cache()  # pyright: ignore[reportAttributeAccessIssue]
+    forward.clear_cache()  # pyright: ignore[reportAttributeAccessIssue]
 
 
 def _contact_count(dx: mjx.Data) -> jax.Array:
-    impl = dx._impl
-    c = impl.contact
+    impl = dx._impl  # noqa: SLF001 - MJX's contacts
+    c = impl.contact  # pyright: ignore[reportAttributeAccessIssue] - the JAX implementation's Data
     if c.dist.shape[0] == 0:
         return jnp.zeros((), jnp.int32)
     return jnp.sum(c.dist < c.includemargin)
@@ -870,4 +872,5 @@ def _trajectory(rec: dict[str, np.ndarray], batch: int, steps: int) -> Trajector
     return Trajectory(qpos=rec["qpos"], qvel=rec["qvel"], act=rec["act"],
                       sensordata=rec["sensordata"], time=rec["time"], ncon=rec["ncon"].astype(np.int64),
                       energy=rec.get("energy", np.zeros((batch, steps, 0))),
-                      diverged_at=_first_true(nonfinite))
+                      # numpy's stubs type .all(axis) as maybe a scalar
+                      diverged_at=_first_true(nonfinite))  # pyright: ignore[reportArgumentType]

@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
 import jax
+import jax.core
 import numpy as np
 from jax import export
 
@@ -48,7 +49,8 @@ __all__ = ["bind", "call", "check", "clear", "code_digest", "count", "events", "
 # (arguments' key, whole-code digest, options key) -> (output tree structure, compiled call of an
 # Exported, what the options chose)
 _FUNCTIONS: dict[tuple[str, str, str], tuple[Any, Callable, Any]] = {}
-_KEY_LOCKS: dict[tuple[str, str, str], threading.Lock] = {}  # one per key: threads binding the same function compile it once
+# one per key: threads binding the same function compile it once
+_KEY_LOCKS: dict[tuple[str, str, str], threading.Lock] = {}
 _KEY_LOCKS_GUARD = threading.Lock()
 _LOCAL = threading.local()
 
@@ -323,7 +325,7 @@ def rollout_digest() -> str:
 
 def export_dir() -> Path | None:
     """Where artifacts live: ``mjxdiff-exports`` in JAX's compilation cache dir; None when that is off."""
-    cache = jax.config.jax_compilation_cache_dir
+    cache = jax.config.jax_compilation_cache_dir  # pyright: ignore[reportAttributeAccessIssue] - jax's Config
     if not cache or "://" in str(cache):
         return None
     return Path(cache) / "mjxdiff-exports"
@@ -369,7 +371,8 @@ def _harness() -> str:
 def _key(fn: Callable, treedef, leaves: list, static: dict[str, Any], code: str) -> str:
     h = hashlib.sha256()
     _structure(treedef, h)
-    for part in (FORMAT, _harness(), code, fn.__module__, fn.__qualname__, sorted((k, repr(v)) for k, v in static.items()),
+    for part in (FORMAT, _harness(), code, fn.__module__, fn.__qualname__,
+                 sorted((k, repr(v)) for k, v in static.items()),
                  [(x.shape, str(x.dtype), str(getattr(x, "sharding", None))) for x in leaves]):
         h.update(repr(part).encode())
     return h.hexdigest()
@@ -386,7 +389,7 @@ def _key_of(fn: Callable, treedef, leaves: list, static: dict[str, Any], code: s
     return _KEYS[memo]
 
 
-_SEEN = {"digest": None}
+_SEEN: dict[str, str | None] = {"digest": None}
 
 
 def fresh_digest() -> str:
@@ -530,7 +533,8 @@ def _owners() -> dict[int, tuple[types.CodeType, tuple[str, str]]]:
                         if isinstance(fn, types.FunctionType) and fn.__code__.co_filename.startswith("<"):
                             own(fn.__code__, (name, "*"))
                 # lambdas and partials in dispatch tables
-                items = list(value.values()) if isinstance(value, dict) else value if isinstance(value, (list, tuple)) else ()
+                items = (list(value.values()) if isinstance(value, dict)
+                         else value if isinstance(value, (list, tuple)) else ())
                 for item in items:
                     for part in (item if isinstance(item, tuple) else (item,)):
                         fn = _unwrap(part.func if isinstance(part, functools.partial) else part)
@@ -559,7 +563,10 @@ def _ignored_roots() -> tuple[str, ...]:
 
     import jaxlib
 
-    roots = {os.path.dirname(m.__file__) for m in (jax, jaxlib, np)}
+    roots = set()
+    for m in (jax, jaxlib, np):
+        assert m.__file__ is not None  # regular packages, not namespace ones
+        roots.add(os.path.dirname(m.__file__))
     roots |= {sysconfig.get_path(k) for k in ("stdlib", "platstdlib")} | {os.path.dirname(os.__file__)}
     return tuple(sorted(r.rstrip(os.sep) + os.sep for r in roots if r))
 
@@ -1200,7 +1207,7 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
             chosen, choice = options(_Lowered(lowered, artifact)) if options is not None else ({}, None)
             try:
                 compiled = lowered.compile(compiler_options=chosen or None)
-            except Exception as e:  # noqa: BLE001 - e.g. an option this XLA does not know: its defaults
+            except Exception as e:  # e.g. an option this XLA does not know: its defaults
                 if not chosen:
                     raise
                 compiled = lowered.compile()

@@ -14,11 +14,12 @@ tangent space, qvel, act) as MuJoCo's ``mjd_transitionFD`` defines it, are compu
 largest such change in the same row, that output's noise) plus roundoff,
 ``1e-15 x (1 + |x'|) / (EPS/10)``, plus ``1e-9 x (1 + |A|)``; an entry fails when
 ``|A_mjx - A_c(EPS/10)|`` exceeds it plus ``RTOL x max(|A_mjx|, |A_c|)`` (implementation
-differences the forward sweep accepts, such as where a contact point sits). **Non-smooth states**: where the constraint set (which
-contacts and limits are active, and each row's state) differs anywhere in the FD stencil, the
-dynamics are not differentiable there; such states are reported as ``non-smooth`` and not
-judged. Models with constraints are compared with a converged solver on both sides (a solver
-stopped after a few iterations is differentiated as an iteration, not as the solution).
+differences the forward sweep accepts, such as where a contact point sits).
+**Non-smooth states**: where the constraint set (which contacts and limits are active, and each
+row's state) differs anywhere in the FD stencil, the dynamics are not differentiable there; such
+states are reported as ``non-smooth`` and not judged. Models with constraints are compared with
+a converged solver on both sides (a solver stopped after a few iterations is differentiated as an
+iteration, not as the solution).
 
 **Localise.** The worst entry is named (output and input component with their joints or
 actuators, the state) and, recomputed with constraints disabled on both sides, attributed to
@@ -43,8 +44,9 @@ from mujoco import mjx
 
 from mjxdiff.noise import converge_solver, has_constraints
 
-__all__ = ["EPS", "RTOL", "SMOOTH", "MATRICES", "StateResult", "sample_states", "mjx_jacobians", "mjx_fd", "c_jacobians", "floor", "smooth_at", "judge_state",
-           "check_scenario", "log10_ratios", "replay", "format_state", "format_text"]
+__all__ = ["EPS", "RTOL", "SMOOTH", "MATRICES", "StateResult", "sample_states", "mjx_jacobians", "mjx_fd",
+           "c_jacobians", "floor", "smooth_at", "judge_state", "check_scenario", "log10_ratios", "replay",
+           "format_state", "format_text"]
 
 #: The larger finite-difference step; C is also differenced at EPS / 10.
 EPS = 1e-6
@@ -311,7 +313,7 @@ def smooth_at(m: mujoco.MjModel, state: dict[str, np.ndarray], eps: float = EPS)
 # names and the verdict
 
 
-def _component(m: mujoco.MjModel, i: int, inputs: bool, control: bool = False) -> str:
+def _component(m: mujoco.MjModel, i: int | np.integer, inputs: bool, control: bool = False) -> str:
     """Name of row/column ``i`` of A (state) or of a column of B (``control``)."""
     def joint_of(dof):
         j = int(m.dof_jntid[dof])
@@ -326,10 +328,11 @@ def _component(m: mujoco.MjModel, i: int, inputs: bool, control: bool = False) -
     if i < 2 * m.nv:
         return f"qvel of joint {joint_of(i - m.nv)}"
     a = i - 2 * m.nv
-    return f"act of actuator '{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, int(m.actuator_actadr.tolist().index(a)) if a in m.actuator_actadr else a) or a}'"
+    actuator = int(m.actuator_actadr.tolist().index(a)) if a in m.actuator_actadr else a
+    return f"act of actuator '{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, actuator) or a}'"
 
 
-def _sensor(m: mujoco.MjModel, i: int) -> str:
+def _sensor(m: mujoco.MjModel, i: int | np.integer) -> str:
     """Name of sensordata entry ``i``: the sensor, its type and (several components) which one."""
     k = int(np.searchsorted(m.sensor_adr, i, side="right")) - 1
     name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SENSOR, k) or f"#{k}"
@@ -362,7 +365,7 @@ def _ratios(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | None) -
 ENTRIES = 5
 
 
-def _describe(m: mujoco.MjModel, name: str, i: int, j: int) -> dict[str, Any]:
+def _describe(m: mujoco.MjModel, name: str, i: int | np.integer, j: int | np.integer) -> dict[str, Any]:
     sensors, control = next((s, c) for n, s, c in MATRICES if n == name)
     return dict(matrix=name, row=int(i), column=int(j), output=_sensor(m, i) if sensors else _component(m, i, False),
                 input=_component(m, j, True, control=control))
@@ -424,7 +427,8 @@ def judge_state(m: mujoco.MjModel, state: dict[str, np.ndarray], index: int = 0,
     jumps = _jumps(ratios, fd)
     if all(not (r > 1)[~jumps[name]].any() for name, (r, *_) in ratios.items()):
         reason = (f"MJX's forward jumps inside the stencil (C's does not): its own finite differences of "
-                  f"d {worst['output']} / d {worst['input']} are {fd[worst['matrix']][1][worst['row'], worst['column']]:.4g} "
+                  f"d {worst['output']} / d {worst['input']} are "
+                  f"{fd[worst['matrix']][1][worst['row'], worst['column']]:.4g} "
                   f"at {EPS:g} and {fd[worst['matrix']][0][worst['row'], worst['column']]:.4g} at {EPS / 10:g}")
         return StateResult(index, member, step, "non-smooth", ratio, dict(worst, reason=reason))
     kept = {name: (np.where(jumps[name], 0.0, r), *rest) for name, (r, *rest) in ratios.items()}
@@ -436,8 +440,9 @@ def judge_state(m: mujoco.MjModel, state: dict[str, np.ndarray], index: int = 0,
         free.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
         unconstrained = _ratios(free, state, code)[worst["matrix"]][0][worst["row"], worst["column"]]
         part = "constraint" if unconstrained <= 1 else "smooth dynamics"
-    return StateResult(index, member, step, "fail", ratio, dict(worst, part=part, kind=kind,
-                                                               mjx_fd=float(fd[worst["matrix"]][1][worst["row"], worst["column"]])))
+    return StateResult(index, member, step, "fail", ratio,
+                       dict(worst, part=part, kind=kind,
+                            mjx_fd=float(fd[worst["matrix"]][1][worst["row"], worst["column"]])))
 
 
 def sample_states(scenario, m: mujoco.MjModel, count: int, seed: int = 0, steps: int | None = None
@@ -492,7 +497,8 @@ def check_scenario(scenario, count: int = 8, seed: int = 0, reproducers=None) ->
         _jacobian_fn.cache_clear()
         _values_fn.cache_clear()
     code = export_cache.code_digest()
-    results, judged_at = [], []
+    results: list[StateResult] = []
+    judged_at: list[tuple[mujoco.MjModel, dict[str, np.ndarray]]] = []
     try:
         with jax.enable_x64(True):
             for i, (mi, member, step, state) in enumerate(states):

@@ -260,7 +260,7 @@ def sweep(scenarios: Sequence[Scenario], config, limits: Limits | None = None, p
 
 
 def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limits, watch: _Watch,
-               lock: threading.Lock, names: list[str], digest: str, cache_dir, devices, progress: bool,
+               lock: threading.Lock, names: list[str], digest: str, cache_dir, devices, progress: bool | None,
                t0: float, deliver: Callable[[], None]) -> str:
     """One child process sweeping ``scenarios`` (their indices in the whole sweep: ``index``),
     until it finishes or is killed. Returns ``done``, ``stopped`` (a scenario ended by a limit;
@@ -275,6 +275,7 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
     stream = os.fdopen(read, "rb")
     threading.Thread(target=_read_messages, args=(stream, inbox), daemon=True).start()
     threading.Thread(target=_read_stderr, args=(proc.stderr, watch, lock), daemon=True).start()
+    assert proc.stdin is not None  # stdin=PIPE
     pickle.dump(dict(scenarios=scenarios, config=config, names=names, cache_dir=cache_dir, devices=devices,
                      progress=False), proc.stdin)
     proc.stdin.close()
@@ -395,7 +396,7 @@ def _kill(proc: subprocess.Popen) -> None:
     proc.wait()
 
 
-def _say(progress: bool, i: int, finished: int, n: int, name: str, flight: _Flight, t0: float,
+def _say(progress: bool | None, i: int, finished: int, n: int, name: str, flight: _Flight, t0: float,
          heartbeat: bool = False) -> None:
     """A progress line on stderr: the scenario, its phase, and for a long compile the estimate as ETA."""
     if not progress:
@@ -405,7 +406,8 @@ def _say(progress: bool, i: int, finished: int, n: int, name: str, flight: _Flig
     now = time.monotonic()
     text = flight.phase
     if flight.phase == "estimated":
-        costly = (flight.estimate.get("compile_s") or 0) >= LONG_S or (flight.estimate.get("member_bytes") or 0) >= 2**28
+        costly = ((flight.estimate.get("compile_s") or 0) >= LONG_S
+                  or (flight.estimate.get("member_bytes") or 0) >= 2**28)
         if not costly:
             return
         text = flight.estimate.get("line") or text

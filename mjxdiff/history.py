@@ -97,8 +97,9 @@ def rows(doc: dict[str, Any], run_id: str | None = None, time: _dt.datetime | No
             out.append(dict(base, field="", max_error=None, tolerance=None, ratio=None, first_step=None,
                             envelope=None))
         for name, f in fields.items():
-            out.append(dict(base, field=name, max_error=_float(f.get("max_error")), tolerance=_float(f.get("tolerance")),
-                            ratio=_float(f.get("ratio")), first_step=f.get("first_step"),
+            out.append(dict(base, field=name, max_error=_float(f.get("max_error")),
+                            tolerance=_float(f.get("tolerance")), ratio=_float(f.get("ratio")),
+                            first_step=f.get("first_step"),
                             envelope=_float(f.get("envelope"))))
     return out
 

@@ -116,7 +116,8 @@ def render(doc: dict[str, Any], out_dir: str | Path | None = None, plots: str = 
     parts.append(f"<p><b>{_e(s.get('verdict', ''))}</b>: {s.get('total', 0)} scenarios, {s.get('pass', 0)} pass, "
                  f"{s.get('fail', 0)} fail, {s.get('unsupported', 0)} unsupported, {s.get('error', 0)} error; "
                  f"pass rate {_num(s.get('pass_rate')):.0%}. mujoco {_e(v.get('mujoco'))}, mujoco-mjx "
-                 f"{_e(v.get('mujoco-mjx'))}, jax {_e(v.get('jax'))}; MJX code {_e(doc.get('code', {}).get('mjx', ''))[:12]}; "
+                 f"{_e(v.get('mujoco-mjx'))}, jax {_e(v.get('jax'))}; "
+                 f"MJX code {_e(doc.get('code', {}).get('mjx', ''))[:12]}; "
                  f"seed {_e(doc.get('config', {}).get('seed'))}.</p>")
     if scenarios:
         parts.append(f"<h2>Pass rate per scenario</h2><img alt='pass rate per scenario' "
@@ -210,6 +211,7 @@ def heatmap(name: str, state: int, matrices: dict[str, list[list[float]]]) -> st
         ax.set_xlabel("input", fontsize=8)
         ax.set_ylabel("output", fontsize=8)
         ax.tick_params(labelsize=7)
+    assert image is not None  # subplots refuses zero columns: some matrix was drawn
     fig.colorbar(image, ax=list(axes[0]), label="log10 |MJX - C| / floor")
     fig.suptitle(f"{name}: state {state}", fontsize=10)
     return _png(fig)
@@ -229,7 +231,8 @@ def render_grad(doc: dict[str, Any], out_dir: str | Path | None = None) -> str:
              "differences</h1>",
              f"<p>{len(rows)} scenarios: " + ", ".join(f"{n} {k}" for k, n in counts.items()) +
              f". mujoco {_e(v.get('mujoco'))}, mujoco-mjx {_e(v.get('mujoco-mjx'))}, jax {_e(v.get('jax'))}; "
-             f"seed {_e(doc.get('config', {}).get('seed'))}, {_e(doc.get('config', {}).get('states'))} states each.</p>",
+             f"seed {_e(doc.get('config', {}).get('seed'))}, "
+             f"{_e(doc.get('config', {}).get('states'))} states each.</p>",
              "<table><tr><th>scenario</th><th>status</th><th>smooth</th><th>non-smooth</th>"
              "<th>worst ratio to floor</th><th>seconds</th></tr>"]
     for r in rows:
@@ -241,10 +244,12 @@ def render_grad(doc: dict[str, Any], out_dir: str | Path | None = None) -> str:
     for r in rows:
         if r["status"] in ("pass",) and not r.get("heatmap"):
             continue
-        parts.append(f"<h2 id='{_e(r['name'])}'>{_e(r['name'])}: {_e(r['status'])}</h2><pre>{_e(r.get('message', ''))}</pre>")
+        parts.append(f"<h2 id='{_e(r['name'])}'>{_e(r['name'])}: {_e(r['status'])}</h2>"
+                     f"<pre>{_e(r.get('message', ''))}</pre>")
         h = r.get("heatmap")
         if h:
-            parts.append(f"<img alt='{_e(r['name'])} Jacobian error map' src='{heatmap(r['name'], h['state'], h['log10_ratio'])}'>")
+            parts.append(f"<img alt='{_e(r['name'])} Jacobian error map' "
+                         f"src='{heatmap(r['name'], h['state'], h['log10_ratio'])}'>")
         if r.get("reproducer"):
             href = os.path.relpath(r["reproducer"], out_dir) if out_dir else r["reproducer"]
             parts.append(f"<p>reproducer: <a href='{_e(Path(href).as_posix())}'>{_e(href)}</a> "

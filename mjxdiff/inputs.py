@@ -69,7 +69,10 @@ class BatchedInputs:
 
     def take(self, members) -> "BatchedInputs":
         """The members selected by ``members`` (a slice or index array), keeping their identities."""
-        pick = lambda x: np.asarray(x)[members]
+
+        def pick(x):
+            return np.asarray(x)[members]
+
         ids = pick(self.ids)
         return dataclasses.replace(
             self, qpos=pick(self.qpos), qvel=pick(self.qvel), act=pick(self.act), ctrl=pick(self.ctrl),
@@ -88,7 +91,10 @@ class BatchedInputs:
 
     def concat(self, other: "BatchedInputs") -> "BatchedInputs":
         """These members followed by ``other``'s (same model structure, steps and ``energy``)."""
-        join = lambda a, b: np.concatenate([np.asarray(a), np.asarray(b)])
+
+        def join(a, b):
+            return np.concatenate([np.asarray(a), np.asarray(b)])
+
         return dataclasses.replace(
             self, qpos=join(self.qpos, other.qpos), qvel=join(self.qvel, other.qvel), act=join(self.act, other.act),
             ctrl=join(self.ctrl, other.ctrl), models=self.models + other.models,
@@ -200,6 +206,7 @@ def settable(m: mujoco.MjModel, key: str) -> tuple[tuple[int, ...], Setter]:
     if value is None or isinstance(value, (bool, int)) or key in ("opt.timestep", "opt.gravity"):
         raise ScenarioError(f"{where}: not a floating-point model field or option (timestep and gravity are "
                             "[randomize.scale] parameters)")
+    assert match is not None  # value, not None, was read through it
     if isinstance(value, float):
         if match[3] is not None:
             raise ScenarioError(f"{where}: '{match[2]}' is a scalar, it has no columns")

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import mujoco
 import numpy as np
@@ -77,7 +77,8 @@ _PASSIVE_FLAGS = ("known divergence: MJX 3.17's passive() returns no passive for
                   "(tests/test_known_divergences.py)")
 GROUPS: tuple[Group, ...] = (
     Group("constraint solver", "model", (
-        Factor("opt.cone", ("pyramidal", "elliptic"), "constraint.py:_instantiate_contact, solver.py:_update_constraint"),
+        Factor("opt.cone", ("pyramidal", "elliptic"),
+               "constraint.py:_instantiate_contact, solver.py:_update_constraint"),
         Factor("opt.solver", ("CG", "Newton"), "solver.py:solve"),
         Factor("opt.impratio", ("1", "above 1"), "constraint.py:make_efc (friction regularisation)"),
         Factor("flag.warmstart", ("on", "off"), "solver.py:solve (qacc_warmstart)"),
@@ -135,7 +136,7 @@ GROUPS: tuple[Group, ...] = (
         Factor("sensor.reftype", ("none", "body", "xbody", "geom", "site"), "sensor.py:sensor_pos/sensor_vel"),
         Factor("ref.frame", ("none", "identity", "rotated"), "sensor.py (xmatref.T @ ...)"),
     ), infeasible=tuple(
-        [(f"sensor.type", k, "sensor.reftype", r, "MJCF has no reference frame for acceleration frame sensors")
+        [("sensor.type", k, "sensor.reftype", r, "MJCF has no reference frame for acceleration frame sensors")
          for k in ("framelinacc", "frameangacc") for r in ("body", "xbody", "geom", "site")]
         + [("sensor.type", k, "ref.frame", r, "MJCF has no reference frame for acceleration frame sensors")
            for k in ("framelinacc", "frameangacc") for r in ("identity", "rotated")]
@@ -158,7 +159,7 @@ GROUPS: tuple[Group, ...] = (
         Factor("eq.solref", ("default", "custom", "unsafe"), "constraint.py:_kbi (refsafe clamps timeconst < 2 dt)"),
         Factor("flag.refsafe", ("on", "off"), "constraint.py:_kbi"),
     ), infeasible=tuple(
-        (f"eq.type", t, f, "*", "active connect and weld rows: C 4.0 and MJX 3.17 compute efc_aref differently "
+        ("eq.type", t, f, "*", "active connect and weld rows: C 4.0 and MJX 3.17 compute efc_aref differently "
          "(known divergence, scenarios/equality.toml notes), so no sweep can judge them")
         for t in ("connect", "weld") for f in ("eq.solref", "flag.refsafe"))),
     Group("joint limits", "joint", (
@@ -229,16 +230,16 @@ class Observed:
 
 
 def _ref_xmat(m: mujoco.MjModel, d: mujoco.MjData, reftype: int, refid: int) -> np.ndarray | None:
-    O = mujoco.mjtObj
-    if reftype == int(O.mjOBJ_BODY):
+    Obj = mujoco.mjtObj
+    if reftype == int(Obj.mjOBJ_BODY):
         return d.ximat[refid]
-    if reftype == int(O.mjOBJ_XBODY):
+    if reftype == int(Obj.mjOBJ_XBODY):
         return d.xmat[refid]
-    if reftype == int(O.mjOBJ_GEOM):
+    if reftype == int(Obj.mjOBJ_GEOM):
         return d.geom_xmat[refid]
-    if reftype == int(O.mjOBJ_SITE):
+    if reftype == int(Obj.mjOBJ_SITE):
         return d.site_xmat[refid]
-    if reftype == int(O.mjOBJ_CAMERA):
+    if reftype == int(Obj.mjOBJ_CAMERA):
         return d.cam_xmat[refid]
     return None
 
@@ -301,7 +302,8 @@ _INTEGRATORS = {int(mujoco.mjtIntegrator.mjINT_EULER): "Euler", int(mujoco.mjtIn
 _GAIN = {0: "fixed", 1: "affine", 2: "muscle"}
 _BIAS = {0: "none", 1: "affine", 2: "muscle"}
 _DYN = {0: "none", 1: "integrator", 2: "filter", 3: "filterexact", 4: "muscle"}
-_FRAME_SENSORS = {int(getattr(mujoco.mjtSensor, f"mjSENS_{k.upper()}")): k for k in next(g for g in GROUPS if g.name == "frame sensors").factors[0].levels}
+_FRAME_SENSORS = {int(getattr(mujoco.mjtSensor, f"mjSENS_{k.upper()}")): k
+                  for k in next(g for g in GROUPS if g.name == "frame sensors").factors[0].levels}
 _OBJ = {int(mujoco.mjtObj.mjOBJ_BODY): "body", int(mujoco.mjtObj.mjOBJ_XBODY): "xbody",
         int(mujoco.mjtObj.mjOBJ_GEOM): "geom", int(mujoco.mjtObj.mjOBJ_SITE): "site"}
 
@@ -315,7 +317,10 @@ def rows(m: mujoco.MjModel, seen: Observed) -> dict[str, list[dict[str, str]]]:
                                       "refsafe")}
     integrator = _INTEGRATORS[int(m.opt.integrator)]
     out: dict[str, list[dict[str, str]]] = {g.name: [] for g in GROUPS}
-    present = lambda x: "present" if np.any(x) else "none"
+
+    def present(x):
+        return "present" if np.any(x) else "none"
+
     actuation = m.nu and not m.opt.disableflags & int(dis.mjDSBL_ACTUATION)
     velocity = actuation and np.any(((m.actuator_gaintype == 1) & (m.actuator_gainprm[:, 2] != 0))
                                     | ((m.actuator_biastype == 1) & (m.actuator_biasprm[:, 2] != 0)))
@@ -340,7 +345,8 @@ def rows(m: mujoco.MjModel, seen: Observed) -> dict[str, list[dict[str, str]]]:
             "actuator.ctrllimited": "yes" if m.actuator_ctrllimited[a] else "no",
             "ctrl": "outside" if a in seen.ctrl_outside else "inside", "flag.clampctrl": flags["clampctrl"],
             "actuator.forcelimited": "yes" if m.actuator_forcelimited[a] else "no",
-            "actuator.actlimited": ("limited" if m.actuator_actlimited[a] else "unlimited") if stateful else "stateless"})
+            "actuator.actlimited": (("limited" if m.actuator_actlimited[a] else "unlimited") if stateful
+                                    else "stateless")})
         out["actuator dynamics"].append({
             "actuator.gaintype": _GAIN.get(int(m.actuator_gaintype[a]), "user"),
             "actuator.biastype": _BIAS.get(int(m.actuator_biastype[a]), "user"),
@@ -353,12 +359,14 @@ def rows(m: mujoco.MjModel, seen: Observed) -> dict[str, list[dict[str, str]]]:
                 continue
             ref = _OBJ.get(int(m.sensor_reftype[s]), "none") if m.sensor_refid[s] >= 0 else "none"
             frame = "none" if ref == "none" else "rotated" if seen.ref_rotated.get(s) else "identity"
-            out["frame sensors"].append({"sensor.type": kind, "sensor.objtype": _OBJ.get(int(m.sensor_objtype[s]), "other"),
+            out["frame sensors"].append({"sensor.type": kind,
+                                         "sensor.objtype": _OBJ.get(int(m.sensor_objtype[s]), "other"),
                                          "sensor.reftype": ref, "ref.frame": frame})
     for k in range(m.ntendon):
         a, b = m.tendon_lengthspring[k]
         spring = "none" if m.tendon_stiffness[k] <= 0 else "range" if b > a else "point"
-        row = {"tendon.type": "fixed" if m.wrap_type[m.tendon_adr[k]] == int(mujoco.mjtWrap.mjWRAP_JOINT) else "spatial",
+        fixed = m.wrap_type[m.tendon_adr[k]] == int(mujoco.mjtWrap.mjWRAP_JOINT)
+        row = {"tendon.type": "fixed" if fixed else "spatial",
                "tendon.spring": spring, "tendon.limited": "yes" if m.tendon_limited[k] else "no",
                "tendon.damping": present(m.tendon_damping[k])}
         for where in sorted(seen.tendon_length.get(k, ())) or [None]:
@@ -370,7 +378,8 @@ def rows(m: mujoco.MjModel, seen: Observed) -> dict[str, list[dict[str, str]]]:
             if kind is None:
                 continue
             if m.eq_active0[e]:
-                out["equality constraints"].append({"eq.type": kind, "eq.solref": _solref(m.eq_solref[e], m.opt.timestep),
+                out["equality constraints"].append({"eq.type": kind,
+                                                    "eq.solref": _solref(m.eq_solref[e], m.opt.timestep),
                                                     "flag.refsafe": flags["refsafe"]})
     if not m.opt.disableflags & int(dis.mjDSBL_LIMIT):
         types = {0: None, 1: "ball", 2: "slide", 3: "hinge"}

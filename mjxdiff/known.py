@@ -75,8 +75,8 @@ class Entry:
 #: scenario notes). Approximations by design first, then bugs; the first matching entry wins.
 CATALOGUE: tuple[Entry, ...] = (
     Entry("solver-truncation", "solver settings capped short of convergence: MJX and C part where each stops",
-          "tests/test_solver_floor.py: a 1-iteration quadruped parts by radians over 200 steps; with a converged solver "
-          "(the twin) and one step from C's states the engines agree to rounding", cause="solver truncation",
+          "tests/test_solver_floor.py: a 1-iteration quadruped parts by radians over 200 steps; with a converged "
+          "solver (the twin) and one step from C's states the engines agree to rounding", cause="solver truncation",
           accepted=True),
     Entry("plane-box-corners", "plane-box/mesh: MJX keeps only corners within 1 mm of the deepest",
           "primitives_on_plane notes: a box that lands on a corner or rocks (> 1 mm depth spread) diverges ~1e-3; "

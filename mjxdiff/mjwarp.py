@@ -45,7 +45,8 @@ def available() -> str | None:
     try:
         import warp
 
-        warp.config.quiet = True  # before mujoco_warp initialises it: no banner
+        # before mujoco_warp initialises it: no banner (warp-lang 1.19 has no such setting any more)
+        warp.config.quiet = True  # pyright: ignore[reportAttributeAccessIssue]
         warp.config.log_level = warp.LOG_WARNING  # no line per module loaded
         import mujoco_warp  # noqa: F401
     except Exception as e:  # noqa: BLE001 - any import failure means: not usable here
@@ -58,8 +59,8 @@ def kernel_cache_dir() -> Path:
     ``$MJXDIFF_CACHE`` or ``~/.cache/mjxdiff/jax``), else ``~/.cache/mjxdiff/jax/warp``."""
     import jax
 
-    base = jax.config.jax_compilation_cache_dir or os.environ.get("MJXDIFF_CACHE") or \
-        str(Path.home() / ".cache" / "mjxdiff" / "jax")
+    base = (jax.config.jax_compilation_cache_dir  # pyright: ignore[reportAttributeAccessIssue] - jax's Config
+            or os.environ.get("MJXDIFF_CACHE") or str(Path.home() / ".cache" / "mjxdiff" / "jax"))
     return Path(base).expanduser() / "warp"
 
 
@@ -73,7 +74,7 @@ def _init() -> None:
             raise RuntimeError(why)
         import warp as wp
 
-        wp.config.quiet = True
+        wp.config.quiet = True  # pyright: ignore[reportAttributeAccessIssue] - see available()
         wp.config.kernel_cache_dir = str(kernel_cache_dir())
         wp.init()
         _READY = True
@@ -98,7 +99,7 @@ def put_models(models: tuple[mujoco.MjModel, ...]):
 
     import mujoco_warp as mjw
 
-    distinct: dict[int, object] = {}
+    distinct: dict[int, mjw.Model] = {}
     for mi in models:
         if id(mi) not in distinct:
             distinct[id(mi)] = mjw.put_model(mi)
@@ -230,7 +231,8 @@ class MJWarpEngine:
         nonfinite = ~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1)
         return Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"], sensordata=out["sensordata"],
                           time=out["time"], ncon=np.stack(rec["ncon"], axis=1).astype(np.int64),
-                          energy=np.zeros((B, k, 0)), diverged_at=_shifted(_first_true(nonfinite), start))
+                          # numpy's stubs type .all(axis) as maybe a scalar
+                          energy=np.zeros((B, k, 0)), diverged_at=_shifted(_first_true(nonfinite), start))  # pyright: ignore[reportArgumentType]
 
     def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
         """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).

@@ -156,7 +156,8 @@ def has_constraints(m: mujoco.MjModel) -> bool:
     if m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT):
         return False
     colliding = (m.geom_contype | m.geom_conaffinity) != 0
-    contacts = m.npair > 0 or (colliding.sum() > 1 and not m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CONTACT))
+    contacts = m.npair > 0 or (colliding.sum() > 1
+                               and not m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CONTACT))
     return bool(contacts or m.neq or m.jnt_limited.any() or m.tendon_limited.any() or m.dof_frictionloss.any()
                 or m.tendon_frictionloss.any())
 

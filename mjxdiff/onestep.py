@@ -166,7 +166,7 @@ def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine,
     if not healthy.any():
         return dict(out, pairs=0, status="error", message="MuJoCo C goes non-finite from every sampled state")
     own, trunc = _per_pair(nudged, c, layout, mask), _per_pair(c_cfg, c, layout, mask)
-    solver = dict(converged=True, ratio=0.0, field="")
+    solver: dict[str, Any] = dict(converged=True, ratio=0.0, field="")
     for field in FIELDS:
         if trunc[field].shape[-1]:
             bound = _pair_bound(tol, field, own[field])

@@ -72,7 +72,7 @@ def _model_from_b64(text: str) -> mujoco.MjModel:
             f.write(data)
         try:
             return mujoco.MjModel.from_binary_path(path)
-        except Exception as e:
+        except Exception as e:  # noqa: BLE001 - whatever MuJoCo raises becomes a ValueError with its reason
             raise ValueError("; ".join([str(e), *warnings])) from None
     finally:
         mujoco.set_mju_user_warning(previous)

@@ -22,7 +22,8 @@ from typing import Any, Mapping
 import mujoco
 
 __all__ = [
-    "BUNDLED_DIR",
+    # served by the module __getattr__, which neither ruff nor pyright reads for __all__
+    "BUNDLED_DIR",  # noqa: F822  # pyright: ignore[reportUnsupportedDunderAll]
     "BUNDLED_PACKAGE",
     "CONTROL_FAMILIES",
     "DISABLE_FLAGS",

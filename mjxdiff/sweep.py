@@ -17,7 +17,7 @@ import threading
 import time
 import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Callable, Iterable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Generator, Iterable, Iterator, Sequence, TypeVar
 
 import jax
 import mujoco
@@ -30,6 +30,11 @@ from mjxdiff.inputs import BatchedInputs, make_inputs
 from mjxdiff.scenario import Scenario, ScenarioError, Tolerances, load_model
 from mjxdiff.noise import SOLVER_MARGIN, NoiseFloor, combine, converged, has_constraints, perturb
 from mjxdiff.verdict import TRUNCATION, FieldResult, Judge, ScenarioResult, rangefinder_mask
+
+if TYPE_CHECKING:
+    from mjxdiff.mjwarp import MJWarpEngine
+
+_T = TypeVar("_T")
 
 __all__ = ["SweepConfig", "run_scenario", "sweep"]
 
@@ -214,7 +219,7 @@ class _Prepared:
     tol: Tolerances
     info: dict
     config: SweepConfig
-    m: object = None
+    m: mujoco.MjModel | None = None
     inputs: BatchedInputs | None = None
     early: ScenarioResult | None = None
     ahead: dict | None = None
@@ -225,8 +230,8 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
     its batched inputs; bad input, or a plan that cannot fit, becomes its result."""
     batch, steps = config.sizes(scenario)
     tol = scenario.tolerance.for_precision(config.precision)
-    info = dict(batch=batch, steps=steps, model=str(scenario.model), exercises=list(scenario.exercises),
-                notes=scenario.notes)
+    info: dict[str, Any] = dict(batch=batch, steps=steps, model=str(scenario.model),
+                                exercises=list(scenario.exercises), notes=scenario.notes)
     prepared = _Prepared(scenario, tol, info, config)
     t0 = time.perf_counter()
     try:
@@ -266,6 +271,7 @@ def _fit(prepared: _Prepared, batch: int, steps: int) -> tuple[int, int]:
     the batch and horizon to run (a smaller member group goes into ``prepared.config``), or an
     early ``error`` of kind ``budget`` or ``memory`` that says what to do."""
     config, info, m = prepared.config, prepared.info, prepared.m
+    assert m is not None  # _prepare loads the model before planning its run
     if config.impl != "mjx":
         return batch, steps
     est = cost.estimate(m)
@@ -312,13 +318,14 @@ def _refused_by_mjx(m) -> bool:
     return False
 
 
-def _compile_ahead(scenario: Scenario, config: SweepConfig, mjx_engine: MJXEngine) -> _Prepared:
+def _compile_ahead(scenario: Scenario, config: SweepConfig, mjx_engine: MJXEngine | MJWarpEngine) -> _Prepared:
     """:func:`_prepare`, then MJX's rollout of the scenario compiled (best effort: a problem is
     left for the sweep to meet and report); run by a compile worker of :func:`sweep`."""
     t = time.perf_counter()
     with export_cache.tally() as work:
         prepared = _prepare(scenario, config)
         if prepared.early is None:
+            assert prepared.inputs is not None  # a prepared scenario without an early result has its inputs
             groups, chunk = _plan(prepared.m, prepared.inputs, prepared.config, mjx_engine)
             _phase("compiling", estimate_s=prepared.info.get("estimate", {}).get("compile_s"))
             first = prepared.inputs.take(groups[0]) if len(groups) > 1 else prepared.inputs
@@ -327,7 +334,8 @@ def _compile_ahead(scenario: Scenario, config: SweepConfig, mjx_engine: MJXEngin
     return prepared
 
 
-def _finish(prepared: _Prepared, mjx_engine: MJXEngine | None, c_engine: CEngine | None) -> ScenarioResult:
+def _finish(prepared: _Prepared, mjx_engine: MJXEngine | MJWarpEngine | None,
+            c_engine: CEngine | None) -> ScenarioResult:
     """Runs a prepared scenario: both engines, the verdict, a reproducer of a failure."""
     changed = prepared.info.get("plan", {}).get("changed")
     advice = "; ".join(([f"plan: {', '.join(changed)}"] if changed else []) +
@@ -335,9 +343,11 @@ def _finish(prepared: _Prepared, mjx_engine: MJXEngine | None, c_engine: CEngine
     if prepared.early is not None:
         return _advised(prepared.early, advice)
     scenario, m, inputs, tol, config = prepared.scenario, prepared.m, prepared.inputs, prepared.tol, prepared.config
+    assert inputs is not None  # a prepared scenario without an early result has its inputs
     result = _advised(run_inputs(scenario.name, m, inputs, tol, config, mjx_engine, c_engine, prepared.info,
                                  prepared.ahead), advice)
     if result.status == "fail" and config.reproducers is not None:
+        assert result.first_divergence is not None  # a failure names where it starts
         member = result.first_divergence["member"]
         file = f"{report.safe_filename(scenario.name)}-member{member}.json"
         try:
@@ -435,7 +445,8 @@ def member_groups(batch: int, most: int) -> list[np.ndarray]:
     return [idx[i * size:(i + 1) * size] for i in range(n)]
 
 
-def _plan(m, inputs: BatchedInputs, config: SweepConfig, mjx_engine: MJXEngine) -> tuple[list[np.ndarray], int]:
+def _plan(m, inputs: BatchedInputs, config: SweepConfig,
+          mjx_engine: MJXEngine | MJWarpEngine) -> tuple[list[np.ndarray], int]:
     """How the verdict steps ``inputs``: member groups (:func:`member_groups`) and steps per piece."""
     groups = member_groups(inputs.batch, config.group_size or min(group_size(m, inputs.batch), mjx_engine.batch_cap()))
     return groups, config.piece_steps or piece_steps(m, len(groups[0]), inputs.steps)
@@ -456,7 +467,7 @@ def _engine_call(engine: str, seconds: dict[str, float]):
         yield
     except UnsupportedError:
         raise
-    except Exception as e:  # noqa: BLE001 - reported as this scenario's error, the sweep goes on
+    except Exception as e:  # reported as this scenario's error, the sweep goes on
         raise _EngineFailed(engine, e) from e
     finally:
         seconds[engine] = seconds.get(engine, 0.0) + time.perf_counter() - t
@@ -486,7 +497,7 @@ def _rows(x, rows: int | slice):
     return jax.tree.map(lambda a: a[rows], x)
 
 
-def _ahead(items: Iterable, depth: int = 1) -> Iterator:
+def _ahead(items: Iterable, depth: int = 1) -> Generator:
     """The items of ``items``, produced by a background thread at most ``depth`` items ahead of the
     consumer; an exception there is raised here. Closing the generator stops the thread.
 
@@ -516,7 +527,8 @@ def _ahead(items: Iterable, depth: int = 1) -> Iterator:
         except BaseException as e:  # noqa: BLE001 - handed to the consumer
             put((False, e))
 
-    x64 = jax.config.jax_enable_x64  # this thread's setting (thread-local) holds in the producer too
+    # this thread's setting (thread-local) holds in the producer too; jax's Config declares no flags
+    x64 = jax.config.jax_enable_x64  # pyright: ignore[reportAttributeAccessIssue]
 
     def produce_here() -> None:
         with jax.enable_x64(x64):
@@ -556,7 +568,7 @@ class _CPieces:
         self.solver, self.floor = solver, floor
         self._pieces = self._open(floor)
 
-    def _open(self, floor: bool) -> Iterator[tuple[Trajectory, Trajectory | None, Trajectory | None]]:
+    def _open(self, floor: bool) -> Generator[tuple[Trajectory, Trajectory | None, Trajectory | None], None, None]:
         group, stream = self.group, self.c_engine.stream
         if not floor:
             return _ahead((p, None, None) for p in _timed(lambda: stream(group, self.chunk), "c", self.seconds))
@@ -570,7 +582,8 @@ class _CPieces:
     def __next__(self) -> tuple[Trajectory, Trajectory | None, Trajectory | None]:
         return next(self._pieces)
 
-    def start_floor(self, until: int, feed: Callable[[Trajectory, Trajectory, Trajectory | None, int], object]) -> float:
+    def start_floor(self, until: int,
+                    feed: Callable[[Trajectory, Trajectory, Trajectory | None, int], object]) -> float:
         """Restarts with the reruns; ``feed(reference, perturbed, converged, start)`` gets the
         pieces before step ``until``, and the next piece is the one starting there.
         Returns the seconds it took (C's time, mostly)."""
@@ -579,6 +592,7 @@ class _CPieces:
         self._pieces, self.floor, start = self._open(True), True, 0
         while start < until:
             reference, perturbed, solved = next(self)
+            assert perturbed is not None  # opened with the floor just above
             feed(reference, perturbed, solved, start)
             start += reference.time.shape[1]
         return time.perf_counter() - t
@@ -587,9 +601,9 @@ class _CPieces:
         self._pieces.close()
 
 
-def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig, mjx_engine: MJXEngine,
-             c_engine: CEngine, seconds: dict[str, float],
-             solver: bool = False) -> tuple[ScenarioResult, dict[str, int]]:
+def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
+             mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine, seconds: dict[str, Any],
+             solver: bool = False) -> tuple[ScenarioResult, dict[str, Any]]:
     """Streams both engines (and C's perturbed rerun) piece by piece into a :class:`Judge`.
 
     Members run in groups of at most :func:`group_size` (memory) and the MJX
@@ -623,6 +637,7 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
         def feed(reference, perturbed, solved, at):
             """Both floors' envelopes of a piece, and which floor each value came from."""
             reference = _rows(reference, n)
+            assert floor is not None  # fed only when the envelope is on
             envelope = floor.update(_rows(perturbed, n), reference, at, members)
             return combine(envelope, solver_floor and solver_floor.update(_rows(solved, n), reference, at, members))
         # MJX first: its first piece is stepping before C's thread starts
@@ -666,7 +681,7 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
 
 
 def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig = SweepConfig(),
-               mjx_engine: MJXEngine | None = None, c_engine: CEngine | None = None,
+               mjx_engine: MJXEngine | MJWarpEngine | None = None, c_engine: CEngine | None = None,
                info: dict | None = None, ahead: dict | None = None) -> ScenarioResult:
     """Both engines on given inputs, then the verdict (and diagnosis of a failure).
 
@@ -677,7 +692,7 @@ def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Swe
     compile worker did for these inputs beforehand (its :func:`export_cache.tally` and
     ``wall`` seconds), counted in the scenario's compile numbers.
     """
-    engines._ensure_safe_backend()
+    engines._ensure_safe_backend()  # noqa: SLF001 - mjxdiff's own helper
     with _precision(config.precision), export_cache.tally() as work:  # MJX's dtype follows the config
         result = _run_inputs(name, m, inputs, tol, config, mjx_engine, c_engine, info)
     ahead = ahead or {}
@@ -692,13 +707,14 @@ def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Swe
 
 
 def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-                mjx_engine: MJXEngine | None, c_engine: CEngine | None, info: dict | None) -> ScenarioResult:
+                mjx_engine: MJXEngine | MJWarpEngine | None, c_engine: CEngine | None,
+                info: dict | None) -> ScenarioResult:
     info = dict(info or {}, batch=inputs.batch, steps=inputs.steps)
     seconds = info.setdefault("seconds", {})
-    base = dict(name=name, tolerances=tol.as_dict(), info=info)
+    base: dict[str, Any] = dict(name=name, tolerances=tol.as_dict(), info=info)
     mjx_engine, c_engine = mjx_engine or simulator(config), c_engine or CEngine()
     info["impl"] = mjx_engine.name
-    clock: dict[str, float] = {}
+    clock: dict[str, Any] = {}  # seconds per engine and for the verdict, and how far the stepping got
     t0 = time.monotonic()
     try:
         result, counts = _verdict(name, m, inputs, tol, config, mjx_engine, c_engine, clock)
@@ -765,13 +781,15 @@ def _stopped(info: dict, clock: dict[str, float]) -> str:
 def _drill(result: ScenarioResult, inputs: BatchedInputs, traj_c: Trajectory, precision: str,
            impl: str = "mjx") -> diagnose.DrillDown:
     """The stage drill-down at the state before the first divergent step."""
-    member, step = result.first_divergence["member"], result.first_divergence["step"]
+    assert result.first_divergence is not None  # drilled down only for a failure
+    member: int = result.first_divergence["member"]
+    step: int = result.first_divergence["step"]
     return diagnose.drill_down(inputs.models[member], *diagnose.state_before(inputs, traj_c, member, step),
                                precision=precision, member=member, step=step, impl=impl)
 
 
 def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-                  mjx_engine: MJXEngine, c_engine: CEngine, clock: dict[str, float]):
+                  mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine, clock: dict[str, float]):
     """A second look at a failure that starts in the constraint stage (or in no forward stage at
     all, the step's own use of the solver): judged again against the
     larger of the rounding envelope and the solver floor (C against C with a converged solver,
@@ -789,8 +807,9 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
     try:
         traj_c = c_engine.rollout(inputs)
         drill = _drill(result, inputs, traj_c, config.precision, mjx_engine.name)
-        check = dict(first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
-                     margin=SOLVER_MARGIN, status=f"not needed: the divergence starts in the {drill.first_stage} stage")
+        check: dict[str, Any] = dict(
+            first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
+            margin=SOLVER_MARGIN, status=f"not needed: the divergence starts in the {drill.first_stage} stage")
         # None: every stage of one forward agrees, so the difference is in what a step does with
         # them, and under RK4 a step solves the constraints four times, from states the drill-down
         # does not see (control-suite cartpole: 1.9e-6 at step 175, gone with a converged solver)
@@ -802,6 +821,7 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
     except Exception as e:  # noqa: BLE001 - the verdict stands
         return result, traj_c, drill, dict(status=f"could not run: {_one_line(e)}")
     first = result.first_divergence
+    assert first is not None  # a failure names where it starts
     check["status"] = second.status
     gap = result.field(first["field"]) if any(f.field == first["field"] for f in result.fields) else None
     check["first"] = first
@@ -820,7 +840,7 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
 
 
 def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-           mjx_engine: MJXEngine, c_engine: CEngine, traj_c: Trajectory | None,
+           mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine, traj_c: Trajectory | None,
            clock: dict[str, float], info: dict) -> ScenarioResult:
     """The checks that stay sharp where the rollout's verdict cannot: the one-step check
     (:func:`_onestep`, with ``config.onestep``), then, where the rollout's pass was held only by
@@ -848,7 +868,7 @@ def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, co
 
 
 def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-             mjx_engine: MJXEngine, c_engine: CEngine, traj_c: Trajectory | None,
+             mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine, traj_c: Trajectory | None,
              evidence: bool = False) -> tuple[ScenarioResult, dict, Trajectory | None]:
     """``result`` judged again by :func:`mjxdiff.onestep.check` (kept in ``info['onestep']``): a
     failure there fails a passing scenario, naming the field, object, step and (from the stage
@@ -866,8 +886,8 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
         return dataclasses.replace(result, message=f"{result.message}; one-step check could not run: "
                                                    f"{_one_line(e)}"), found, traj_c
     if found["status"] == "error":
-        return dataclasses.replace(result, message=f"{result.message}; one-step check: {found['message']}"), found, traj_c
-    n = found["pairs"]
+        return (dataclasses.replace(result, message=f"{result.message}; one-step check: {found['message']}"),
+                found, traj_c)
     if found["status"] == "pass":  # its own line in the report (mjxdiff.report.format_checks)
         return result, found, traj_c
     member, step = found["member"], found["step"]
@@ -901,7 +921,7 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
 
 
 def _onestep_cause(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, config: SweepConfig,
-                   mjx_engine: MJXEngine, c_engine: CEngine, member: int, step: int) -> dict:
+                   mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine, member: int, step: int) -> dict:
     """:func:`mjxdiff.diagnose.attribute_cause` on the one failing member-state of the one-step
     check: the first ablation under which that one step agrees names the cause. Chaos cannot
     blur it, unlike the rollout's ablations on a model with several differences (a robot)."""
@@ -917,7 +937,8 @@ def _onestep_cause(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances
 
 
 def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-          mjx_engine: MJXEngine, c_engine: CEngine, clock: dict[str, float]) -> tuple[ScenarioResult, dict | None]:
+          mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine,
+          clock: dict[str, float]) -> tuple[ScenarioResult, dict | None]:
     """The converged twin: both engines rerun with a converged solver
     (:func:`mjxdiff.noise.converged`), judged as sharply as any converged scenario (rounding
     envelope, never the solver floor). Returns the result and what the twin found (for
@@ -969,7 +990,8 @@ def _truncation(result: ScenarioResult, m, floor: dict, found: dict, twin: dict 
     parts = [f"solver truncation: your solver settings ({m.opt.iterations} iteration(s), {m.opt.ls_iterations} "
              f"line-search steps, tolerance {m.opt.tolerance:g}) make MJX and C differ by "
              f"{gap.get('error', float('nan')):.3g} in {gap.get('field')} ({gap.get('object') or 'a member'}) over "
-             f"{gap.get('steps')} steps, from step {gap.get('step')} (tolerance {gap.get('tolerance', float('nan')):.0e}"
+             f"{gap.get('steps')} steps, from step {gap.get('step')} "
+             f"(tolerance {gap.get('tolerance', float('nan')):.0e}"
              "; only C's freedom under the same settings, the solver floor, covers it)"]
     if twin and twin.get("worst"):
         w = twin["worst"]
@@ -996,7 +1018,7 @@ def _truncation(result: ScenarioResult, m, floor: dict, found: dict, twin: dict 
 
 
 def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
-              config: SweepConfig, mjx_engine: MJXEngine, c_engine: CEngine,
+              config: SweepConfig, mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine,
               traj_c: Trajectory | None = None, drill: diagnose.DrillDown | None = None) -> ScenarioResult:
     """Adds local error, the stage drill-down and (``full``) the likely cause to a failing verdict;
     ``traj_c`` (C's whole rollout) and ``drill`` when already computed.
@@ -1009,7 +1031,7 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
     notes: list[str] = []
     message = result.message
 
-    def attempt(label: str, fn: Callable[[], object]):
+    def attempt(label: str, fn: Callable[[], _T]) -> _T | None:
         try:
             if _out_of_time(rerun=True):  # each part compiles MJX functions of its own
                 raise BudgetSpent()

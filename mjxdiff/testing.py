@@ -33,8 +33,9 @@ class MJXMismatch(AssertionError):
         self.result = result
 
 
-def _batch(x: np.ndarray | None, default: np.ndarray, ndim: int) -> np.ndarray:
+def _batch(x: np.ndarray | None, default: np.ndarray | None, ndim: int) -> np.ndarray:
     x = default if x is None else np.asarray(x, dtype=np.float64)
+    assert x is not None, "neither a value nor a default"
     return x[None] if x.ndim == ndim else x
 
 

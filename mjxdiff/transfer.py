@@ -128,6 +128,7 @@ def _get_data(m: mujoco.MjModel, d: mujoco.MjData, dx: Any, rtol: float, out: li
     from mujoco.mjx._src import types
 
     back = mjx.get_data(m, dx)
+    assert isinstance(back, mujoco.MjData)  # one Data, not a batch
     n = 0
     for f in types.Data.fields():
         if f.name == "_impl" or not hasattr(d, f.name):
@@ -179,7 +180,8 @@ def _state(m: mujoco.MjModel, d: mujoco.MjData, mx: Any, dx: Any, blank: Any, rt
 
     compare("get_state(SPEC)", mjx.get_state(mx, dx, spec))
     # set_state into data that holds none of it: get_state must then give C's state back
-    put = mjx.set_state(mx, blank, np.asarray(state_c, np.asarray(dx.qpos).dtype), spec)
+    # MJX annotates a jax.Array; it takes numpy's as any jax function does
+    put = mjx.set_state(mx, blank, np.asarray(state_c, np.asarray(dx.qpos).dtype), spec)  # pyright: ignore[reportArgumentType]
     compare("get_state(set_state(SPEC))", mjx.get_state(mx, put, spec))
     return n + 2
 

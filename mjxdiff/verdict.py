@@ -33,8 +33,8 @@ from mjxdiff.engines import Trajectory, first_diverged
 from mjxdiff.noise import FLOORS, NoiseFloor, noise_floor
 from mjxdiff.scenario import Tolerances
 
-__all__ = ["FieldResult", "Judge", "ScenarioResult", "judge", "error_series", "downsample", "OUTLIER_RATIO", "SERIES_POINTS",
-           "STATUSES"]
+__all__ = ["FieldResult", "Judge", "ScenarioResult", "judge", "error_series", "downsample", "OUTLIER_RATIO",
+           "SERIES_POINTS", "STATUSES"]
 
 STATUSES = ("pass", "fail", "unsupported", "error")
 #: A healthy member whose error exceeds its bound by more than this factor fails the scenario
@@ -157,7 +157,10 @@ def _name(m: mujoco.MjModel, obj: mujoco.mjtObj, i: int) -> str:
 
 def component_objects(m: mujoco.MjModel, layout: metrics.QposLayout) -> dict[str, list[str]]:
     """For each compared field, the MuJoCo object each column belongs to."""
-    jnt = lambda j: f"joint '{_name(m, mujoco.mjtObj.mjOBJ_JOINT, j)}'"
+
+    def jnt(j):
+        return f"joint '{_name(m, mujoco.mjtObj.mjOBJ_JOINT, j)}'"
+
     qpos = [jnt(j) for j in metrics.qpos_error_joint_ids(layout)]
     qvel = [jnt(j) for j in m.dof_jntid]
     sens = []
@@ -215,8 +218,9 @@ class _FieldTrack:
         self.batch_bound = np.zeros(steps)
         self.sumsq, self.count = 0.0, 0
 
-    def update(self, err: np.ndarray, bound: np.ndarray, time: np.ndarray, start: int, members: np.ndarray,
-               healthy: np.ndarray, floor: np.ndarray | None = None, values: np.ndarray | None = None) -> None:
+    def update(self, err: np.ndarray, bound: np.ndarray, time: np.ndarray | jax.Array, start: int,
+               members: np.ndarray, healthy: np.ndarray, floor: np.ndarray | None = None,
+               values: np.ndarray | None = None) -> None:
         """Adds (b, K, n) errors against (b, K) bounds; ``floor`` (b, K) says which of
         :data:`FLOORS` each bound is (the tolerance when None); ``values`` (b, K, m) are C's
         values in the error's units, for the field's scale."""
@@ -287,7 +291,7 @@ class _FractionTrack:
         self.first_step = np.full(batch, -1)
         self.first_time = np.zeros(batch)
 
-    def update(self, mismatch: np.ndarray, time: np.ndarray, start: int, members: np.ndarray) -> None:
+    def update(self, mismatch: np.ndarray, time: np.ndarray | jax.Array, start: int, members: np.ndarray) -> None:
         """Adds a piece of (b, K) mismatch per step, in [0, 1]."""
         out = mismatch > 0
         k = out.argmax(axis=1)
@@ -313,7 +317,7 @@ class _FractionTrack:
                            float(allowed.max()) if np.any(allowed > self.tol) else 0.0, float(ratio.max()))
 
 
-def _nonfinite_fields(traj: Trajectory, row: int, k: int) -> list[str]:
+def _nonfinite_fields(traj: Trajectory, row: int | np.integer, k: int) -> list[str]:
     """The recorded fields of ``traj`` holding a non-finite value at row ``row``, step ``k``
     of the piece (empty for a stop on a MuJoCo instability warning with a finite state)."""
     if not 0 <= k < traj.qpos.shape[1]:
@@ -321,7 +325,7 @@ def _nonfinite_fields(traj: Trajectory, row: int, k: int) -> list[str]:
     return [f for f in _SERIES if not np.isfinite(np.asarray(getattr(traj, f))[row, k]).all()]
 
 
-def _track(m: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
+def _track(m: mujoco.MjModel, qpos: np.ndarray | jax.Array) -> np.ndarray | jax.Array:
     """(B, T, k) positions whose behaviour is summarised: the first free joint's
     translation if there is one, else every hinge/slide coordinate."""
     free = np.flatnonzero(m.jnt_type == mujoco.mjtJoint.mjJNT_FREE)
@@ -353,7 +357,8 @@ class _BehaviourTrack:
         self.energy = np.zeros((batch, 3))  # first total, last total, sum |total|
         self.has_energy = False
 
-    def update(self, pos: np.ndarray, energy: np.ndarray, start: int, members: np.ndarray, dt: float) -> None:
+    def update(self, pos: np.ndarray | jax.Array, energy: np.ndarray | jax.Array, start: int, members: np.ndarray,
+               dt: float) -> None:
         if start == 0:
             self.first[members] = pos[:, 0]
         else:
@@ -516,7 +521,8 @@ class Judge:
             step = max(f.first_step, 0)
             time = None
             if f.member >= 0:  # C's time after that step
-                track = {"contacts": self.contacts, "rangefinder": self.rangefinder}.get(f.field) or self.fields[f.field]
+                track = ({"contacts": self.contacts, "rangefinder": self.rangefinder}.get(f.field)
+                         or self.fields[f.field])
                 exact = track.first_step[f.member] == step
                 time = float(track.first_time[f.member]) if exact else round((step + 1) * dt, 9)
             first = dict(field=f.field, step=step, time=time, member=f.member, object=f.object,
@@ -539,6 +545,7 @@ class Judge:
                 message += (f"; first out of bound: {first['field']} of {first['object'] or 'member'} "
                             f"at step {first['step']}, member {first['member']}")
         elif failed:
+            assert first is not None  # set above for the first of the failed fields
             status = "fail"
             where = "leaves the envelope" if noise is not None else f"exceeds {first['tolerance']:.1e}"
             message = (f"{first['field']} of {first['object'] or 'member ' + str(first['member'])} {where} "

@@ -262,13 +262,15 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 scene = _assemble(r, dest, trees)
                 miss = [p for p in missing.get(MENAGERIE.name, []) if p.startswith(r.menagerie_dir + "/")]
-                miss += [p for p in missing.get(PLAYGROUND.name, []) if r.playground_dir and p.startswith(r.playground_dir + "/")]
+                miss += [p for p in missing.get(PLAYGROUND.name, [])
+                         if r.playground_dir and p.startswith(r.playground_dir + "/")]
                 rec.update(scene=str(scene), missing=miss, **_check(scene))
                 ready = scene.exists() and rec.get("loads", not miss)
                 rec["status"] = "ok" if ready else "not-ready"
             ok &= rec["status"] == "ok"
             results.append(rec)
-            detail = rec.get("scene", "") if rec["status"] == "ok" else rec.get("error") or rec.get("reason") or rec.get("missing")
+            detail = (rec.get("scene", "") if rec["status"] == "ok"
+                      else rec.get("error") or rec.get("reason") or rec.get("missing"))
             print(f"{r.name}\t{r.kind}\t{rec['status']}\t{detail}")
     (dest / "robots.json").write_text(json.dumps(results, indent=1) + "\n")
     return 0 if ok else 1

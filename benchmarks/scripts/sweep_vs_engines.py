@@ -4,7 +4,9 @@ python benchmarks/scripts/sweep_vs_engines.py BATCH STEPS SCENARIO [SCENARIO ...
 engines: CEngine.rollout + MJXEngine.rollout of each scenario's inputs; verify: run_inputs on
 the same inputs (both engines, C's perturbed rerun on demand, metrics, verdict); sweep: run_scenario
 (also loads the model and draws the inputs)."""
-import sys, time
+import sys
+import time
+
 from mjxdiff import engines
 from mjxdiff.inputs import make_inputs
 from mjxdiff.scenario import load_model, load_scenario

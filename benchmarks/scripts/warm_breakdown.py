@@ -1,5 +1,12 @@
-"""Compile seconds of one ant sweep (batch 64, 100 steps) by JAX event: trace, lowering, XLA compile or cache load. python benchmarks/scripts/warm_breakdown.py CACHE_DIR (run after compile_once.py has warmed CACHE_DIR)."""
-import sys, time, jax
+"""Compile seconds of one ant sweep (batch 64, 100 steps) by JAX event: trace, lowering, XLA compile or cache load.
+
+python benchmarks/scripts/warm_breakdown.py CACHE_DIR (run after compile_once.py has warmed CACHE_DIR).
+"""
+import sys
+import time
+
+import jax
+
 from mjxdiff import engines
 from mjxdiff.scenario import load_scenario
 from mjxdiff.sweep import SweepConfig, run_scenario
