@@ -386,15 +386,16 @@ def _data_fields(m: mujoco.MjModel) -> tuple[str, ...]:
 
     d, dx = mujoco.MjData(m), mjx.make_data(m)
     out = []
-    for f in types.Data.fields() + types.DataJAX.fields():
-        if f.name in ("_impl", "contact") or not hasattr(d, f.name):
+    impl = dx._impl  # noqa: SLF001
+    # each field from where it lives: a DataJAX field read through Data is deprecated (and warns)
+    fields = [(f.name, dx) for f in types.Data.fields()] + [(f.name, impl) for f in types.DataJAX.fields()]
+    for name, holder in fields:
+        if name in ("_impl", "contact") or not hasattr(d, name):
             continue
-        c = getattr(d, f.name)
-        x = getattr(dx, f.name, None)
-        if x is None:
-            x = getattr(dx._impl, f.name, None)  # noqa: SLF001
+        c = getattr(d, name)
+        x = getattr(holder, name, None)
         if isinstance(c, np.ndarray) and x is not None and np.shape(x) == c.shape and c.dtype.kind == "f":
-            out.append(f.name)
+            out.append(name)
     return tuple(out)
 
 

@@ -19,9 +19,12 @@ settings.register_profile("ci", deadline=None, max_examples=10, derandomize=True
                           suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "dev"))
 
-# One cache for the whole session (and for later sessions): unmodified MJX
-# compiles are shared; monkeypatched MJX traces to other HLO and never hits it.
-os.environ.setdefault("MJXDIFF_CACHE", str(ROOT / ".jax_cache"))
+# The user's cache, outside the clone (``$MJXDIFF_CACHE`` or ~/.cache/mjxdiff/jax), shared by the
+# test processes, the README's sweep and later runs: its entries are keyed by the HLO and by the
+# code digest of what was traced (README, "The compile cache"), so a warm cache is safe;
+# monkeypatched MJX traces to other HLO and never hits an unmodified entry. Tests that need a
+# cold path pass ``--cache-dir ""`` or a temporary directory of their own.
+os.environ.setdefault("MJXDIFF_CACHE", str(Path.home() / ".cache" / "mjxdiff" / "jax"))
 configure_jax("float64")
 # CLI sweeps run in this process (and in `python -m mjxdiff` children of tests) unless a test
 # asks for the guard's child process (--isolate): many tests patch MJX here, and the guard would
@@ -63,7 +66,8 @@ def two_sweeps(tmp_path_factory):
     assert main(["sweep", *REPORT_SCENARIOS, *common, "--out", str(root / "clean")]) == 0
     orig = mjx_forward.fwd_actuation
     mp = pytest.MonkeyPatch()
-    mp.setattr(mjx_forward, "fwd_actuation", lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
+    mp.setattr(mjx_forward, "fwd_actuation",
+               lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
     engines.clear_compiled()
     try:
         code = main(["sweep", *REPORT_SCENARIOS, *common, "--out", str(root / "bugged"), "--baseline",
@@ -72,3 +76,43 @@ def two_sweeps(tmp_path_factory):
         mp.undo()
         engines.clear_compiled()
     return root, code
+
+
+# -- CI's guarantees ------------------------------------------------------------------------------
+
+#: ``MJXDIFF_REQUIRE_ALL=1`` (set by .ci/run): a skip (an optional dependency missing, no
+#: browser) is a failure, so a test that cannot run in CI cannot pass there unseen.
+REQUIRE_ALL = os.environ.get("MJXDIFF_REQUIRE_ALL") == "1"
+
+
+def _skip_to_failure(report) -> None:
+    if REQUIRE_ALL and report.skipped and not hasattr(report, "wasxfail"):
+        reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+        report.outcome = "failed"
+        report.longrepr = f"skipped where MJXDIFF_REQUIRE_ALL=1 (CI runs every test): {reason}"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    _skip_to_failure(outcome.get_result())
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_make_collect_report(collector):
+    outcome = yield
+    _skip_to_failure(outcome.get_result())
+
+
+def pytest_collection_modifyitems(items):
+    """Groups for ``--dist loadgroup`` (pytest-xdist): one group per test file, so a module's
+    fixtures are built once; files using a run-wide fixture of this conftest share one group,
+    so that fixture is built once in the whole run."""
+    shared = ("two_sweeps",)
+    group_of = {}
+    for item in items:
+        used = next((f for f in shared if f in getattr(item, "fixturenames", ())), None)
+        if used or item.path not in group_of:
+            group_of[item.path] = used or group_of.get(item.path) or item.path.name
+    for item in items:
+        item.add_marker(pytest.mark.xdist_group(group_of[item.path]))

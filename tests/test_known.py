@@ -22,7 +22,8 @@ def test_a_tilted_box_on_a_plane_is_labelled_known(box, tmp_path, capsys):
     assert "[known: plane-box-corners]" in out, out
     doc = json.loads((tmp_path / "report.json").read_text())
     assert doc["scenarios"][0]["known"]["id"] == "plane-box-corners"
-    assert "known" in (tmp_path / "report.html").read_text()
+    html = (tmp_path / "report.html").read_text()
+    assert "<td>plane-box-corners" in html and "<b>known: plane-box-corners</b>" in html
 
 
 def test_an_accepted_entry_of_the_user_passes_fail_on_new(box, tmp_path, capsys):

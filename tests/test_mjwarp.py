@@ -83,7 +83,7 @@ def test_without_the_extra_impl_warp_is_one_line_and_exit_2(monkeypatch, capsys)
     assert "pip install 'mjxdiff[warp]'" in err and "\n" not in err and "Traceback" not in err
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="MuJoCo Warp 4.0.0: a direct (negative) solref on the "
+@pytest.mark.xfail(raises=AssertionError, reason="MuJoCo Warp 4.0.0: a direct (negative) solref on the "
                    "lower-priority geom of a contact overrides the higher-priority geom's solref, which C uses "
                    "alone (a sphere 9.5 mm into a priority-1 floor: one step's qvel 0.066 apart); found by "
                    "contact_parameters under --impl warp")

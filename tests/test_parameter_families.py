@@ -15,9 +15,10 @@ from mujoco.mjx._src import constraint as mjx_constraint
 from mujoco.mjx._src import forward as mjx_forward
 from mujoco.mjx._src import passive as mjx_passive
 
+from _bugs import Expect, caught, model_edited
 from combination_bugs import COVERING_SCENARIOS
 from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.sweep import SweepConfig
 
 NEW = ("joint_parameters", "contact_parameters", "muscles_and_limits", "sensing", *COVERING_SCENARIOS)
 CONFIG = SweepConfig(seed=0, batch=2, steps=150, diagnose="none")
@@ -30,15 +31,9 @@ def _scalar_adr(m):
     return j, m.jnt_qposadr[j]
 
 
-def _model_edited(monkeypatch, module, name: str, edit) -> None:
-    """Patches ``module.name(m, d, ...)`` to run on ``edit(m)``: MJX reading a parameter wrong."""
-    orig = getattr(module, name)
-    monkeypatch.setattr(module, name, lambda m, d, *args: orig(edit(m), d, *args))
-
-
 def springref_ignored(monkeypatch):
     """Joint springs pull towards qpos0 (the joint's ref) instead of springref."""
-    _model_edited(monkeypatch, mjx_passive, "_spring_damper", lambda m: m.replace(qpos_spring=m.qpos0))
+    model_edited(monkeypatch, mjx_passive, "_spring_damper", lambda m: m.replace(qpos_spring=m.qpos0))
 
 
 def springref_moved(m):
@@ -48,38 +43,38 @@ def springref_moved(m):
 
 def limit_solref_ignored(monkeypatch):
     """Hinge and slide limits use the default solref (0.02, 1) instead of the joint's."""
-    _model_edited(monkeypatch, mjx_constraint, "_efc_limit_slide_hinge",
+    model_edited(monkeypatch, mjx_constraint, "_efc_limit_slide_hinge",
                   lambda m: m.replace(jnt_solref=jnp.ones_like(m.jnt_solref) * jnp.array([0.02, 1.0])))
 
 
 def limit_margin_ignored(monkeypatch):
     """Hinge and slide limits activate at the limit itself, ignoring the joint's margin."""
-    _model_edited(monkeypatch, mjx_constraint, "_efc_limit_slide_hinge",
+    model_edited(monkeypatch, mjx_constraint, "_efc_limit_slide_hinge",
                   lambda m: m.replace(jnt_margin=m.jnt_margin * 0))
 
 
 def polycoef_quadratic_ignored(monkeypatch):
     """Joint equalities drop the quadratic term of their polynomial."""
-    _model_edited(monkeypatch, mjx_constraint, "_efc_equality_joint",
+    model_edited(monkeypatch, mjx_constraint, "_efc_equality_joint",
                   lambda m: m.replace(eq_data=m.eq_data.at[:, 2].set(0.0)))
 
 
 def affine_gain_velocity_ignored(monkeypatch):
     """Affine gains drop their velocity term (gainprm[2])."""
-    _model_edited(monkeypatch, mjx_forward, "fwd_actuation",
+    model_edited(monkeypatch, mjx_forward, "fwd_actuation",
                   lambda m: m.replace(actuator_gainprm=m.actuator_gainprm.at[:, 2].set(0.0)))
 
 
 def affine_bias_constant_ignored(monkeypatch):
     """Affine biases drop their constant term (biasprm[0])."""
-    _model_edited(monkeypatch, mjx_forward, "fwd_actuation",
+    model_edited(monkeypatch, mjx_forward, "fwd_actuation",
                   lambda m: m.replace(actuator_biasprm=m.actuator_biasprm.at[:, 0].set(0.0)))
 
 
 def filterexact_as_filter(monkeypatch):
     """filterexact activations integrated like filter (explicit Euler instead of exact)."""
     exact, plain = int(mujoco.mjtDyn.mjDYN_FILTEREXACT), int(mujoco.mjtDyn.mjDYN_FILTER)
-    _model_edited(monkeypatch, mjx_forward, "_next_activation", lambda m: m.replace(
+    model_edited(monkeypatch, mjx_forward, "_next_activation", lambda m: m.replace(
         actuator_dyntype=np.where(m.actuator_dyntype == exact, plain, m.actuator_dyntype)))
 
 
@@ -91,25 +86,25 @@ def fluid_force_high(monkeypatch):
 
 def impratio_ignored(monkeypatch):
     """Elliptic cones regularise friction as if impratio were 1."""
-    _model_edited(monkeypatch, mjx_constraint, "_efc_contact_elliptic",
+    model_edited(monkeypatch, mjx_constraint, "_efc_contact_elliptic",
                   lambda m: m.replace(opt=m.opt.replace(impratio=1.0)))
 
 
 def tendon_friction_solref_ignored(monkeypatch):
     """Tendon friction loss rows use the default solref (0.02, 1) instead of the tendon's."""
-    _model_edited(monkeypatch, mjx_constraint, "_efc_friction",
+    model_edited(monkeypatch, mjx_constraint, "_efc_friction",
                   lambda m: m.replace(tendon_solref_fri=jnp.ones_like(m.tendon_solref_fri) * jnp.array([0.02, 1.0])))
 
 
 def pair_solreffriction_ignored(monkeypatch):
     """Explicit contact pairs drop their solreffriction (friction rows fall back to solref)."""
-    _model_edited(monkeypatch, mjx_collision_driver, "collision",
+    model_edited(monkeypatch, mjx_collision_driver, "collision",
                   lambda m: m.replace(pair_solreffriction=jnp.zeros_like(m.pair_solreffriction)))
 
 
 def tendon_actfrcrange_ignored(monkeypatch):
     """Actuator forces through a tendon are not clamped to the tendon's actuatorfrcrange."""
-    _model_edited(monkeypatch, mjx_forward, "fwd_actuation",
+    model_edited(monkeypatch, mjx_forward, "fwd_actuation",
                   lambda m: m.replace(tendon_actfrclimited=np.zeros_like(m.tendon_actfrclimited)))
 
 
@@ -155,13 +150,29 @@ def test_the_old_scenarios_leave_the_term_at_zero(bug, old_models):
     assert blind == [], f"{bug.__name__} matters in {blind} too"
 
 
-#: CI judges the first 3 families' bugs (each a fresh compile); the rest run with ``-m slow``.
-@pytest.mark.parametrize("bug", [b if i < 3 else pytest.param(b, marks=pytest.mark.slow)
-                                 for i, b in enumerate(FAMILIES)], ids=lambda b: b.__name__)
-def test_the_new_scenario_catches_it(bug, fresh_mjx, monkeypatch):
+#: bug -> what its catch must name at CONFIG
+CATCHES = {
+    springref_ignored: Expect(("qpos", "qvel"), r"joint '.*'"),
+    limit_solref_ignored: Expect(("qpos", "qvel"), r"joint '.*'"),
+    limit_margin_ignored: Expect(("qpos", "qvel"), r"joint '.*'"),
+    polycoef_quadratic_ignored: Expect(("qpos", "qvel"), r"joint '.*'"),
+    affine_gain_velocity_ignored: Expect(("qpos", "qvel", "act"), r"(joint|actuator) '.*'"),
+    affine_bias_constant_ignored: Expect(("qpos", "qvel", "act"), r"(joint|actuator) '.*'"),
+    filterexact_as_filter: Expect(("act",), r"actuator '.*'"),
+    fluid_force_high: Expect(("qpos", "qvel"), r"joint '.*'"),
+    tendon_friction_solref_ignored: Expect(("qpos", "qvel"), r"joint '.*'"),
+    pair_solreffriction_ignored: Expect(("qpos", "qvel"), r"joint '.*'"),
+    tendon_actfrcrange_ignored: Expect(("qpos", "qvel"), r"joint '.*'"),
+    impratio_ignored: Expect(("qpos", "qvel"), r"joint '.*'"),
+}
+
+
+def test_every_bug_has_its_expected_catch():
+    assert set(CATCHES) == set(FAMILIES)
+
+
+@pytest.mark.slow  # each a fresh compile of its scenario (~35 s)
+@pytest.mark.parametrize("bug", list(FAMILIES), ids=lambda b: b.__name__)
+def test_the_new_scenario_catches_it(bug):
     scenario, _ = FAMILIES[bug]
-    bug(monkeypatch)
-    result = run_scenario(load_scenario(scenario), CONFIG)
-    assert result.status == "fail", f"{bug.__name__} not caught: {result.message}"
-    first = result.first_divergence
-    assert first["field"] in ("qpos", "qvel", "act", "sensordata", "contacts") and first["step"] >= 0
+    caught(bug, scenario, CONFIG, CATCHES[bug])

@@ -35,6 +35,7 @@ from hypothesis import strategies as st
 from mujoco import mjx
 from mujoco.mjx._src import smooth as mjx_smooth
 
+from _preconditions import precondition
 from mjxdiff.engines import energy as mjx_energy
 from mjxdiff.fuzz import model_strategy
 from mjxdiff.inputs import quat_mul, rotvec_quat
@@ -268,8 +269,9 @@ def sameframe_drops_offset(m: mujoco.MjModel) -> str | None:
         if (sf == BODY and m.body_ipos[i].any()
                 or sf in (BODY, BODYROT) and (m.body_iquat[i] != _IDENTITY_QUAT).any()):
             return f"body {i}"
-    for kind, n, frame, pos, quat, bodyid in (("geom", m.ngeom, m.geom_sameframe, m.geom_pos, m.geom_quat, m.geom_bodyid),
-                                              ("site", m.nsite, m.site_sameframe, m.site_pos, m.site_quat, m.site_bodyid)):
+    for kind, n, frame, pos, quat, bodyid in (
+            ("geom", m.ngeom, m.geom_sameframe, m.geom_pos, m.geom_quat, m.geom_bodyid),
+            ("site", m.nsite, m.site_sameframe, m.site_pos, m.site_quat, m.site_bodyid)):
         for i in range(n):
             sf, b = int(frame[i]), bodyid[i]
             want_pos = {BODY: np.zeros(3), INERTIA: m.body_ipos[b]}.get(sf)
@@ -366,12 +368,13 @@ def test_one_step_check_catches_a_0p1_percent_bias_force_bug(monkeypatch):
 
 BALL_SPRING_XML = """
 <mujoco>
-  <worldbody><body name="ball" pos="0 0 1"><joint name="ball" type="ball" stiffness="10"/><geom size=".1"/></body></worldbody>
+  <worldbody><body name="ball" pos="0 0 1"><joint name="ball" type="ball" stiffness="10"/><geom size=".1"/></body>
+  </worldbody>
 </mujoco>
 """
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
+@pytest.mark.xfail(raises=AssertionError,
                    reason="MJX 3.17: math.norm is 0 for |components| <= 1e-8, so no ball/free spring torque "
                           "below ~2e-8 rad (C: -k * angle); see SPRING_DEAD_ZONE")
 def test_mjx_ball_spring_has_a_dead_zone_below_2e_8_rad():
@@ -387,12 +390,12 @@ def test_mjx_ball_spring_has_a_dead_zone_below_2e_8_rad():
     mx = mjx.put_model(m)
     dx = mjx.make_data(mx).replace(qpos=jnp.asarray(qpos))
     dx = mjx.passive(mx, dx)  # eager, no compile: springs need only qpos
-    np.testing.assert_allclose(d.qfrc_spring, [0, -1e-7, 0], rtol=1e-6)  # C: -k * angle
+    precondition(np.allclose(d.qfrc_spring, [0, -1e-7, 0], rtol=1e-6, atol=0), "C: -k * angle")
     np.testing.assert_allclose(np.asarray(dx.qfrc_passive), d.qfrc_spring, rtol=1e-6, atol=1e-12,
                                err_msg="MJX ball-joint spring torque at a 1e-8 rad rotation")
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
+@pytest.mark.xfail(raises=AssertionError,
                    reason="MJX 3.17 ignores body_sameframe: C treats an inertia frame rotated < ~2e-6 rad "
                           "as the body frame, MJX rotates it")
 def test_mjx_ignores_sameframe_of_a_slightly_rotated_inertia():
@@ -400,8 +403,11 @@ def test_mjx_ignores_sameframe_of_a_slightly_rotated_inertia():
     about x (``quat="1 -2.2e-7 0 0"``) is flagged mjSAMEFRAME_BODYROT, so C's ximat is the body's
     (identity); MJX's is rotated by 4.4e-7 rad, and cinert/qM follow (strict xfail)."""
     m = mujoco.MjModel.from_xml_string("""<mujoco><worldbody><body pos="0 0 1"><joint type="ball"/>
-      <inertial pos="0 0 -0.07" quat="1 -2.2e-7 0 0" mass="1" diaginertia="0.03 0.03 0.02"/></body></worldbody></mujoco>""")
-    assert m.body_sameframe[1] == mujoco.mjtSameFrame.mjSAMEFRAME_BODYROT and sameframe_drops_offset(m) == "body 1"
+      <inertial pos="0 0 -0.07" quat="1 -2.2e-7 0 0" mass="1" diaginertia="0.03 0.03 0.02"/></body></worldbody>
+      </mujoco>""")
+    precondition(m.body_sameframe[1] == mujoco.mjtSameFrame.mjSAMEFRAME_BODYROT
+                 and sameframe_drops_offset(m) == "body 1",
+                 "C snaps the inertia frame to the body frame")
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
     mx = mjx.put_model(m)
@@ -692,7 +698,7 @@ BALL_PENDULUM_XML = """
 
 
 @pytest.mark.slow  # an RK4 compile of its own (~13 s cold): documents the finding outside CI's budget
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=RK4_QUATERNION_FINDING)
+@pytest.mark.xfail(raises=AssertionError, reason=RK4_QUATERNION_FINDING)
 def test_mjx_rk4_conserves_energy_of_a_ball_pendulum():
     """The finding behind RK4_QUATERNION_FINDING, shrunk: a capsule on a ball joint swinging and
     spinning (|qvel| <= 3 rad/s), RK4 at 2 ms for 0.4 s. C stays within the energy bound (asserted
@@ -701,7 +707,8 @@ def test_mjx_rk4_conserves_energy_of_a_ball_pendulum():
     m.opt.timestep = 2e-3
     state = State(np.tile(m.qpos0, (4, 1)), np.random.default_rng(0).uniform(-3, 3, (4, m.nv)), np.zeros((4, 0)))
     bad = check_energy(m, state)
-    assert not [line for line in bad if line.startswith("MuJoCo C")], bad
+    precondition(not [line for line in bad if line.startswith("MuJoCo C")],
+                 "C keeps the energy bound: " + "; ".join(bad))
     assert not bad, "\n".join(bad)
 
 

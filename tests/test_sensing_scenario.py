@@ -4,7 +4,8 @@ actuator force, Euler without implicit damping, site transmissions, a camera tha
 target), and a one-line slip in any of them is caught there, while every other bundled
 model provably leaves that code out (the slip could not show).
 
-Each bug is a monkeypatch of one function inside mujoco.mjx._src, as in test_parameter_families.
+Each bug is a monkeypatch of one function inside mujoco.mjx._src (tests/_bugs.py: the catch, and
+the same scenario and config passing unmodified).
 The scenario's sparse mass matrix is traced but no slip in it is claimed: the inverse diagonal of
 the sparse factor 0.1% off moved qvel by 2.9e-9 only, because a converged Newton solver finds
 qacc from the mass matrix itself; qacc_smooth is all the factor decides there."""
@@ -18,17 +19,13 @@ from mujoco.mjx._src import sensor as mjx_sensor
 from mujoco.mjx._src import smooth as mjx_smooth
 from mujoco.mjx._src.types import GeomType
 
+from _bugs import Expect, caught, model_edited
 from combination_bugs import COVERING_SCENARIOS
 from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.sweep import SweepConfig
 
 CONFIG = SweepConfig(seed=0, batch=2, steps=150, diagnose="none")
 _S = mujoco.mjtSensor
-
-
-def _model_edited(monkeypatch, module, name: str, edit) -> None:
-    orig = getattr(module, name)
-    monkeypatch.setattr(module, name, lambda m, d, *args: orig(edit(m), d, *args))
 
 
 def ray_mesh_long(monkeypatch):
@@ -43,7 +40,7 @@ def ray_mesh_long(monkeypatch):
 
 def camprojection_resolution_off(monkeypatch):
     """Camera projections scale by a resolution one pixel larger."""
-    _model_edited(monkeypatch, mjx_sensor, "sensor_pos", lambda m: m.replace(cam_resolution=m.cam_resolution + 1))
+    model_edited(monkeypatch, mjx_sensor, "sensor_pos", lambda m: m.replace(cam_resolution=m.cam_resolution + 1))
 
 
 def contact_sensor_high(monkeypatch):
@@ -58,31 +55,31 @@ def contact_sensor_high(monkeypatch):
 
 def weld_torquescale_ignored(monkeypatch):
     """Force and torque sensors see welds' torque as if torquescale were 1."""
-    _model_edited(monkeypatch, mjx_smooth, "rne_postconstraint", lambda m: m.replace(
+    model_edited(monkeypatch, mjx_smooth, "rne_postconstraint", lambda m: m.replace(
         eq_data=m.eq_data.at[:, 10].set(1.0)))
 
 
 def actfrcrange_ignored(monkeypatch):
     """Joint actuator forces are not clamped to actuatorfrcrange."""
-    _model_edited(monkeypatch, mjx_forward, "fwd_actuation",
+    model_edited(monkeypatch, mjx_forward, "fwd_actuation",
                   lambda m: m.replace(jnt_actfrclimited=np.zeros_like(m.jnt_actfrclimited)))
 
 
 def site_gear_rotation_ignored(monkeypatch):
     """Site transmissions drop the rotational part of their gear (a torque about z here)."""
-    _model_edited(monkeypatch, mjx_smooth, "transmission",
+    model_edited(monkeypatch, mjx_smooth, "transmission",
                   lambda m: m.replace(actuator_gear=m.actuator_gear.at[:, 3:].set(0.0)))
 
 
 def camera_target_ignored(monkeypatch):
     """Cameras in targetbody mode look at the world origin instead of their target."""
-    _model_edited(monkeypatch, mjx_smooth, "camlight",
+    model_edited(monkeypatch, mjx_smooth, "camlight",
                   lambda m: m.replace(cam_targetbodyid=np.zeros_like(m.cam_targetbodyid)))
 
 
 def velocity_reference_frame_ignored(monkeypatch):
     """Frame velocity sensors with a reference frame report world-frame values."""
-    _model_edited(monkeypatch, mjx_sensor, "sensor_vel",
+    model_edited(monkeypatch, mjx_sensor, "sensor_vel",
                   lambda m: m.replace(sensor_refid=np.full_like(m.sensor_refid, -1)))
 
 
@@ -91,7 +88,7 @@ _EULERDAMP = int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
 
 def eulerdamp_flag_ignored(monkeypatch):
     """Euler integrates damping implicitly even where the eulerdamp flag is disabled."""
-    _model_edited(monkeypatch, mjx_forward, "euler", lambda m: m.replace(
+    model_edited(monkeypatch, mjx_forward, "euler", lambda m: m.replace(
         opt=m.opt.replace(disableflags=m.opt.disableflags & ~_EULERDAMP)))
 
 
@@ -110,7 +107,8 @@ REACHES = {
     site_gear_rotation_ignored: lambda m: bool(np.any(
         (m.actuator_trntype == int(mujoco.mjtTrn.mjTRN_SITE)) & np.any(m.actuator_gear[:, 3:] != 0, axis=1))),
     camera_target_ignored: lambda m: _has_sensor(m, _S.mjSENS_CAMPROJECTION) and bool(np.any(np.isin(
-        m.cam_mode, [int(mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODY), int(mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODYCOM)]))),
+        m.cam_mode, [int(mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODY),
+                     int(mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODYCOM)]))),
     velocity_reference_frame_ignored: lambda m: bool(np.any(np.isin(
         m.sensor_type, [int(_S.mjSENS_FRAMELINVEL), int(_S.mjSENS_FRAMEANGVEL)]) & (m.sensor_refid > -1))),
     eulerdamp_flag_ignored: lambda m: bool(m.opt.disableflags & _EULERDAMP) and bool(np.any(m.dof_damping > 0))
@@ -126,13 +124,26 @@ def test_no_other_scenario_reaches_the_code(bug):
     assert others == [], f"{bug.__name__} can show in {others} too"
 
 
-#: CI judges the first 3 injected bugs (each a fresh compile of the scenario, ~35 s); the rest
-#: run with ``-m slow``: the suite stays near its 25-minute budget on 2 cores.
-@pytest.mark.parametrize("bug", [b if i < 3 else pytest.param(b, marks=pytest.mark.slow)
-                                 for i, b in enumerate(REACHES)], ids=lambda b: b.__name__)
-def test_the_sensing_scenario_catches_it(bug, fresh_mjx, monkeypatch):
-    bug(monkeypatch)
-    result = run_scenario(load_scenario("sensing"), CONFIG)
-    assert result.status == "fail", f"{bug.__name__} not caught: {result.message}"
-    first = result.first_divergence
-    assert first["field"] in ("qpos", "qvel", "sensordata") and first["step"] >= 0
+#: bug -> what its catch must name (measured at CONFIG: each at step 0, the object the slip acts on)
+_MOVES = ("qpos", "qvel")
+CATCHES = {
+    ray_mesh_long: Expect(("sensordata",), r"sensor 'down' \(rangefinder\)"),
+    camprojection_resolution_off: Expect(("sensordata",), r"sensor 'cube_tracked' \(camprojection\)"),
+    contact_sensor_high: Expect(("sensordata",), r"sensor 'strongest' \(contact\)"),
+    weld_torquescale_ignored: Expect(("sensordata",), r"sensor 'cube_torque' \(torque\)"),
+    actfrcrange_ignored: Expect(_MOVES, r"joint 'yaw'"),
+    site_gear_rotation_ignored: Expect(_MOVES, r"joint 'puck'"),
+    camera_target_ignored: Expect(("sensordata",), r"sensor 'puck_follow' \(camprojection\)"),
+    velocity_reference_frame_ignored: Expect(("sensordata",), r"sensor 'wrist_linvel_rel' \(framelinvel\)"),
+    eulerdamp_flag_ignored: Expect(_MOVES, r"joint 'lift'"),
+}
+
+
+def test_every_bug_has_its_expected_catch():
+    assert set(CATCHES) == set(REACHES)
+
+
+@pytest.mark.slow  # each a fresh compile of the scenario (~35 s)
+@pytest.mark.parametrize("bug", list(REACHES), ids=lambda b: b.__name__)
+def test_the_sensing_scenario_catches_it(bug):
+    caught(bug, "sensing", CONFIG, CATCHES[bug])

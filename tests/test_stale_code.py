@@ -1,11 +1,12 @@
 """A verdict names the code it ran: an MJX edited under its installed file name is traced, never
 served from an artifact of other code; unchanged code reuses its artifacts and XLA's cache."""
 
+import os
 import json
 import subprocess
 import sys
+from pathlib import Path
 
-import pytest
 
 #: Runs the CLI, with MJX's forward.py replaced by an edited copy compiled under its own file
 #: name (as an in-place edit of site-packages, a patched wheel or a nightly build would be).
@@ -47,7 +48,7 @@ def _sweep(tmp_path, which: str, cache) -> dict:
 
 
 def test_an_edited_mjx_is_traced_and_fails_although_artifacts_of_the_clean_one_exist(tmp_path, repo_root):
-    cache = repo_root / ".jax_cache"  # the session's: the clean rollout is usually warm already
+    cache = Path(os.environ["MJXDIFF_CACHE"])  # the run's: the clean rollout is usually warm already
     clean = _sweep(tmp_path, "clean", cache)
     assert clean["exit"] == 0 and clean["summary"]["pass"] == 1
     assert list((cache / "mjxdiff-exports").rglob("*.jaxexport")), "the clean run left its artifact"
