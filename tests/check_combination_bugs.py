@@ -20,15 +20,15 @@ import time
 
 os.environ.setdefault("JAX_ENABLE_X64", "1")
 
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-from mujoco import mjx  # noqa: E402
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from mujoco import mjx
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from combination_bugs import BUGS, COMBINATIONS  # noqa: E402
+from combination_bugs import BUGS, COMBINATIONS
 
 NSTEPS = 20
 WITH_MIN = 1e-6

@@ -97,7 +97,8 @@ assert MJXEngine(devices=2).split(3) == 2 and MJXEngine().split(3) == 1  # too s
 # bit for bit with XLA's default options; compiled fast, the two batch shapes vectorise
 # differently and may differ by rounding (seen: 1 ulp)
 for mode, same in (("optimized", np.testing.assert_array_equal),
-                   ("fast", lambda a, b, err_msg: np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14, err_msg=err_msg))):
+                   ("fast", lambda a, b, err_msg: np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14,
+                                                                             err_msg=err_msg))):
     one, split = MJXEngine(devices=1, compile=mode).rollout(inputs), MJXEngine(devices=2, compile=mode).rollout(inputs)
     for field in ("qpos", "qvel", "sensordata"):
         same(getattr(split, field), getattr(one, field), err_msg=f"{mode} {field}")

@@ -94,7 +94,8 @@ def test_dependencies_name_the_functions_a_trace_ran(pendulum):
     assert "mujoco.mjx._src.smooth:rne" in deps and "mujoco.mjx._src.forward:forward" in deps
     assert "mjxdiff.engines:_scan_steps" in deps
     # no contacts: a pair's colliders are named (MJX's collision table), not what they call
-    assert not {"mujoco.mjx._src.collision_primitive:_sphere_sphere", "mujoco.mjx._src.collision_primitive:*"} & set(deps)
+    assert not {"mujoco.mjx._src.collision_primitive:_sphere_sphere",
+                "mujoco.mjx._src.collision_primitive:*"} & set(deps)
 
 
 #: Functions a trace runs that compute nothing it emits: JAX's event listener that counts compiles.
@@ -111,7 +112,8 @@ def test_dependencies_found_by_name_include_every_function_the_trace_ran(name, m
     inputs = make_inputs(scenario, m, seed=0, batch=2, steps=5)
     seen, stacks = [], []
     real, real_codes = export_cache.dependencies, export_cache.trace_codes
-    monkeypatch.setattr(export_cache, "dependencies", lambda codes, follow=True: seen.append(set(codes)) or real(codes, follow))
+    monkeypatch.setattr(export_cache, "dependencies",
+                        lambda codes, follow=True: seen.append(set(codes)) or real(codes, follow))
     monkeypatch.setattr(export_cache, "trace_codes", lambda jaxpr: stacks.append(real_codes(jaxpr)) or stacks[-1])
     monkeypatch.setattr(export_cache, "export_dir", lambda: tmp_path)  # no artifact: traced here
     monkeypatch.setenv("MJXDIFF_DEPENDENCIES", "traced")

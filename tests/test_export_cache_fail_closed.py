@@ -6,12 +6,10 @@ installed files: an edited module copy bound by hand, a patch from another modul
 whose ``__file__`` is not its code's file, and one workspace file edited twice."""
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -147,7 +145,8 @@ def test_code_no_live_function_holds_leaves_the_trace_unsaved(tmp_path, monkeypa
     engines.clear_compiled()
     try:
         scenario = load_scenario("pendulum")
-        out = engines.MJXEngine(devices=1).rollout(make_inputs(scenario, load_model(scenario), seed=0, batch=2, steps=5))
+        out = engines.MJXEngine(devices=1).rollout(
+            make_inputs(scenario, load_model(scenario), seed=0, batch=2, steps=5))
     finally:
         engines.clear_compiled()
     assert out.qpos.shape == (2, 5, 1)

@@ -4,7 +4,6 @@ flagged against the scenario's own history."""
 
 import copy
 import json
-import os
 
 import pytest
 from conftest import REPORT_SCENARIOS

@@ -70,7 +70,8 @@ def test_scaled_parameters_recompute_constants(model):
 
 def test_concat_then_take_gives_back_both_batches(model):
     scenario = _scenario(scale={"body_mass": (0.8, 1.2)})
-    a, b = make_inputs(scenario, model, seed=1, batch=3, steps=5), make_inputs(scenario, model, seed=2, batch=2, steps=5)
+    a, b = (make_inputs(scenario, model, seed=1, batch=3, steps=5),
+            make_inputs(scenario, model, seed=2, batch=2, steps=5))
     both = a.concat(b)
     assert both.batch == 5 and both.models == a.models + b.models
     for part, rows in ((a, slice(0, 3)), (b, slice(3, 5))):
@@ -118,12 +119,14 @@ def test_odd_members_get_turned_sensor_frames_and_spring_deadbands():
 
 
 def test_disable_flags_are_drawn_per_scenario():
-    m = mujoco.MjModel.from_xml_string("<mujoco><worldbody><body><joint/><geom size='0.1'/></body></worldbody></mujoco>")
+    m = mujoco.MjModel.from_xml_string(
+        "<mujoco><worldbody><body><joint/><geom size='0.1'/></body></worldbody></mujoco>")
     bit = int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
     drawn = {seed: bool(make_inputs(_scenario(disable=("warmstart",)), m, seed=seed).models[0].opt.disableflags & bit)
              for seed in range(8)}
     assert set(drawn.values()) == {True, False}, drawn  # some seeds disable it, some do not
     for seed, off in drawn.items():  # one draw for the whole scenario
-        flags = {mi.opt.disableflags & bit for mi in make_inputs(_scenario(disable=("warmstart",)), m, seed=seed).models}
+        flags = {mi.opt.disableflags & bit
+                 for mi in make_inputs(_scenario(disable=("warmstart",)), m, seed=seed).models}
         assert flags == {bit if off else 0}
     assert not make_inputs(_scenario(), m, seed=0).models[0].opt.disableflags & bit

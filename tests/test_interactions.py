@@ -3,11 +3,10 @@ left out with a reason, and the bundled scenarios covering the feasible ones."""
 
 import mujoco
 import numpy as np
-import pytest
 
 from mjxdiff import interactions
 from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import Randomization, Scenario, bundled_scenarios, load_model
+from mjxdiff.scenario import bundled_scenarios, load_model
 
 TWO_ACTUATORS = """<mujoco><worldbody>
   <body><joint name="a" axis="0 1 0" range="-1 1"/><geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.02"/>
@@ -18,7 +17,8 @@ TWO_ACTUATORS = """<mujoco><worldbody>
     <motor name="limited" joint="a" ctrlrange="-1 1"/>
     <general name="forced" joint="a" forcerange="-0.1 0.1" dyntype="filter" dynprm="0.05"/>
   </actuator>
-  <sensor><framepos objtype="site" objname="tip" reftype="site" refname="w"/><framepos objtype="site" objname="tip"/></sensor>
+  <sensor><framepos objtype="site" objname="tip" reftype="site" refname="w"/>
+    <framepos objtype="site" objname="tip"/></sensor>
 </mujoco>"""
 
 
@@ -85,7 +85,7 @@ def test_the_bundled_scenarios_cover_95_percent_of_the_feasible_pairs():
         m = load_model(s)
         try:
             inputs = make_inputs(s, m, 0)
-        except Exception:  # noqa: BLE001 - scenarios MJX refuses still draw inputs; none should raise
+        except Exception:
             raise
         for p in interactions.member_pairs(inputs):
             covered.setdefault(p, []).append(s.name)

@@ -69,7 +69,8 @@ def _damping(monkeypatch):
 
 def _friction(monkeypatch):
     orig = mjx_forward.fwd_position
-    monkeypatch.setattr(mjx_forward, "fwd_position", lambda m, d: orig(m.replace(geom_friction=m.geom_friction * 0.9), d))
+    monkeypatch.setattr(mjx_forward, "fwd_position",
+                        lambda m, d: orig(m.replace(geom_friction=m.geom_friction * 0.9), d))
 
 
 def _inertia(monkeypatch):

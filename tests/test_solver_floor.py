@@ -5,8 +5,6 @@ converged twin passes), never a pass; a constraint MJX gets wrong still fails.""
 
 import json
 
-import mujoco
-import pytest
 
 from injected_bugs import by_id
 from mjxdiff import known, report
@@ -85,7 +83,8 @@ def test_a_one_iteration_quadruped_is_apart_by_truncation_and_together_when_conv
     assert main(["sweep", model, "--seed", "0", "--diagnose", "none", "--no-history", "--out", str(tmp_path),
                  "--fail-on", "new"]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("FAIL") and "\n" + " " * 36 + "checks: one-step pass: " in out and "converged twin pass" in out
+    assert (out.startswith("FAIL") and "\n" + " " * 36 + "checks: one-step pass: " in out
+            and "converged twin pass" in out)
     assert "do not converge" in out and "[known: solver-truncation]" in out and "1 fail (1 solver truncation)" in out
     result = json.loads((tmp_path / "report.json").read_text())["scenarios"][0]
     assert result["status"] == "fail" and result["diagnosis"]["cause"]["cause"] == TRUNCATION, result["message"]
@@ -96,4 +95,5 @@ def test_a_one_iteration_quadruped_is_apart_by_truncation_and_together_when_conv
     assert twin["status"] == "pass" and not twin["weak"] and twin["worst"]["ratio"] < 0.5, twin
     assert one["status"] == "pass" and one["ratio"] < 0.05 and not one["solver"]["converged"], one
     evidence = one["as_configured"]["fields"]["qvel"]
-    assert evidence["truncation"] > 100 * evidence["error"], "MJX's truncated step is far closer to C's than C's own truncation"
+    assert evidence["truncation"] > 100 * evidence["error"], \
+        "MJX's truncated step is far closer to C's than C's own truncation"

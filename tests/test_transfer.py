@@ -7,7 +7,6 @@ import dataclasses
 
 import mujoco
 import numpy as np
-import pytest
 from mujoco.mjx._src import io as mjx_io
 from mujoco.mjx._src import support as mjx_support
 from mujoco.mjx._src import types as mjx_types

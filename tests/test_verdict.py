@@ -244,6 +244,6 @@ def test_a_pass_says_how_sharp_its_bound_was(lidar):
     weak = j.result("lidar")
     assert weak.status == "pass" and "qpos" in weak.weak
     assert weak.field("qpos").bound_scale[1] == pytest.approx(0.5) and weak.field("qpos").weak
-    assert f"weak: the" in weak.message and "bound is" in weak.message
+    assert "weak: the" in weak.message and "bound is" in weak.message
     assert summary([sharp, weak], 0.95)["weak"] == 1
     assert f"2 pass (1 weak: bound over {WEAK_BOUND:.0%}" in format_text([sharp, weak], 0.95)
