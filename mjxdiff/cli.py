@@ -681,7 +681,8 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
                    examples=result.examples, structures=result.structures, seconds=result.seconds,
                    **result.rates(), failure=result.failure,
                    harness_error=result.harness_error, traceback=result.harness_traceback,
-                   harness_example=result.harness_example, interactions=result.interactions)
+                   harness_example=result.harness_example, interactions=result.interactions,
+                   set_aside=result.set_aside)
         written = report.write_report(args.out, doc, "fuzz-report.json")
     if result.harness_error is not None:
         # the run proves nothing: not "no divergence", whatever was tried before
@@ -699,15 +700,18 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
     tried = (f"{result.examples} examples ({result.structures} generated models x "
              f"{result.examples // max(1, result.structures)} variants; {rates['examples_per_minute']:.0f} examples, "
              f"{rates['structures_per_minute']:.1f} models per minute)")
-    pairs = ""
+    notes = []  # printed after the verdict
+    if result.set_aside:  # models judged that count neither way, each with why
+        notes.append("set aside, neither a pass nor a find: " + ", ".join(
+            f"{n} ({why})" for why, n in sorted(result.set_aside.items())))
     if result.interactions:
         from mjxdiff import interactions
         line = interactions.format_text(result.interactions, "interaction pairs generated", "fuzz-report.json")
-        pairs = f"{line.splitlines()[0]}; {result.interactions['pairs_per_minute']:.0f} per minute"
+        notes.append(f"{line.splitlines()[0]}; {result.interactions['pairs_per_minute']:.0f} per minute")
     if result.failure is None:
         print(f"no divergence in {tried}, {result.seconds:.0f} s")
-        if pairs:
-            print(pairs)
+        if notes:
+            print("\n".join(notes))
         return 0
     f = result.failure
     print(f"DIVERGENCE ({f['status']}) after {tried}, {result.seconds:.0f} s: {f['message']}")
@@ -715,8 +719,8 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
     if f["reproducer"]:
         print(f"reproducer: {f['reproducer']} (python -m mjxdiff replay {f['reproducer']})")
     print(f["xml"])
-    if pairs:
-        print(pairs)
+    if notes:
+        print("\n".join(notes))
     return 1
 
 

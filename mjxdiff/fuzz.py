@@ -24,6 +24,7 @@ aside by their measured signature only (:func:`known_contact_divergence`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import sys
 import time
 import traceback
@@ -80,6 +81,12 @@ KNOWN_DIVERGENCES = {
     "plane-cylinder far cap": "C adds a contact on a cylinder's far cap when it is within the margin (a cylinder "
                               "lying on its side, or sunk); MJX's plane_cylinder returns the near cap's three "
                               "only (tests/test_known_divergences.py)",
+    "convex pairs by SDF descent": "MJX 3.17 collides a sphere, capsule, ellipsoid or cylinder with an ellipsoid or "
+                                   "cylinder by 10 steps of gradient descent on an SDF clearance (collision_sdf.py), "
+                                   "C 4.0 analytically or by GJK/EPA: depth, point, normal and contact count differ "
+                                   "(an ellipsoid-cylinder contact 2.882 mm deep in C, 1.354 mm in MJX, normals "
+                                   "0.037 rad apart, qacc 99 apart; tests/data/fuzz_ellipsoid_cylinder_contact.json); "
+                                   "set aside only where MJX given C's contacts reproduces C (tests/test_fuzz.py)",
 }
 
 #: Sensor types MJX computes in ``sensor_acc``.
@@ -95,14 +102,15 @@ def known_divergence(m) -> str | None:
     from mujoco import mjx
 
     types = {mujoco.mjtSensor(t).name for t in m.sensor_type}
-    if types & _ACC_SENSORS and mjx.make_data(m)._impl.efc_J.size == 0:
+    # MJX's constraint rows, in its JAX implementation's Data (MJX types _impl as a union of implementations)
+    if types & _ACC_SENSORS and mjx.make_data(m)._impl.efc_J.size == 0:  # noqa: SLF001  # pyright: ignore[reportAttributeAccessIssue]
         return "acceleration sensors without constraints"
     if any(len(_tendon_trees(m, k)) > 1 for k in np.flatnonzero(m.tendon_armature > 0)):
         return "tendon armature across trees"
     return None
 
 
-def _tendon_trees(m, k: int) -> set[int]:
+def _tendon_trees(m, k: int | np.integer) -> set[int]:
     """Kinematic trees tendon ``k`` spans: its joints' (fixed) or its sites' and geoms' bodies'."""
     import mujoco
 
@@ -139,6 +147,10 @@ class FuzzResult:
       interactions: pairwise coverage of what was generated
         (:func:`mjxdiff.interactions.pairwise` without its per-pair sources), with
         ``pairs_per_minute`` and ``first_seconds`` (pair name -> when it was first covered).
+      set_aside: structures judged (among ``structures``) whose verdict was neither a pass nor a
+        find, by why (:func:`_why_set_aside`): ``C unstable``, ``MJX unsupported``, a truncated
+        solver, or the :data:`KNOWN_DIVERGENCES` entry its signature shows
+        (:func:`known_contact_divergence`). ``structures`` minus these passed.
     """
 
     examples: int
@@ -149,6 +161,7 @@ class FuzzResult:
     harness_example: str | None = None
     structures: int = 0
     interactions: dict[str, Any] | None = None
+    set_aside: dict[str, int] = dataclasses.field(default_factory=dict)
 
     def rates(self) -> dict[str, float]:
         """Examples and structures per minute of wall time."""
@@ -204,7 +217,8 @@ def _interaction_summary(first: dict[tuple, float], seconds: float) -> dict[str,
     doc = interactions.pairwise({p: ("fuzz",) for p in first})
     doc.pop("by")
     doc["pairs_per_minute"] = round(len(first) / max(seconds / 60, 1e-9), 1)
-    doc["first_seconds"] = {interactions.pair_name(p): round(t, 1) for p, t in sorted(first.items(), key=lambda x: x[1])}
+    doc["first_seconds"] = {interactions.pair_name(p): round(t, 1)
+                            for p, t in sorted(first.items(), key=lambda x: x[1])}
     return doc
 
 
@@ -269,36 +283,77 @@ def known_contact_divergence(m, inputs: BatchedInputs, result: ScenarioResult) -
     does not write):
 
     - ``plane-cylinder far cap``: a plane-cylinder pair with more contacts in C than in MJX;
-    - ``contact tangent frames``: an MJX contact at a C contact's place (same geoms, position and
-      normal within 1e-6) whose first tangent differs by more than 1e-6, where the friction
-      depends on the tangent's direction (a pyramidal cone, or unequal friction coefficients
-      across the tangents)."""
+    - ``contact tangent frames``: at one of the 3 steps, an MJX contact at a C contact's place
+      (same geoms, position and normal within 1e-6) whose first tangent differs by more than
+      1e-6, where the friction depends on the tangent's direction (a pyramidal cone, or unequal
+      friction coefficients across the tangents);
+    - ``convex pairs by SDF descent``: at one of the 3 steps, a contact of a pair MJX collides by
+      SDF descent (:func:`_sdf_pair`) that differs from C's;
+
+    the last two only where, at every one of the 3 steps, MJX's forward given C's contacts for
+    those (:func:`_with_c_contacts`) reproduces C's ``qacc`` and ``sensordata``
+    (:func:`_c_contacts_explain`): then nothing else differs, a bias force or a constraint row.
+
+    MJX runs in float64, as the fuzzer's verdict does, whatever the caller's JAX setting."""
+    import jax
+
+    first = result.first_divergence or {}
+    member: int = first.get("member", -1)
+    step: int = first.get("step", -1)
+    if member < 0 or step < 0:
+        return None
+    with jax.enable_x64(True):  # the thresholds (1e-6, the drill-down's 1e-9) are float64's
+        return _signature(inputs, member, step)
+
+
+def _signature(inputs: BatchedInputs, member: int, step: int) -> str | None:
+    """:func:`known_contact_divergence` of ``member`` whose first divergent step is ``step``."""
     import mujoco
     from mujoco import mjx
 
-    from mjxdiff import engines
     from mjxdiff.diagnose import _contacts_c, _contacts_mjx
 
-    first = result.first_divergence or {}
-    member, step = first.get("member", -1), first.get("step", -1)
-    if member < 0 or step < 0:
-        return None
     mi = inputs.models[member]
     d = mujoco.MjData(mi)
     d.qpos[:], d.qvel[:], d.act[:] = inputs.qpos[member], inputs.qvel[member], inputs.act[member]
     mx = mjx.put_model(mi)
+    states, shown = [], []
     for t in range(step + 1):
         d.ctrl[:] = inputs.ctrl[member, t]
         if t >= step - 2:
             mujoco.mj_forward(mi, d)
-            dx = engines.forward(mx, mjx.make_data(mi).replace(
-                qpos=d.qpos.copy(), qvel=d.qvel.copy(), act=d.act.copy(), ctrl=d.ctrl.copy()))
-            if _cylinder_contact_missing(mi, _contacts_c(mi, d), _contacts_mjx(mi, dx)):
+            states.append(_state(d))
+            dx = _mjx_forward(mx, mi, states[-1])
+            cc, cx = _contacts_c(mi, d), _contacts_mjx(mi, dx)
+            if _cylinder_contact_missing(mi, cc, cx):
                 return "plane-cylinder far cap"
             if _tangent_turned(mi, d, dx):
-                return "contact tangent frames"
+                shown.append("contact tangent frames")
+            if _sdf_contact_differs(mi, cc, cx):
+                shown.append("convex pairs by SDF descent")
         mujoco.mj_step(mi, d)
+    if shown and _c_contacts_explain(mi, mx, states):
+        return shown[0]  # the first shown, where a model shows both
     return None
+
+
+#: The parts of a C state (MjData fields) that ``forward`` starts from; the solver's warm start
+#: too, so that both solvers start from the same point.
+_STATE_FIELDS = ("qpos", "qvel", "act", "ctrl", "mocap_pos", "mocap_quat", "qacc_warmstart")
+
+
+def _state(d) -> dict[str, np.ndarray]:
+    """A copy of C's state in ``d`` (:data:`_STATE_FIELDS`)."""
+    return {k: getattr(d, k).copy() for k in _STATE_FIELDS}
+
+
+def _mjx_forward(mx, m, state: dict[str, np.ndarray]):
+    """MJX's ``forward`` of ``mx`` (put from ``m``) from C's ``state`` (:func:`_state`)."""
+    from mujoco import mjx
+
+    from mjxdiff import engines
+
+    return engines.forward(mx, mjx.make_data(m).replace(**{k: v.copy() for k, v in state.items()}))
 
 
 def _cylinder_contact_missing(m, cc: dict, cx: dict) -> bool:
@@ -317,10 +372,11 @@ def _tangent_turned(m, d, dx) -> bool:
     import mujoco
 
     pyramidal = m.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
-    c = dx._impl.contact
+    c = dx._impl.contact  # noqa: SLF001 - MJX's contacts
     geom, pos, frame = np.asarray(c.geom), np.asarray(c.pos), np.asarray(c.frame).reshape(-1, 9)
     for con in d.contact[:d.ncon]:
-        direction = pyramidal or con.friction[0] != con.friction[1] or (con.dim == 6 and con.friction[3] != con.friction[4])
+        direction = (pyramidal or con.friction[0] != con.friction[1]
+                     or (con.dim == 6 and con.friction[3] != con.friction[4]))
         if con.dim < 3 or not direction:
             continue
         same = ((geom == (con.geom1, con.geom2)).all(axis=1) & (np.abs(pos - con.pos).max(axis=1) < 1e-6)
@@ -328,6 +384,106 @@ def _tangent_turned(m, d, dx) -> bool:
         if same.any() and (np.abs(frame[same][:, 3:6] - con.frame[3:6]).max(axis=1) > 1e-6).all():
             return True
     return False
+
+
+def _sdf_pair(m, pair: tuple[int, ...]) -> bool:
+    """Whether MJX collides geoms ``pair`` by gradient descent on signed distance functions, as its
+    own table of colliders says (3.17: a sphere, capsule, ellipsoid or cylinder against an
+    ellipsoid or cylinder, ``collision_sdf.py``)."""
+    from mujoco.mjx._src import collision_driver, collision_sdf
+
+    types = tuple(sorted(int(t) for t in m.geom_type[list(pair)]))
+    # MJX's table of colliders, keyed by its GeomType IntEnum (plain ints are equal to its members)
+    collide = collision_driver._COLLISION_FUNC.get(types)  # noqa: SLF001  # pyright: ignore[reportArgumentType]
+    return collide is not None and collide.__module__ == collision_sdf.__name__
+
+
+def _sdf_contact_differs(m, cc: dict, cx: dict) -> bool:
+    """Whether a pair MJX collides by SDF descent (:func:`_sdf_pair`) has other contacts in C
+    (``cc``) than in MJX (``cx``), both by geom pair as :mod:`mjxdiff.diagnose` collects them:
+    another count, or a distance, position, friction or frame more than 1e-6 apart."""
+    from mjxdiff.diagnose import _contact_diff
+
+    sdf = {p for p in cc.keys() | cx.keys() if _sdf_pair(m, p)}
+    return _contact_diff(m, {p: cc[p] for p in sdf & cc.keys()}, {p: cx[p] for p in sdf & cx.keys()})[0] > 1e-6
+
+
+def _c_contacts_explain(m, mx, states: list[dict[str, np.ndarray]]) -> bool:
+    """Whether, from each of C's ``states`` (:func:`_state`), MJX's ``forward`` (of ``mx``, put
+    from ``m``) given C's contacts where they differ by a known kind (:func:`_with_c_contacts`)
+    reproduces C's ``qacc`` and ``sensordata`` within the drill-down's float64 tolerance. Both
+    solvers start from C's warm start; any other error (a bias force, a constraint row) remains
+    and fails the match."""
+    import mujoco
+
+    for state in states:
+        d = mujoco.MjData(m)
+        for k, v in state.items():
+            getattr(d, k)[:] = v
+        mujoco.mj_forward(m, d)
+        dx = _mjx_forward(mx, m, state)
+        contact = _with_c_contacts(m, d, dx)
+        if contact is None or dx._impl.efc_J.size == 0:  # noqa: SLF001  # pyright: ignore[reportAttributeAccessIssue]
+            return False
+        given = _forward_given_contacts()(mx, dx, contact)
+        if not (_agree(given.qacc, d.qacc) and _agree(given.sensordata, d.sensordata)):
+            return False
+    return True
+
+
+def _agree(mjx_value, c_value: np.ndarray) -> bool:
+    """Whether an MJX array matches C's as the drill-down's float64 stages do:
+    |mjx - c| <= rtol (1 + max|c|)."""
+    from mjxdiff.diagnose import STAGE_RTOL
+
+    err = np.abs(np.asarray(mjx_value) - c_value).max(initial=0.0)
+    return bool(err <= STAGE_RTOL["float64"] * (1 + np.abs(c_value).max(initial=0.0)))
+
+
+def _with_c_contacts(m, d, dx):
+    """MJX's contacts (``dx``) with C's (``d``) where they differ by a known kind: in the slots of
+    every pair MJX collides by SDF descent, C's distance, position and frame in the pair's first
+    slots, its other slots beyond the margin (no constraint rows); of other pairs, C's frame
+    (its tangents) in a slot at C's place (same geoms, position and normal within 1e-6). None
+    where C has a contact of an SDF pair MJX has no slot for (more contacts than slots, or its
+    geoms in the other order)."""
+    c = dx._impl.contact  # noqa: SLF001 - MJX's contacts
+    geom, margin = np.asarray(c.geom), np.asarray(c.includemargin)
+    dist, pos, frame = (np.array(x) for x in (c.dist, c.pos, c.frame))
+    rows = frame.reshape(-1, 9)
+    ours: dict[tuple[int, int], list] = {}
+    for con in d.contact[:d.ncon]:
+        if _sdf_pair(m, (con.geom1, con.geom2)):
+            ours.setdefault((int(con.geom1), int(con.geom2)), []).append(con)
+            continue
+        same = ((geom == (con.geom1, con.geom2)).all(axis=1) & (np.abs(pos - con.pos).max(axis=1) < 1e-6)
+                & (np.abs(rows[:, :3] - con.frame[:3]).max(axis=1) < 1e-6))
+        rows[same] = con.frame
+    for pair in {(int(a), int(b)) for a, b in geom if _sdf_pair(m, (a, b))} | ours.keys():
+        slots = np.flatnonzero((geom == pair).all(axis=1))
+        cons = ours.get(pair, [])
+        if len(cons) > len(slots):
+            return None
+        for s, con in zip(slots, cons):
+            dist[s], pos[s], rows[s] = con.dist, con.pos, con.frame
+        rest = slots[len(cons):]
+        dist[rest] = margin[rest] + 1.0
+    return c.replace(dist=dist, pos=pos, frame=rows.reshape(frame.shape))
+
+
+@functools.cache
+def _forward_given_contacts():
+    """MJX's ``forward`` from its collision on, compiled: ``(mx, dx, contact) -> dx`` with
+    ``contact`` in place of ``dx``'s (constraint rows, solver, acceleration sensors; the other
+    stages do not read contacts)."""
+    import jax
+    from mujoco.mjx._src import constraint, sensor, solver
+
+    def after_collision(mx, dx, contact):
+        dx = dx.tree_replace({"_impl.contact": contact})
+        return sensor.sensor_acc(mx, solver.solve(mx, constraint.make_constraint(mx, dx)))
+
+    return jax.jit(after_collision)
 
 
 def _divergence(m, inputs: BatchedInputs, config) -> ScenarioResult:
@@ -344,6 +500,15 @@ def is_divergence(result: ScenarioResult) -> bool:
     unstable = result.status == "error" and result.error_kind == "unstable"
     truncation = (result.diagnosis.get("cause") or {}).get("cause") == TRUNCATION  # the settings, not MJX
     return result.status != "pass" and not unstable and result.status != "unsupported" and not truncation
+
+
+def _why_set_aside(result: ScenarioResult) -> str:
+    """Why a verdict that :func:`is_divergence` does not count and that is no pass is set aside."""
+    if result.status == "unsupported":
+        return "MJX unsupported"
+    if result.status == "error" and result.error_kind == "unstable":
+        return "C unstable"
+    return TRUNCATION
 
 
 def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET, out: str | Path | None = None,
@@ -376,10 +541,13 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
     shrink_budget = max(120.0, 2 * budget) if shrink_budget is None else shrink_budget
     seen = {"examples": 0, "last_failure": None, "xml": None}
     first: dict[tuple, float] = {}  # interaction pair -> seconds into the run it was first generated
+    set_aside: dict[str, int] = {}  # why -> structures judged, neither a pass nor a find (while searching)
 
     @hseed(seed)
     @settings(max_examples=max_examples, deadline=None, database=DirectoryBasedExampleDatabase(str(db_dir)),
-              suppress_health_check=list(HealthCheck), phases=[Phase.reuse, Phase.generate, Phase.shrink],
+              # Hypothesis's HealthCheck enum has a metaclass that hides its members' type from pyright
+              suppress_health_check=list(HealthCheck),  # pyright: ignore[reportArgumentType]
+              phases=[Phase.reuse, Phase.generate, Phase.shrink],
               derandomize=False, print_blob=False)
     @given(data=st.data())
     def property_(data):
@@ -424,9 +592,15 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
             first.update(dict.fromkeys(new, now))
         result = _divergence(m, inputs, config)
         if not is_divergence(result):
+            if searching and result.status != "pass":
+                why = _why_set_aside(result)
+                set_aside[why] = set_aside.get(why, 0) + 1
             assume(result.status == "pass")  # C blew up or MJX refused the model: not a divergence either
             return
-        if not include_known and known_contact_divergence(m, inputs, result):
+        known = None if include_known else known_contact_divergence(m, inputs, result)
+        if known:
+            if searching:
+                set_aside[known] = set_aside.get(known, 0) + 1
             assume(False)  # a known divergence: see KNOWN_DIVERGENCES
         seen["last_failure"] = dict(mj=mj, inputs=inputs, result=result)
         note(mj.xml)
@@ -443,7 +617,7 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
         # an exception was raised once and not again, by the harness
         if seen["last_failure"] is None:
             harness = e
-    except Exception as e:
+    except Exception as e:  # noqa: BLE001 - a find, or else the harness's own error, reported
         if not _is_find(e):  # e.g. Hypothesis's Unsatisfiable: no conclusion either
             harness = e
     seconds = time.perf_counter() - t0
@@ -455,7 +629,7 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
     structures = seen["examples"]
     errors["interactions"] = _interaction_summary(first, seconds)
     if found is None:
-        return FuzzResult(structures * batch, seconds, None, structures=structures, **errors)
+        return FuzzResult(structures * batch, seconds, None, structures=structures, set_aside=set_aside, **errors)
     mj, result, inputs = found["mj"], found["result"], found["inputs"]
     path = None
     if out is not None:
@@ -464,4 +638,5 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
                                mj.xml, Tolerances(), config.as_dict(), report.result_dict(result), report.versions())
     return FuzzResult(structures * batch, seconds, dict(
         xml=mj.xml, nbody=mj.nbody, ngeom=mj.ngeom, features=list(mj.features), message=result.message,
-        status=result.status, reproducer=str(path) if path else None), structures=structures, **errors)
+        status=result.status, reproducer=str(path) if path else None), structures=structures, set_aside=set_aside,
+        **errors)
