@@ -24,7 +24,9 @@ from combination_bugs import COVERING_SCENARIOS
 from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
 from mjxdiff.sweep import SweepConfig
 
-CONFIG = SweepConfig(seed=0, batch=2, steps=150, diagnose="none")
+#: The rollout's verdict alone: a catch is the rollout's; the one-step check and the host-interface
+#: check (more compiles of each patched MJX) have tests of their own (test_injected_bugs, test_transfer).
+CONFIG = SweepConfig(seed=0, batch=2, steps=150, diagnose="none", onestep=False, transfer=False)
 _S = mujoco.mjtSensor
 
 
