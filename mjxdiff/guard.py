@@ -164,7 +164,7 @@ def _stopped(name: str, kind: str, why: str, flight: _Flight | None, limits: Lim
 
 def _read_messages(stream, inbox: queue.Queue) -> None:
     """Unpickles the child's messages into ``inbox`` until the pipe closes, then puts None."""
-    with contextlib.suppress(EOFError, OSError, pickle.UnpicklingError, ValueError):
+    with stream, contextlib.suppress(EOFError, OSError, pickle.UnpicklingError, ValueError):
         while True:
             inbox.put(pickle.load(stream))
     inbox.put(None)
@@ -173,6 +173,11 @@ def _read_messages(stream, inbox: queue.Queue) -> None:
 def _read_stderr(stream, watch: _Watch, lock: threading.Lock) -> None:
     """Passes the child's stderr on, except MJX's and XLA's alarms, which go to the scenario in
     flight (the most recently started one) as one line each."""
+    with stream:
+        _pass_stderr(stream, watch, lock)
+
+
+def _pass_stderr(stream, watch: _Watch, lock: threading.Lock) -> None:
     skipping = False
     for raw in iter(stream.readline, b""):
         line = raw.decode(errors="replace")
