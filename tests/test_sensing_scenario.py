@@ -145,7 +145,7 @@ def test_every_bug_has_its_expected_catch():
     assert set(CATCHES) == set(REACHES)
 
 
-@pytest.mark.slow  # each a fresh compile of the scenario (~35 s)
+@pytest.mark.slow  # each a fresh compile of the scenario: 82-116 s in a cold CI run on 2 cores
 @pytest.mark.parametrize("bug", list(REACHES), ids=lambda b: b.__name__)
 def test_the_sensing_scenario_catches_it(bug):
     caught(bug, "sensing", CONFIG, CATCHES[bug])
