@@ -661,9 +661,12 @@ def _generated_by_ignored(functions: list[types.FunctionType]) -> bool:
     ``namedtuple_<name>``: ``lambda _cls, a, b: _tuple_new(_cls, (a, b))``, all of it in the
     code's own digest, which is part of the key)."""
     def ignored(fn: types.FunctionType) -> bool:
-        if fn.__module__.startswith("namedtuple_"):
+        module = fn.__module__
+        if not module:  # exec'd with no __name__ in its globals: no package to account it to (fail closed)
+            return False
+        if module.startswith("namedtuple_"):
             return True
-        file = getattr(sys.modules.get(fn.__module__), "__file__", None)
+        file = getattr(sys.modules.get(module), "__file__", None)
         return file is not None and _ignored(file)
     return bool(functions) and all(ignored(fn) for fn in functions)
 
