@@ -87,13 +87,10 @@ def test_plane_capsule_contacts_have_c_s_tangent_frame():
 def test_a_cylinder_lying_on_a_plane_touches_it_at_both_caps():
     from mjxdiff.diagnose import _contacts_c, _contacts_mjx
 
-    m = mujoco.MjModel.from_xml_string(
+    m, d, dx = _forward_both(
         "<mujoco><compiler angle='radian'/><worldbody><geom type='plane' size='1 1 .1'/>"
         "<body pos='0 0 0.099' euler='0 1.5608 0'>"
         "<freejoint/><geom type='cylinder' size='0.1 0.2' margin='0.01'/></body></worldbody></mujoco>")
-    d = mujoco.MjData(m)
-    mujoco.mj_forward(m, d)
-    dx = engines.forward(mjx.put_model(m), mjx.make_data(m))
     precondition(len(_contacts_c(m, d)[(0, 1)]) == 2, "C: one contact on each cap's rim")
     assert len(_contacts_mjx(m, dx).get((0, 1), [])) == 2
 
@@ -104,13 +101,10 @@ def test_a_cylinder_lying_on_a_plane_touches_it_at_both_caps():
                    "along the axis, 3.575 mm in MJX along a normal tilted 0.033 rad (qacc 27.8 apart). Found by "
                    "fuzzing: tests/data/fuzz_ellipsoid_cylinder_contact.json, 2.882 mm in C, 1.354 mm in MJX")
 def test_an_ellipsoid_resting_on_a_cylinder_gets_c_s_contact():
-    m = mujoco.MjModel.from_xml_string(
+    _, d, dx = _forward_both(
         "<mujoco><worldbody><geom type='cylinder' size='0.1 0.1' pos='0 0 0.1'/>"
         "<body pos='0.03 0 0.266' euler='0.3 0.2 0'><freejoint/><geom type='ellipsoid' size='0.12 0.08 0.07'/>"
         "</body></worldbody></mujoco>")
-    d = mujoco.MjData(m)
-    mujoco.mj_forward(m, d)
-    dx = engines.forward(mjx.put_model(m), mjx.make_data(m))
     c = dx._impl.contact
     active = np.asarray(c.dist) < np.asarray(c.includemargin)
     precondition(d.ncon == 1 and int(active.sum()) == 1, "one contact on both sides")
