@@ -37,7 +37,7 @@ from hypothesis import strategies as st
 from hypothesis.database import DirectoryBasedExampleDatabase
 from hypothesis.errors import Flaky, HypothesisException
 
-from mjxdiff import interactions, report, reproducer, strategies
+from mjxdiff import interactions, report, reproducer, segments, strategies
 from mjxdiff.inputs import BatchedInputs
 from mjxdiff.scenario import Tolerances
 from mjxdiff.sweep import release_compiled_if_crowded
@@ -87,6 +87,13 @@ KNOWN_DIVERGENCES = {
                                    "(an ellipsoid-cylinder contact 2.882 mm deep in C, 1.354 mm in MJX, normals "
                                    "0.037 rad apart, qacc 99 apart; tests/data/fuzz_ellipsoid_cylinder_contact.json); "
                                    "set aside only where MJX given C's contacts reproduces C (tests/test_fuzz.py)",
+    "capsule segment solves": "MJX 3.17 adds 1e-6 to the denominators of its closest-point solves on segments "
+                              "(sphere-capsule, capsule-capsule; mjx/_src/math.py), C 4.0 solves them exactly: "
+                              "points and normals part by about 1e-6 / (1 - cos^2 of the axes' angle), and a deep "
+                              "contact's qacc by 1e-5 relative at step 0 (fuzz seed 1 in CI: normal 4.3e-6 apart, "
+                              "qvel 0.0036; tests/data/fuzz_capsule_capsule_contact.json); set aside only where "
+                              "MJX's contact is its formulas with the 1e-6 and C's the same without, to 1e-9 "
+                              "(mjxdiff/segments.py), and MJX given C's contacts reproduces C (tests/test_fuzz.py)",
 }
 
 #: Sensor types MJX computes in ``sensor_acc``.
@@ -289,8 +296,11 @@ def known_contact_divergence(m, inputs: BatchedInputs, result: ScenarioResult) -
       friction coefficients across the tangents);
     - ``convex pairs by SDF descent``: at one of the 3 steps, a contact of a pair MJX collides by
       SDF descent (:func:`_sdf_pair`) that differs from C's;
+    - ``capsule segment solves``: at one of the 3 steps, a sphere-capsule or capsule-capsule
+      contact more than :data:`mjxdiff.segments.TOLERANCE` from C's, where MJX's is its formulas
+      with their 1e-6 regularization and C's the same exactly (:func:`mjxdiff.segments.explains`);
 
-    the last two only where, at every one of the 3 steps, MJX's forward given C's contacts for
+    the last three only where, at every one of the 3 steps, MJX's forward given C's contacts for
     those (:func:`_with_c_contacts`) reproduces C's ``qacc`` and ``sensordata``
     (:func:`_c_contacts_explain`): then nothing else differs, a bias force or a constraint row.
 
@@ -331,6 +341,8 @@ def _signature(inputs: BatchedInputs, member: int, step: int) -> str | None:
                 shown.append("contact tangent frames")
             if _sdf_contact_differs(mi, cc, cx):
                 shown.append("convex pairs by SDF descent")
+            if _regularized_contact_differs(mi, d, dx):
+                shown.append("capsule segment solves")
         mujoco.mj_step(mi, d)
     if shown and _c_contacts_explain(mi, mx, states):
         return shown[0]  # the first shown, where a model shows both
@@ -408,6 +420,31 @@ def _sdf_contact_differs(m, cc: dict, cx: dict) -> bool:
     return _contact_diff(m, {p: cc[p] for p in sdf & cc.keys()}, {p: cx[p] for p in sdf & cx.keys()})[0] > 1e-6
 
 
+def _regularized_slots(m, d, dx) -> dict[int, Any]:
+    """MJX's contact slots (index -> C's ``MjContact``) of sphere-capsule and capsule-capsule
+    contacts that differ from C's by MJX's regularized segment solves alone
+    (:func:`mjxdiff.segments.explains`), more than :data:`mjxdiff.segments.TOLERANCE`."""
+    c = dx._impl.contact  # noqa: SLF001 - MJX's contacts
+    geom, dist, pos, frame = (np.asarray(x) for x in (c.geom, c.dist, c.pos, c.frame))
+    slots = {}
+    for con in d.contact[:d.ncon]:
+        if not segments.regularized((m.geom_type[con.geom1], m.geom_type[con.geom2])):
+            continue
+        for s in np.flatnonzero((geom == (con.geom1, con.geom2)).all(axis=1)):
+            mjx_contact = (float(dist[s]), pos[s], frame[s].reshape(3, 3)[0])
+            apart = max(abs(mjx_contact[0] - con.dist), np.abs(pos[s] - con.pos).max(),
+                        np.abs(mjx_contact[2] - con.frame[:3]).max())
+            if apart > segments.TOLERANCE and segments.explains(m, d, con, mjx_contact):
+                slots[int(s)] = con
+    return slots
+
+
+def _regularized_contact_differs(m, d, dx) -> bool:
+    """Whether a sphere-capsule or capsule-capsule contact differs from C's by MJX's
+    regularized segment solves (:func:`_regularized_slots`)."""
+    return bool(_regularized_slots(m, d, dx))
+
+
 def _c_contacts_explain(m, mx, states: list[dict[str, np.ndarray]]) -> bool:
     """Whether, from each of C's ``states`` (:func:`_state`), MJX's ``forward`` (of ``mx``, put
     from ``m``) given C's contacts where they differ by a known kind (:func:`_with_c_contacts`)
@@ -444,13 +481,17 @@ def _with_c_contacts(m, d, dx):
     """MJX's contacts (``dx``) with C's (``d``) where they differ by a known kind: in the slots of
     every pair MJX collides by SDF descent, C's distance, position and frame in the pair's first
     slots, its other slots beyond the margin (no constraint rows); of other pairs, C's frame
-    (its tangents) in a slot at C's place (same geoms, position and normal within 1e-6). None
+    (its tangents) in a slot at C's place (same geoms, position and normal within 1e-6); of a
+    sphere-capsule or capsule-capsule contact apart by MJX's regularized segment solves alone
+    (:func:`_regularized_slots`), C's distance, position and frame. None
     where C has a contact of an SDF pair MJX has no slot for (more contacts than slots, or its
     geoms in the other order)."""
     c = dx._impl.contact  # noqa: SLF001 - MJX's contacts
     geom, margin = np.asarray(c.geom), np.asarray(c.includemargin)
     dist, pos, frame = (np.array(x) for x in (c.dist, c.pos, c.frame))
     rows = frame.reshape(-1, 9)
+    for s, con in _regularized_slots(m, d, dx).items():
+        dist[s], pos[s], rows[s] = con.dist, con.pos, con.frame
     ours: dict[tuple[int, int], list] = {}
     for con in d.contact[:d.ncon]:
         if _sdf_pair(m, (con.geom1, con.geom2)):
