@@ -21,6 +21,7 @@ _PUBLIC = {
     "ScenarioError": "mjxdiff.scenario",
     "ScenarioResult": "mjxdiff.verdict",
     "SweepConfig": "mjxdiff.sweep",
+    "SweepOptions": "mjxdiff.pipeline",
     "Tolerances": "mjxdiff.scenario",
     "Trajectory": "mjxdiff.engines",
     "UnsupportedError": "mjxdiff.engines",
@@ -38,6 +39,7 @@ _PUBLIC = {
     "load_scenario": "mjxdiff.scenario",
     "make_inputs": "mjxdiff.inputs",
     "metrics": None,  # the module itself
+    "run": "mjxdiff.pipeline",  # a whole sweep as the CLI runs it: verdicts, known, history, baseline, files
     "run_scenario": "mjxdiff.sweep",
     "sweep": "mjxdiff.sweep",
 }

@@ -13,7 +13,6 @@ import dataclasses
 import json
 import os
 import sys
-import time
 from pathlib import Path
 from typing import Sequence
 
@@ -440,146 +439,39 @@ def _cmd_list() -> int:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from mjxdiff import engines, export_cache, report
-    from mjxdiff.scenario import ScenarioError, bundled_scenarios, load_scenario, no_bundled_scenarios_message
-    from mjxdiff import guard
-    from mjxdiff.sweep import SweepConfig, exit_code
-    from mjxdiff.sweep import sweep as in_process
-    from mjxdiff.verdict import ScenarioResult
+    from mjxdiff import baseline, pipeline, report
 
-    from mjxdiff import baseline, known
+    options = pipeline.SweepOptions(**{f.name: getattr(args, f.name) for f in dataclasses.fields(pipeline.SweepOptions)
+                                       if f.name != "scenarios"}, scenarios=tuple(args.scenarios))
+    text = args.format == "text"
 
-    entries = known.CATALOGUE
-    try:
-        if args.known:
-            entries = known.load_entries(args.known) + entries
-        base = baseline.load(args.baseline, None if args.no_history else args.history) if args.baseline else None
-    except (known.KnownError, baseline.BaselineError) as e:
-        print(f"mjxdiff: error: {e}", file=sys.stderr)
-        return 2
-    if args.impl in ("warp", "both"):
-        from mjxdiff import mjwarp
-
-        why = mjwarp.available()
-        if why:
-            print(f"mjxdiff: error: --impl {args.impl}: {why}", file=sys.stderr)
-            return 2
-    engines.configure_jax(args.precision, args.cache_dir)
-    reproducers = str(Path(args.out) / "reproducers") if args.out else None
-    config = SweepConfig(seed=args.seed, batch=args.batch, steps=args.steps, precision=args.precision,
-                         reproducers=reproducers,
-                         quick=args.quick, threshold=args.threshold, envelope=args.envelope,
-                         noise_floor=args.noise_floor, diagnose=args.diagnose, adjust=args.adjust,
-                         drop_unsupported=args.drop_unsupported, compile=args.compile,
-                         compile_workers=args.compile_workers, transfer=args.transfer,
-                         onestep=args.onestep, drop_costly=args.drop_costly_pairs, budget=args.budget,
-                         max_memory=args.max_memory)
-    limits = guard.Limits(args.max_memory or guard.default_memory(), args.budget, args.sweep_budget)
-
-    def sweep(scenarios, config, progress, on_result):
-        if args.isolate:
-            return guard.sweep(scenarios, config, limits, progress, on_result, args.cache_dir)
-        return in_process(scenarios, config, progress, on_result)
-    scenarios, bad = [], []
-    try:
-        refs = args.scenarios or [s.name for s in bundled_scenarios()]
-    except ScenarioError as e:
-        print(f"mjxdiff: error: {e}", file=sys.stderr)
-        return 2
-    if not refs:  # never report "consistent" having swept nothing
-        print(f"mjxdiff: error: no scenarios selected ({no_bundled_scenarios_message()})", file=sys.stderr)
-        return 2
-    for ref in refs:
-        try:
-            scenarios.append(load_scenario(ref))
-        except ScenarioError as e:
-            bad.append(ScenarioResult(name=str(ref), status="error", error_kind="input", message=str(e)))
-    for r in bad:
-        print(f"mjxdiff: error: {r.message}", file=sys.stderr)
-
-    def show(r: ScenarioResult) -> None:
-        if args.format == "text":
-            entry = known.match(report.result_dict(r), entries)
+    def show(r, entry) -> None:
+        if text:
             print(report.format_line(r) + (f" [known: {entry.id}]" if entry else ""), flush=True)
-
-    t0 = time.perf_counter()
-    cache_before = export_cache.events()
-    results = list(bad)
-    if args.impl in ("mjx", "both"):
-        results += sweep(scenarios, config, args.progress, show)
-    if args.impl in ("warp", "both"):
-        suffix = "@warp" if args.impl == "both" else ""  # a scenario's name seeds its inputs: results renamed
-
-        def show_warp(r: ScenarioResult) -> None:
-            show(dataclasses.replace(r, name=r.name + suffix))
-        warp = dataclasses.replace(config, impl="warp",
-                                   reproducers=config.reproducers and str(Path(config.reproducers) / "warp"))
-        results += [dataclasses.replace(r, name=r.name + suffix) for r in
-                    sweep(scenarios, warp, args.progress, show_warp)]
-    if args.impl == "both":  # the third pair: MJWarp against MJX, C's envelope as the floor
-        def show_pair(r: ScenarioResult) -> None:
-            show(dataclasses.replace(r, name=r.name + "@mjx-warp"))
-        pair = dataclasses.replace(config, impl="warp", reference="mjx", diagnose="none", reproducers=None)
-        results += [dataclasses.replace(r, name=r.name + "@mjx-warp") for r in
-                    sweep(scenarios, pair, args.progress, show_pair)]
-    seconds = time.perf_counter() - t0
-    doc = report.to_json(results, dict(vars(args), threshold=args.threshold, seconds=seconds,
-                                       mjx_compiles=engines.compile_count()))
-    doc["code"]["cache"] = cache = export_cache.events_since(cache_before)
-    if args.format == "text":
-        print(report.format_cache(cache), file=sys.stderr)
-    accepted = set()
-    for sc in doc["scenarios"]:
-        entry = known.match(sc, entries)
-        if entry:
-            sc["known"] = dataclasses.asdict(entry)
-            if entry.accepted:
-                accepted.add(sc["name"])
-    _with_history(args, doc)
-    if base is not None:
-        changes = baseline.compare(base, doc)
-        doc["baseline"] = dict(ref=args.baseline, changes=changes)
-        if args.format == "text":
-            print(baseline.format_text(changes, args.baseline))
-    if args.out:
-        path = report.write_report(args.out, doc)
-        print(f"report written to {path}", file=sys.stderr)
-        try:
-            from mjxdiff import html_report
-
-            print(f"page written to {html_report.write(args.out, doc, args.plots)}", file=sys.stderr)
-        except Exception as e:  # noqa: BLE001 - the verdicts stand without their page
-            print(f"mjxdiff: warning: report.html not written: {type(e).__name__}: {e}", file=sys.stderr)
-    if args.format == "json":
-        print(json.dumps(doc, indent=2))
-    else:
-        print(report.format_text(results, args.threshold, seconds).splitlines()[-1])
-    code = exit_code(results)
-    if args.fail_on == "new" and code == 1:
-        failing = (baseline.new_failures(doc["baseline"]["changes"]) if base is not None else
-                   [s["name"] for s in doc["scenarios"] if s["status"] in ("fail", "error")])
-        code = 1 if [n for n in failing if n not in accepted] else 0
-    return code
-
-
-def _with_history(args: argparse.Namespace, doc: dict) -> None:
-    """Flags anomalies against the history, then appends this run to it (``doc["history"]``).
-    A history that cannot be read or written is a warning: the verdicts stand."""
-    if args.no_history:
-        return
-    from mjxdiff import history
-
-    directory = Path(args.history) if args.history else history.default_dir()
     try:
-        found = history.anomalies(history.open_history(directory), doc)
-        doc["history"] = dict(dir=str(directory), anomalies=found)
-        doc["history"]["run_file"] = str(history.append(directory, doc, keep=args.history_keep))
-    except Exception as e:  # noqa: BLE001 - never lose the verdicts to the history
-        print(f"mjxdiff: warning: history {directory}: {type(e).__name__}: {e}", file=sys.stderr)
-        return
-    if args.format == "text":
-        for a in found:
+        run = pipeline.compute(options, show)
+    except pipeline.OptionsError as e:
+        print(f"mjxdiff: error: {e}", file=sys.stderr)
+        return 2
+    for message in run.input_errors:
+        print(f"mjxdiff: error: {message}", file=sys.stderr)
+    if text:
+        print(report.format_cache(run.doc["code"]["cache"]), file=sys.stderr)
+        for a in run.anomalies:
             print(f"ANOMALY {a['message']}", flush=True)
+        if run.changes is not None:
+            print(baseline.format_text(run.changes, args.baseline))
+    files = pipeline.write(run)
+    for warning in run.warnings:
+        print(f"mjxdiff: warning: {warning}", file=sys.stderr)
+    for kind, name in (("report", "report"), ("page", "page")):
+        if kind in files:
+            print(f"{name} written to {files[kind]}", file=sys.stderr)
+    if text:
+        print(report.format_text(run.results, args.threshold, run.seconds).splitlines()[-1])
+    else:
+        print(json.dumps(run.doc, indent=2))
+    return run.exit_code
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
