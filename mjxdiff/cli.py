@@ -14,7 +14,7 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 __all__ = ["main"]
 
@@ -141,18 +141,45 @@ def _size(text: str) -> int:
     return value
 
 
+#: Options several commands share, each defined once (by dest); a command passes its own
+#: help where the option means something more there (``_shared(p, "out", out="write DIR/x.json")``).
+_SHARED: dict[str, tuple[tuple[str, ...], dict[str, Any]]] = {
+    "scenarios": (("scenarios",), dict(nargs="*", metavar="SCENARIO", help="bundled scenario name, scenario .toml "
+                                       "or MJCF .xml (default: every bundled scenario)")),
+    "seed": (("--seed",), dict(type=int, default=0, help="seed of the randomized members (default 0)")),
+    "out": (("--out",), dict(metavar="DIR", help="write the command's report under DIR")),
+    "format": (("--format",), dict(choices=("text", "json"), default="text", help="stdout format (default text)")),
+    "cache_dir": (("--cache-dir",), dict(metavar="DIR", help="JAX persistent compilation cache (see sweep --help)")),
+    "history": (("--history",), dict(metavar="DIR", help="the run history's directory (default $MJXDIFF_HISTORY, "
+                                     "else $XDG_DATA_HOME/mjxdiff/history or ~/.local/share/mjxdiff/history)")),
+}
+
+
+def _shared(p: argparse.ArgumentParser, *dests: str, **helps: str) -> None:
+    """Adds the shared options ``dests`` (:data:`_SHARED`) to ``p``, with ``helps[dest]`` as
+    the help text where given."""
+    for dest in dests:
+        flags, kw = _SHARED[dest]
+        p.add_argument(*flags, **{**kw, **({"help": helps[dest]} if dest in helps else {})})
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mjxdiff", description=_DESCRIPTION,
                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
+    for add, handler in _COMMANDS:
+        add(sub).set_defaults(func=handler)
+    return parser
+
+
+def _sweep_parser(sub) -> argparse.ArgumentParser:
     sw = sub.add_parser("sweep", help="compare MJX with MuJoCo C on scenarios",
                         description=_DESCRIPTION, epilog=_SWEEP_EPILOG,
                         formatter_class=argparse.RawDescriptionHelpFormatter)
-    sw.add_argument("scenarios", nargs="*", metavar="SCENARIO",
-                    help="bundled scenario name, path to a scenario .toml, or path to any MJCF .xml "
-                         "(default: every bundled scenario; see 'mjxdiff list')")
-    sw.add_argument("--seed", type=int, default=0, help="master seed of all randomization (default 0)")
+    _shared(sw, "scenarios", "seed", scenarios="bundled scenario name, path to a scenario .toml, or path to any MJCF "
+            ".xml (default: every bundled scenario; see 'mjxdiff list')", seed="master seed of all randomization "
+            "(default 0)")
     sw.add_argument("--batch", type=_positive, help="batch members per scenario (default: the scenario's)")
     sw.add_argument("--steps", type=_positive, help="steps per rollout (default: the scenario's)")
     sw.add_argument("--precision", choices=("float64", "float32"), default="float64",
@@ -219,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--compile-workers", type=_non_negative, metavar="N",
                     help="scenarios run side by side, each on its own thread from compile to verdict; results "
                          "are reported in order (default: one per core, at most 4; 0: one after another)")
-    sw.add_argument("--out", metavar="DIR", help="write DIR/report.json (versions, config, per-scenario metrics) "
+    _shared(sw, "out", out="write DIR/report.json (versions, config, per-scenario metrics) "
                                                   "and DIR/report.html (one self-contained page with plots)")
     sw.add_argument("--impl", choices=("mjx", "warp", "both"), default="mjx",
                     help="what is judged against MuJoCo C: MJX (default), MuJoCo Warp on Warp's CPU device "
@@ -229,10 +256,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "float32, C's envelope as the floor)")
     sw.add_argument("--plots", choices=("failing", "all", "none"), default="failing",
                     help="report.html's error-vs-time plots: of failing scenarios (default), of all, or none")
-    sw.add_argument("--history", metavar="DIR",
-                    help="append this run (one row per scenario x field) to the Parquet history in DIR and flag "
-                         "errors that moved outside their own history (default $MJXDIFF_HISTORY, else "
-                         "$XDG_DATA_HOME/mjxdiff/history or ~/.local/share/mjxdiff/history; see 'mjxdiff history')")
+    _shared(sw, "history", history=
+            "append this run (one row per scenario x field) to the Parquet history in DIR and flag "
+            "errors that moved outside their own history (default $MJXDIFF_HISTORY, else "
+            "$XDG_DATA_HOME/mjxdiff/history or ~/.local/share/mjxdiff/history; see 'mjxdiff history')")
     sw.add_argument("--no-history", action="store_true", help="do not read or append the run history")
     sw.add_argument("--history-keep", type=_positive, default=500, metavar="N",
                     help="runs kept in the history; older ones are deleted (default 500)")
@@ -246,22 +273,29 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--known", metavar="FILE",
                     help="your own known divergences ([[known]] tables, see mjxdiff.known), tried before the "
                          "catalogue shipped with mjxdiff")
-    sw.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
+    _shared(sw, "format")
     sw.add_argument("--quick", action="store_true", help="smoke run: batch <= 4, steps <= 50")
-    sw.add_argument("--cache-dir", metavar="DIR",
-                    help="JAX persistent compilation cache, plus traced MJX rollouts in DIR/mjxdiff-exports "
-                         "so a second run skips tracing mjx.step (default $MJXDIFF_CACHE or "
-                         "~/.cache/mjxdiff/jax; '' disables both)")
+    _shared(sw, "cache_dir", cache_dir=
+            "JAX persistent compilation cache, plus traced MJX rollouts in DIR/mjxdiff-exports "
+            "so a second run skips tracing mjx.step (default $MJXDIFF_CACHE or "
+            "~/.cache/mjxdiff/jax; '' disables both)")
     sw.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                     help="progress lines on stderr (default: when stderr is a terminal)")
+    return sw
+
+
+def _replay_parser(sub) -> argparse.ArgumentParser:
     rp = sub.add_parser("replay", help="re-run a saved reproducer of a failing scenario member",
                         description="Re-run a reproducer file (written under DIR/reproducers/ by "
                                     "'sweep --out DIR' for each failing scenario, or by 'grad --out DIR' for a "
                                     "state whose Jacobians disagree) and print its diagnosis. "
                                     "Exit 1 if it still diverges, 0 if it now passes, 2 if the file is bad.")
     rp.add_argument("file", metavar="FILE", help="reproducer .json")
-    rp.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
-    rp.add_argument("--cache-dir", metavar="DIR", help="JAX persistent compilation cache (see sweep --help)")
+    _shared(rp, "format", "cache_dir")
+    return rp
+
+
+def _fuzz_parser(sub) -> argparse.ArgumentParser:
     fz = sub.add_parser("fuzz", help="hunt for divergences with generated models (Hypothesis), shrink what is found",
                         description="Generate MJX-supported models, initial states and controls with Hypothesis, "
                                     "compare MJX with MuJoCo C on each (as 'sweep' does), and shrink a divergence to "
@@ -273,30 +307,35 @@ def build_parser() -> argparse.ArgumentParser:
     fz.add_argument("--max-examples", type=_positive, default=300,
                     help="most generated models (structures) to try (default 300); each is judged on "
                          "64 variants of its parameters, initial state and controls, compiled once")
-    fz.add_argument("--seed", type=int, default=0, help="Hypothesis seed (default 0)")
+    _shared(fz, "seed", seed="Hypothesis seed (default 0)")
     fz.add_argument("--budget", type=float, default=None, metavar="SECONDS",
                     help="seconds of generation (default 60); shrinking a find may take longer")
-    fz.add_argument("--out", metavar="DIR", help="save the reproducer and the example database under DIR")
+    _shared(fz, "out", out="save the reproducer and the example database under DIR")
     fz.add_argument("--include-known", action="store_true",
                     help="also generate features with known, documented C/MJX divergences "
                          "(connect/weld, RK4/implicitfast, box and mesh geoms, tendon wrap sidesites) and report "
                          "the contact differences known by their signature (plane-cylinder far cap, capsule contact "
                          "frames)")
-    fz.add_argument("--cache-dir", metavar="DIR", help="JAX persistent compilation cache (see sweep --help)")
+    _shared(fz, "cache_dir")
+    return fz
+
+
+def _bench_parser(sub) -> argparse.ArgumentParser:
     bn = sub.add_parser("bench", help="measure MJX and MuJoCo C throughput, compile time and memory per scenario",
                         description=_BENCH_DESCRIPTION, epilog=_BENCH_EPILOG,
                         formatter_class=argparse.RawDescriptionHelpFormatter)
-    bn.add_argument("scenarios", nargs="*", metavar="SCENARIO",
-                    help=f"bundled scenario name, scenario .toml or MJCF .xml (default: {' '.join(_BENCH_DEFAULT)}, "
-                         "a small, a medium and an ant-class model)")
+    _shared(bn, "scenarios", scenarios=
+            f"bundled scenario name, scenario .toml or MJCF .xml (default: {' '.join(_BENCH_DEFAULT)}, "
+            "a small, a medium and an ant-class model)")
     bn.add_argument("--batch", type=_positive, nargs="+", metavar="B",
                     help="batch sizes of the throughput curve (default 8 32 128)")
     bn.add_argument("--steps", type=_positive, default=200, help="steps per rollout (default 200)")
     bn.add_argument("--repeats", type=_positive, default=2, help="warm runs per measurement, best kept (default 2)")
-    bn.add_argument("--seed", type=int, default=0, help="seed of the randomized inputs (default 0)")
-    bn.add_argument("--out", metavar="DIR", help="write DIR/bench.json (versions, machine, every number)")
-    bn.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
-    bn.add_argument("--cache-dir", metavar="DIR", help="JAX persistent compilation cache (see sweep --help)")
+    _shared(bn, "seed", "out", "format", "cache_dir", out="write DIR/bench.json (versions, machine, every number)")
+    return bn
+
+
+def _policy_parser(sub) -> argparse.ArgumentParser:
     po = sub.add_parser("policy", help="run a policy in closed loop on MJX and on MuJoCo C and compare episodes",
                         description="Drive the same environment with the same policy, initial states and policy "
                                     "keys on MJX (vmapped episodes, the policy inside the scan), on MuJoCo C (a "
@@ -326,9 +365,12 @@ def build_parser() -> argparse.ArgumentParser:
     po.add_argument("--steps", type=_positive, default=200, help="control steps per episode (default 200)")
     po.add_argument("--n-frames", type=_positive, default=1,
                     help="substeps per control step for an MJCF (brax environments bring their own)")
-    po.add_argument("--seed", type=int, default=0, help="seed of resets and policy keys (default 0)")
-    po.add_argument("--out", metavar="DIR", help="write DIR/policy-report.json")
-    po.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
+    _shared(po, "seed", "out", "format", seed="seed of resets and policy keys (default 0)",
+            out="write DIR/policy-report.json")
+    return po
+
+
+def _coverage_parser(sub) -> argparse.ArgumentParser:
     cv = sub.add_parser("coverage", help="measure which MJX code and which model parameters the scenarios exercise",
                         description="Trace MJX (put_model, make_data, one mjx.step) for every scenario under "
                                     "coverage.py and report line and branch coverage of mujoco/mjx/_src per module, "
@@ -341,11 +383,11 @@ def build_parser() -> argparse.ArgumentParser:
                                     "the members for the state-dependent conditions; MJX is traced, not compiled. "
                                     "'mjxdiff fuzz' reports the same pairs for what it generated. "
                                     "--out DIR writes DIR/coverage.json.")
-    cv.add_argument("scenarios", nargs="*", metavar="SCENARIO",
-                    help="bundled scenario name, scenario .toml or MJCF .xml (default: every bundled scenario)")
-    cv.add_argument("--seed", type=int, default=0, help="seed of the randomized members (default 0)")
-    cv.add_argument("--out", metavar="DIR", help="write DIR/coverage.json")
-    cv.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
+    _shared(cv, "scenarios", "seed", "out", "format", out="write DIR/coverage.json")
+    return cv
+
+
+def _grad_parser(sub) -> argparse.ArgumentParser:
     gr = sub.add_parser("grad", help="compare MJX's one-step Jacobians (jax.jacfwd) with C's finite differences",
                         description="At states sampled from each scenario (initial states and states along C "
                                     "rollouts), compare the transition Jacobians of one step, A = dx'/dx and B = "
@@ -362,23 +404,28 @@ def build_parser() -> argparse.ArgumentParser:
                                     "part, and its kind from MJX's own finite differences: 'derivative only' (a "
                                     "gradient bug: MJX's forward agrees with C) or 'forward dynamics' (MJX's forward "
                                     "has another slope). Exit 0 pass, 1 fail, 2 bad input.")
-    gr.add_argument("scenarios", nargs="*", metavar="SCENARIO",
-                    help="bundled scenario name, scenario .toml or MJCF .xml (default: the smooth ones: pendulum, "
-                         "double_pendulum, cartpole, actuators, gravcomp_arm)")
+    _shared(gr, "scenarios", scenarios=
+            "bundled scenario name, scenario .toml or MJCF .xml (default: the smooth ones: pendulum, "
+            "double_pendulum, cartpole, actuators, gravcomp_arm)")
     gr.add_argument("--states", type=_positive, default=8, help="states sampled per scenario (default 8)")
-    gr.add_argument("--seed", type=int, default=0, help="seed of the randomized members (default 0)")
-    gr.add_argument("--out", metavar="DIR", help="write DIR/grad-report.json, DIR/grad-report.html (a heat map of "
+    _shared(gr, "seed")
+    _shared(gr, "out", out="write DIR/grad-report.json, DIR/grad-report.html (a heat map of "
                                                  "each failing scenario's worst state) and, per failing scenario, its "
                                                  "worst state as DIR/reproducers/NAME-grad-stateI.json for "
                                                  "'mjxdiff replay'")
-    gr.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
+    _shared(gr, "format")
+    return gr
+
+
+def _history_parser(sub) -> argparse.ArgumentParser:
     hi = sub.add_parser("history", help="query the run history sweeps append to (DuckDB over Parquet)",
                         description="Trends per scenario and field over the runs the sweeps appended (runs, "
                                     "passes, median/min/max error, the last status and ratio to bound), runs "
                                     "compared by MuJoCo/MJX version and MJX code digest (--by-version), or the "
                                     "runs themselves (--runs). The history is a directory of Parquet files, one "
                                     "per run; any DuckDB or Parquet reader can read it too.")
-    hi.add_argument("--dir", metavar="DIR", help="history directory (default: as sweep --history)")
+    hi.add_argument("--history", "--dir", dest="history", metavar="DIR", help=_SHARED["history"][1]["help"] +
+                    "; --dir is the older name")
     hi.add_argument("--scenario", metavar="S", help="only this scenario")
     hi.add_argument("--field", metavar="F", help="only this field (qpos, qvel, act, sensordata, contacts, ...)")
     hi.add_argument("--since", metavar="WHEN", type=_since,
@@ -387,7 +434,11 @@ def build_parser() -> argparse.ArgumentParser:
     view = hi.add_mutually_exclusive_group()
     view.add_argument("--by-version", action="store_true", help="compare runs by MuJoCo/MJX version and code digest")
     view.add_argument("--runs", action="store_true", help="list the runs (id, time, versions, passes, failures)")
-    hi.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
+    _shared(hi, "format")
+    return hi
+
+
+def _cache_parser(sub) -> argparse.ArgumentParser:
     ca = sub.add_parser("cache", help="check the cache of traced MJX rollouts against the code loaded now",
                         description="Verifies every saved MJX rollout (DIR/mjxdiff-exports) against the MJX and "
                                     "mjxdiff code loaded now: which artifacts this code may load, which belong to "
@@ -403,12 +454,14 @@ def build_parser() -> argparse.ArgumentParser:
     ca.add_argument("--fix", action="store_true",
                     help="remove what cannot be trusted: every artifact of an ambiguous key, unreadable ones, "
                          "orphaned files, older formats")
-    ca.add_argument("--cache-dir", metavar="DIR",
-                    help="the cache to check (default $MJXDIFF_CACHE or ~/.cache/mjxdiff/jax, as sweep)")
-    ca.add_argument("--format", choices=("text", "json"), default="text", help="stdout format (default text)")
-    sub.add_parser("list", help="list bundled scenarios and what each exercises",
+    _shared(ca, "cache_dir", cache_dir="the cache to check (default $MJXDIFF_CACHE or ~/.cache/mjxdiff/jax, as sweep)")
+    _shared(ca, "format")
+    return ca
+
+
+def _list_parser(sub) -> argparse.ArgumentParser:
+    return sub.add_parser("list", help="list bundled scenarios and what each exercises",
                    description="List bundled scenarios with their model, size and what they exercise.")
-    return parser
 
 
 def _selected(refs: Sequence[str]) -> list | None:
@@ -427,7 +480,7 @@ def _selected(refs: Sequence[str]) -> list | None:
     return scenarios
 
 
-def _cmd_list() -> int:
+def _cmd_list(args: argparse.Namespace) -> int:
     scenarios = _selected(())
     if scenarios is None:
         return 2
@@ -677,7 +730,7 @@ def _since(text: str):
 def _cmd_history(args: argparse.Namespace) -> int:
     from mjxdiff import history
 
-    h = history.open_history(args.dir)
+    h = history.open_history(args.history)
     for name in h.skipped:
         print(f"mjxdiff history: warning: {name} cannot be read; skipped", file=sys.stderr)
     if args.runs:
@@ -781,27 +834,16 @@ def _cmd_cache(args: argparse.Namespace) -> int:
     return 0 if args.fix or not untrusted else 1
 
 
+#: Every command: the function that adds its parser, the function that runs it.
+_COMMANDS = ((_sweep_parser, _cmd_sweep), (_replay_parser, _cmd_replay), (_fuzz_parser, _cmd_fuzz),
+             (_bench_parser, _cmd_bench), (_policy_parser, _cmd_policy), (_coverage_parser, _cmd_coverage),
+             (_grad_parser, _cmd_grad), (_history_parser, _cmd_history), (_cache_parser, _cmd_cache),
+             (_list_parser, _cmd_list))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.command == "list":
-        return _cmd_list()
-    if args.command == "cache":
-        return _cmd_cache(args)
-    if args.command == "coverage":
-        return _cmd_coverage(args)
-    if args.command == "history":
-        return _cmd_history(args)
-    if args.command == "grad":
-        return _cmd_grad(args)
-    if args.command == "policy":
-        return _cmd_policy(args)
-    if args.command == "fuzz":
-        return _cmd_fuzz(args)
-    if args.command == "bench":
-        return _cmd_bench(args)
-    if args.command == "replay":
-        return _cmd_replay(args)
-    return _cmd_sweep(args)
+    return args.func(args)
 
 
 if __name__ == "__main__":

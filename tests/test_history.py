@@ -85,13 +85,13 @@ def test_the_history_command_queries_trends_versions_and_runs(two_sweeps, capsys
     rows = json.loads(capsys.readouterr().out)["rows"]
     assert {r["field"] for r in rows} >= {"qpos", "qvel"} and all(r["runs"] == 2 for r in rows)
     assert all(r["passed"] == 1 and r["last_status"] == "fail" for r in rows)
-    assert main(["history", "--dir", directory, "--by-version", "--format", "json"]) == 0
+    assert main(["history", "--history", directory, "--by-version", "--format", "json"]) == 0
     # one MJX version, two code digests: the monkeypatched MJX is other code under the same number
     clean, bugged = json.loads(capsys.readouterr().out)["rows"]
     assert clean["mjx"] == bugged["mjx"] and clean["mjx_digest"] != bugged["mjx_digest"]
     assert (clean["scenario_passes"], clean["scenario_failures"]) == (3, 0)
     assert (bugged["scenario_passes"], bugged["scenario_failures"]) == (1, 2)
-    assert main(["history", "--dir", directory, "--runs", "--since", "1d"]) == 0
+    assert main(["history", "--history", directory, "--runs", "--since", "1d"]) == 0
     assert "2 runs in" in capsys.readouterr().out
 
 
