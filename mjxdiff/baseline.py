@@ -12,6 +12,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from mjxdiff.errors import one_line
+
 __all__ = ["CLASSES", "GROWTH", "BaselineError", "load", "compare", "format_text", "new_failures"]
 
 #: The classes, in the order the text report lists them.
@@ -39,7 +41,7 @@ def load(ref: str, history_dir: str | Path | None = None) -> dict[str, Any]:
             doc = json.loads(path.read_text())
             doc["scenarios"]
         except (ValueError, KeyError, TypeError) as e:
-            raise BaselineError(f"{ref}: not a sweep report.json ({type(e).__name__}: {e})") from None
+            raise BaselineError(f"{ref}: not a sweep report.json ({one_line(e)})") from None
         return doc
     from mjxdiff import history
 

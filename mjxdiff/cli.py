@@ -16,6 +16,8 @@ import sys
 from pathlib import Path
 from typing import Any, Sequence
 
+from mjxdiff.errors import one_line
+
 __all__ = ["main"]
 
 _DESCRIPTION = """\
@@ -680,7 +682,7 @@ def _cmd_policy(args: argparse.Namespace) -> int:
             args.episodes, args.steps, args.seed, args.n_frames = (int(saved[k]) for k in
                                                                    ("episodes", "steps", "seed", "n_frames"))
         except (OSError, ValueError, KeyError, TypeError) as e:
-            print(f"mjxdiff policy: {args.replay}: not a policy reproducer ({type(e).__name__}: {e})", file=sys.stderr)
+            print(f"mjxdiff policy: {args.replay}: not a policy reproducer ({one_line(e)})", file=sys.stderr)
             return 2
     if not args.target or not args.policy:
         print("mjxdiff policy: give MODEL_OR_ENV and --policy SPEC, or --replay FILE", file=sys.stderr)

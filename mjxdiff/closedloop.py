@@ -39,6 +39,7 @@ import numpy as np
 from mujoco import mjx
 from mujoco.batch import Batch
 
+from mjxdiff.errors import one_line
 from mjxdiff.noise import converge_solver, has_constraints
 
 __all__ = ["Episodes", "Summary", "Comparison", "PolicyError", "load_policy", "make_env", "mjcf_env", "resolve_env",
@@ -213,7 +214,7 @@ def _size(saved: Any) -> Any:
 
 
 def _one_line(e: BaseException) -> str:
-    return " ".join(f"{type(e).__name__}: {e}".split())[:300]
+    return one_line(e, 300)
 
 
 def _attribute(ref: str) -> Any:

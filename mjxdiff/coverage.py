@@ -34,6 +34,8 @@ from typing import Any, Iterable, Sequence
 import mujoco
 import numpy as np
 
+from mjxdiff.errors import one_line
+
 __all__ = ["EXCLUDED", "REGIMES", "code_coverage", "parameter_coverage", "regime_coverage", "measure", "format_text"]
 
 #: ``_src`` modules a CPU sweep cannot reach, with the reason.
@@ -117,7 +119,7 @@ def _record(folder: str | Path) -> None:
                         transfer.check_scenario_states(checked, z["qpos"], z["qvel"], z["act"], z["ctrl"], 0.0,
                                                        entry["path"], entry["precision"])
             except Exception as e:  # noqa: BLE001 - an unsupported model covers what it reached
-                errors[entry["name"]] = " ".join(f"{type(e).__name__}: {e}".split())[:300]
+                errors[entry["name"]] = one_line(e, 300)
     finally:
         cov.stop()
     cov.json_report(outfile=str(folder / "cov.json"))

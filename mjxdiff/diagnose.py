@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from mjxdiff.errors import one_line
 from mjxdiff import metrics
 from mjxdiff import engines, export_cache
 from mjxdiff.engines import MJXEngine, Trajectory, mjx
@@ -364,7 +365,7 @@ def attribute_cause(passes: Callable[[_Inputs, str], bool], inputs: _Inputs,
         try:
             ok = bool(passes(ablated(), at))
         except Exception as e:  # noqa: BLE001 - recorded; the verdict stands
-            tried.append(dict(ablation=label, passed=None, error=" ".join(f"{type(e).__name__}: {e}".split())))
+            tried.append(dict(ablation=label, passed=None, error=one_line(e)))
             return None
         tried.append(dict(ablation=label, passed=ok, error=""))
         return dict(cause=cause, ablation=label, tried=tried) if ok else None

@@ -43,6 +43,8 @@ import jax.core
 import numpy as np
 from jax import export
 
+from mjxdiff.files import atomic_write
+
 __all__ = ["bind", "call", "check", "clear", "code_digest", "count", "events", "events_since", "evict", "export_dir",
            "fresh_digest", "loaded_count", "rollout_digest", "settings_digest", "tally", "untraced"]
 
@@ -894,9 +896,7 @@ def _load(path: Path, touch: bool = True):
 
 
 def _write(path: Path, data: bytes) -> None:
-    tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)  # atomic: a concurrent reader sees the old file or the whole new one
+    atomic_write(path, data)  # a concurrent reader sees the old file or the whole new one
 
 
 def _save(directory: Path, out_tree, exported, deps: dict[str, str]) -> Path:

@@ -37,6 +37,7 @@ from hypothesis import strategies as st
 from hypothesis.database import DirectoryBasedExampleDatabase
 from hypothesis.errors import Flaky, HypothesisException
 
+from mjxdiff.errors import one_line
 from mjxdiff import interactions, report, reproducer, segments, strategies
 from mjxdiff.inputs import BatchedInputs
 from mjxdiff.scenario import Tolerances
@@ -664,7 +665,7 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
     seconds = time.perf_counter() - t0
     errors = {}
     if harness is not None:
-        errors = dict(harness_error=" ".join(f"{type(harness).__name__}: {harness}".split()),
+        errors = dict(harness_error=one_line(harness),
                       harness_traceback="".join(traceback.format_exception(harness)), harness_example=example_xml)
     found = seen["last_failure"]
     structures = seen["examples"]

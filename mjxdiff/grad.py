@@ -42,6 +42,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from mjxdiff.errors import one_line
 from mjxdiff.noise import converge_solver, has_constraints
 
 __all__ = ["EPS", "RTOL", "SMOOTH", "MATRICES", "StateResult", "sample_states", "mjx_jacobians", "mjx_fd",
@@ -487,7 +488,7 @@ def check_scenario(scenario, count: int = 8, seed: int = 0, reproducers=None) ->
         m = load_model(scenario)
         states = sample_states(scenario, m, count, seed)
     except Exception as e:  # noqa: BLE001 - one scenario's trouble is its own
-        return dict(name=scenario.name, status="error", message=" ".join(f"{type(e).__name__}: {e}".split()))
+        return dict(name=scenario.name, status="error", message=one_line(e))
     from mjxdiff import export_cache
 
     export_cache.fresh_digest()  # JAX's own caches forget MJX code that has changed since
@@ -513,7 +514,7 @@ def check_scenario(scenario, count: int = 8, seed: int = 0, reproducers=None) ->
         status = "unsupported" if "not supported" in str(e) else "error"
         return dict(name=scenario.name, status=status, message=f"MuJoCo C: {' '.join(str(e).split())}")
     except Exception as e:  # noqa: BLE001 - one scenario's trouble is its own; the others go on
-        return dict(name=scenario.name, status="error", message=" ".join(f"{type(e).__name__}: {e}".split()))
+        return dict(name=scenario.name, status="error", message=one_line(e))
     judged = [r for r in results if r.status != "non-smooth"]
     failed = [r for r in judged if r.status == "fail"]
     worst = max(judged, key=lambda r: r.ratio, default=None)

@@ -24,6 +24,8 @@ import uuid
 from pathlib import Path
 from typing import Any, Iterable
 
+from mjxdiff.files import atomic_write
+
 __all__ = ["default_dir", "rows", "append", "History", "open_history", "anomalies", "config_key", "KEEP",
            "ANOMALY_RUNS", "ANOMALY_DECADES", "ANOMALY_RELEVANT", "COLUMNS"]
 
@@ -115,7 +117,6 @@ def append(directory: str | Path, doc: dict[str, Any], keep: int = KEEP) -> Path
     now = _dt.datetime.now(_dt.timezone.utc).replace(tzinfo=None)
     run_id = uuid.uuid4().hex[:12]
     final = directory / f"run-{now:%Y%m%dT%H%M%S%f}-{run_id}.parquet"
-    tmp = directory / f".{final.name}.tmp"
     con = duckdb.connect()
     try:
         con.execute("CREATE TABLE r (" + ", ".join(f'"{c}" {t}' for c, t in COLUMNS) + ")")
@@ -123,10 +124,9 @@ def append(directory: str | Path, doc: dict[str, Any], keep: int = KEEP) -> Path
         if data:
             con.executemany(f"INSERT INTO r VALUES ({', '.join('?' * len(COLUMNS))})",
                             [[row[c] for c, _ in COLUMNS] for row in data])
-        con.execute(f"COPY r TO '{_sql_path(tmp)}' (FORMAT parquet)")
+        atomic_write(final, lambda tmp: con.execute(f"COPY r TO '{_sql_path(tmp)}' (FORMAT parquet)"))
     finally:
         con.close()
-    os.replace(tmp, final)
     for old in sorted(directory.glob("run-*.parquet"))[:-keep] if keep > 0 else []:
         old.unlink(missing_ok=True)
     return final

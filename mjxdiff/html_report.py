@@ -22,6 +22,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from mjxdiff.files import atomic_write
 from mjxdiff import report
 
 __all__ = ["render", "write", "render_grad", "write_grad", "PLOTS"]
@@ -180,12 +181,8 @@ def render(doc: dict[str, Any], out_dir: str | Path | None = None, plots: str = 
 
 
 def _write(path: Path, text: str) -> Path:
-    """``text`` into ``path`` atomically (a temporary file renamed into place)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
-    return path
+    """``text`` into ``path`` atomically (:func:`mjxdiff.files.atomic_write`)."""
+    return atomic_write(path, text)
 
 
 def write(out_dir: str | Path, doc: dict[str, Any], plots: str = "failing") -> Path:

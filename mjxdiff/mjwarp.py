@@ -26,6 +26,7 @@ from typing import Iterator
 import mujoco
 import numpy as np
 
+from mjxdiff.errors import one_line
 from mjxdiff.engines import Trajectory, _first_true, _shifted, _unsupported, concat
 from mjxdiff.inputs import BatchedInputs
 
@@ -50,7 +51,7 @@ def available() -> str | None:
         warp.config.log_level = warp.LOG_WARNING  # no line per module loaded
         import mujoco_warp  # noqa: F401
     except Exception as e:  # noqa: BLE001 - any import failure means: not usable here
-        return f"MuJoCo Warp is not installed ({type(e).__name__}: {e}); {INSTALL}"
+        return f"MuJoCo Warp is not installed ({one_line(e)}); {INSTALL}"
     return None
 
 

@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Literal
 
+from mjxdiff.errors import one_line
 from mjxdiff import baseline, export_cache, known, report
 from mjxdiff.verdict import ScenarioResult
 
@@ -248,7 +249,7 @@ def _read_history(out: SweepRun) -> None:
         out.doc["history"] = dict(dir=str(directory), anomalies=history.anomalies(history.open_history(directory),
                                                                                   out.doc))
     except Exception as e:  # noqa: BLE001 - never lose the verdicts to the history
-        out.warnings.append(f"history {directory}: {type(e).__name__}: {e}")
+        out.warnings.append(f"history {directory}: {one_line(e)}")
 
 
 def write(out: SweepRun) -> dict[str, str]:
@@ -264,7 +265,7 @@ def write(out: SweepRun) -> dict[str, str]:
             out.files["history"] = doc["history"]["run_file"] = str(
                 history.append(directory, doc, keep=options.history_keep))
         except Exception as e:  # noqa: BLE001 - never lose the verdicts to the history
-            out.warnings.append(f"history {directory}: {type(e).__name__}: {e}")
+            out.warnings.append(f"history {directory}: {one_line(e)}")
     if options.out:
         out.files["report"] = str(report.write_report(options.out, doc))
         try:
@@ -272,7 +273,7 @@ def write(out: SweepRun) -> dict[str, str]:
 
             out.files["page"] = str(html_report.write(options.out, doc, options.plots))
         except Exception as e:  # noqa: BLE001 - the verdicts stand without their page
-            out.warnings.append(f"report.html not written: {type(e).__name__}: {e}")
+            out.warnings.append(f"report.html not written: {one_line(e)}")
     return out.files
 
 

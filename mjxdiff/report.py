@@ -17,6 +17,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any, Sequence
 
+from mjxdiff.files import atomic_write
 from mjxdiff.verdict import TRUNCATION, WEAK_BOUND, ScenarioResult
 
 __all__ = ["SCHEMA_VERSION", "code", "summary", "to_json", "format_text", "write_report", "versions", "safe_filename",
@@ -179,9 +180,7 @@ def write_report(out_dir: str | Path, report: dict[str, Any], name: str = "repor
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    path = path_under(out, safe_filename(name))
-    path.write_text(json.dumps(report, indent=2, sort_keys=False) + "\n")
-    return path
+    return atomic_write(path_under(out, safe_filename(name)), json.dumps(report, indent=2, sort_keys=False) + "\n")
 
 
 #: ``error_kind`` of a scenario stopped by a limit (:mod:`mjxdiff.guard`, :func:`mjxdiff.cost.plan`).

@@ -28,6 +28,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from mjxdiff.files import atomic_write
 from mjxdiff.inputs import FACTOR_SHAPES, BatchedInputs
 from mjxdiff.scenario import ScenarioError, Tolerances
 
@@ -95,10 +96,7 @@ def save(path: str | Path, scenario: str, member: int, inputs: BatchedInputs, mo
         factors={k: v[0].tolist() for k, v in one.factors.items()},
         qpos=one.qpos[0].tolist(), qvel=one.qvel[0].tolist(), act=one.act[0].tolist(), ctrl=one.ctrl[0].tolist(),
     )
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(doc, indent=1) + "\n")  # floats round-trip exactly through repr
-    return path
+    return atomic_write(path, json.dumps(doc, indent=1) + "\n")  # floats round-trip exactly through repr
 
 
 class _Bad(Exception):
@@ -305,10 +303,7 @@ def save_grad(path: str | Path, scenario: str, index: int, m: mujoco.MjModel, mo
     doc = dict(format=GRAD_FORMAT, scenario=scenario, index=index, versions=versions, verdict=verdict,
                model_mjb_base64=_model_to_b64(m), model_xml=model_xml,
                **{k: np.asarray(state[k], np.float64).tolist() for k in ("qpos", "qvel", "act", "ctrl")})
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(doc, indent=1) + "\n")
-    return path
+    return atomic_write(path, json.dumps(doc, indent=1) + "\n")
 
 
 def _parse_grad(doc: dict) -> GradReproducer:

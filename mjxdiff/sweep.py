@@ -24,6 +24,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from mjxdiff.errors import one_line
 from mjxdiff import adjust, cost, diagnose, engines, export_cache, onestep, report, reproducer, transfer
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
 from mjxdiff.inputs import BatchedInputs, make_inputs
@@ -154,8 +155,7 @@ class SweepConfig:
         return batch, steps
 
 
-def _one_line(e: BaseException) -> str:
-    return " ".join(f"{type(e).__name__}: {e}".split())
+
 
 
 def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
@@ -244,7 +244,7 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
         m, adjusted = adjust.for_mjx(m, scenario.model_path, config.adjust, config.drop_unsupported,
                                      config.drop_costly)
     except Exception as e:  # noqa: BLE001 - the model stays as it is, and says why
-        adjusted = [f"--drop-unsupported/--drop-costly-pairs could not rewrite the model: {_one_line(e)}"]
+        adjusted = [f"--drop-unsupported/--drop-costly-pairs could not rewrite the model: {one_line(e)}"]
     if adjusted:
         info["adjusted"] = adjusted
     prepared.m = m
@@ -357,7 +357,7 @@ def _finish(prepared: _Prepared, mjx_engine: MJXEngine | MJWarpEngine | None,
                 report.versions()))
         except Exception as e:  # noqa: BLE001 - the verdict stands without its reproducer
             path = None
-            result = dataclasses.replace(result, message=f"{result.message}; reproducer not saved: {_one_line(e)}")
+            result = dataclasses.replace(result, message=f"{result.message}; reproducer not saved: {one_line(e)}")
         result = dataclasses.replace(result, info={**result.info, "reproducer": path})
     if config.transfer and config.impl == "mjx" and result.status in ("pass", "fail") and _out_of_time():
         result = dataclasses.replace(result, message=f"{result.message}; host-interface check not run: {BudgetSpent()}")
@@ -383,7 +383,7 @@ def _with_transfer(result: ScenarioResult, inputs: BatchedInputs, model_path, pr
             found = transfer.check_scenario_states(inputs.models[0], inputs.qpos[0], inputs.qvel[0], inputs.act[0],
                                                    inputs.ctrl[0], 0.0, model_path, precision)
     except Exception as e:  # noqa: BLE001 - the trajectory verdict stands; say why this part is missing
-        info = {**result.info, "transfer": dict(error=_one_line(e))}
+        info = {**result.info, "transfer": dict(error=one_line(e))}
         return dataclasses.replace(result, info=info)
     info = {**result.info, "transfer": found.as_dict()}
     info["seconds"] = {**info.get("seconds", {}), "transfer": time.perf_counter() - t}
@@ -454,7 +454,7 @@ def _plan(m, inputs: BatchedInputs, config: SweepConfig,
 
 class _EngineFailed(Exception):
     def __init__(self, engine: str, error: BaseException):
-        super().__init__(_one_line(error))
+        super().__init__(one_line(error))
         self.engine = engine
 
 
@@ -819,7 +819,7 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
             raise BudgetSpent()
         second, _ = _verdict(result.name, m, inputs, tol, config, mjx_engine, c_engine, clock, solver=True)
     except Exception as e:  # noqa: BLE001 - the verdict stands
-        return result, traj_c, drill, dict(status=f"could not run: {_one_line(e)}")
+        return result, traj_c, drill, dict(status=f"could not run: {one_line(e)}")
     first = result.first_divergence
     assert first is not None  # a failure names where it starts
     check["status"] = second.status
@@ -882,9 +882,9 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
         found = onestep.check(m, inputs, traj_c, tol, mjx_engine, c_engine, config.precision, evidence=evidence,
                               reuse=(groups[0], chunk))
     except Exception as e:  # noqa: BLE001 - the rollout's verdict stands
-        found = dict(status="error", message=_one_line(e))
+        found = dict(status="error", message=one_line(e))
         return dataclasses.replace(result, message=f"{result.message}; one-step check could not run: "
-                                                   f"{_one_line(e)}"), found, traj_c
+                                                   f"{one_line(e)}"), found, traj_c
     if found["status"] == "error":
         return (dataclasses.replace(result, message=f"{result.message}; one-step check: {found['message']}"),
                 found, traj_c)
@@ -953,7 +953,7 @@ def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, con
         twin, _ = _verdict(result.name, m, twin_inputs, tol, config, mjx_engine, c_engine, clock)
     except Exception as e:  # noqa: BLE001 - the rollout's verdict stands, and says what is missing
         return dataclasses.replace(result, message=f"{result.message}; converged twin could not run: "
-                                                   f"{_one_line(e)}"), dict(status="error", message=_one_line(e))
+                                                   f"{one_line(e)}"), dict(status="error", message=one_line(e))
     worst = max((f for f in twin.fields if f.field in ("qpos", "qvel")), key=lambda f: f.ratio, default=None)
     found = dict(status=twin.status, message=twin.message, weak=list(twin.weak),
                  fields={f.field: dict(max_error=f.max_error, ratio=f.ratio, bound_scale=list(f.bound_scale),
@@ -1037,7 +1037,7 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
                 raise BudgetSpent()
             return fn()
         except Exception as e:  # noqa: BLE001 - one scenario's diagnosis, never the sweep
-            notes.append(f"{label} could not run: {_one_line(e)}")
+            notes.append(f"{label} could not run: {one_line(e)}")
             return None
 
     if traj_c is None:  # whole, for the failing scenario only
@@ -1212,7 +1212,7 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
                 result = running.pop(i).result() if i in running else run(i, scenario)
             except Exception as e:  # noqa: BLE001 - one scenario's trouble stays that scenario's
                 result = ScenarioResult(name=scenario.name, status="error", error_kind="internal",
-                                        message=f"mjxdiff itself failed on this scenario: {_one_line(e)}")
+                                        message=f"mjxdiff itself failed on this scenario: {one_line(e)}")
             results.append(result)
             if on_result:
                 on_result(result)

@@ -31,6 +31,8 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from mjxdiff.errors import one_line
+
 __all__ = ["RTOL", "Mismatch", "TransferCheck", "check", "check_scenario_states", "CONTACTS_COMPARED"]
 
 #: Largest relative difference a value may pick up going through MJX's host interface.
@@ -156,7 +158,7 @@ def _state(m: mujoco.MjModel, d: mujoco.MjData, mx: Any, dx: Any, blank: Any, rt
             continue
         except Exception as e:  # noqa: BLE001 - one MJX knows but cannot size: its own inconsistency
             out.append(Mismatch(f"state_size({element.name})", element.name, float("inf"), -1,
-                                f"MJX raised {' '.join(f'{type(e).__name__}: {e}'.split())[:120]}"))
+                                f"MJX raised {one_line(e, 120)}"))
             continue
         if size != mujoco.mj_stateSize(m, element):
             out.append(Mismatch(f"state_size({element.name})", element.name, float("inf"), -1,
