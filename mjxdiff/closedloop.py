@@ -39,6 +39,7 @@ import numpy as np
 from mujoco import mjx
 from mujoco.batch import Batch
 
+from mjxdiff.precision import Precision
 from mjxdiff.errors import one_line
 from mjxdiff.noise import converge_solver, has_constraints
 
@@ -874,7 +875,7 @@ def attribute(m: mujoco.MjModel, first: dict[str, Any], n_frames: int, tol: floa
         if error <= floor:
             return dict(cause=ACCUMULATED, ablation=None, local_error=error, local_floor=floor, tried=[])
 
-        def passes(x: _OneControlStep, precision: str) -> bool:
+        def passes(x: _OneControlStep, precision: Precision) -> bool:
             n = max(1, round(n_frames * m.opt.timestep / x.m.opt.timestep))
             return gap(x.m) <= max(_local_floor(x.m, state, n, tol, seed), error / REMOVES)
 

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from mjxdiff.precision import THRESHOLDS, Precision
 from mjxdiff.errors import one_line
 from mjxdiff import metrics
 from mjxdiff import engines, export_cache
@@ -52,7 +53,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
 )
 
 #: Relative disagreement (|mjx - c| / (1 + max|c|)) above which a stage differs.
-STAGE_RTOL = {"float64": 1e-9, "float32": 1e-4}
+STAGE_RTOL = {p: t.stage_rtol for p, t in THRESHOLDS.items()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,7 +176,7 @@ _CONTACT_PARTS = ("dist",) + ("position",) * 3 + ("friction",) * 2 + ("normal",)
 
 
 def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray | jax.Array,
-               act: np.ndarray | jax.Array, ctrl: np.ndarray, time: float, precision: str = "float64",
+               act: np.ndarray | jax.Array, ctrl: np.ndarray, time: float, precision: Precision = "float64",
                member: int = 0, step: int = 0, qacc_warmstart: np.ndarray | None = None,
                impl: str = "mjx") -> DrillDown:
     """Compares every stage of ``mj_forward`` and the other implementation's forward from one state.
@@ -338,8 +339,8 @@ class Ablatable(Protocol):
 _Inputs = TypeVar("_Inputs", bound=Ablatable)
 
 
-def attribute_cause(passes: Callable[[_Inputs, str], bool], inputs: _Inputs,
-                    precision: str, skip: tuple[str, ...] = ()) -> dict[str, Any]:
+def attribute_cause(passes: Callable[[_Inputs, Precision], bool], inputs: _Inputs,
+                    precision: Precision, skip: tuple[str, ...] = ()) -> dict[str, Any]:
     """Tries ablations in order; the first under which the scenario passes names the cause.
 
     An ablation that cannot run (MJX or C raises on the ablated model, e.g. a
@@ -361,7 +362,7 @@ def attribute_cause(passes: Callable[[_Inputs, str], bool], inputs: _Inputs,
     """
     tried: list[dict[str, Any]] = []
 
-    def attempt(label: str, cause: str, ablated: Callable[[], _Inputs], at: str) -> dict[str, Any] | None:
+    def attempt(label: str, cause: str, ablated: Callable[[], _Inputs], at: Precision) -> dict[str, Any] | None:
         try:
             ok = bool(passes(ablated(), at))
         except Exception as e:  # noqa: BLE001 - recorded; the verdict stands

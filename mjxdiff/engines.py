@@ -65,6 +65,7 @@ with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import 
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
 from mujoco.batch import Batch, SimulationError  # noqa: E402
 
+from mjxdiff.precision import Precision  # noqa: E402
 from mjxdiff import export_cache  # noqa: E402
 from mjxdiff.inputs import BatchedInputs  # noqa: E402
 
@@ -170,7 +171,7 @@ def _xla_settings(devices: int | None) -> tuple[str, str, int]:
 _CONFIGURED = export_cache.untraced({"done": False})
 
 
-def configure_jax(precision: str = "float64", cache_dir: str | os.PathLike | None = None,
+def configure_jax(precision: Precision = "float64", cache_dir: str | os.PathLike | None = None,
                   devices: int | None = None) -> None:
     """Sets up JAX for mjxdiff in this process: XLA's CPU devices and thread pool, precision,
     persistent compilation cache. The CLI calls it first; importing mjxdiff changes nothing.

@@ -345,7 +345,7 @@ def _signature(inputs: BatchedInputs, member: int, step: int) -> str | None:
             if _regularized_contact_differs(mi, d, dx):
                 shown.append("capsule segment solves")
         mujoco.mj_step(mi, d)
-    if shown and _c_contacts_explain(mi, mx, states):
+    if shown and _c_contacts_explain(mi, states):
         return shown[0]  # the first shown, where a model shows both
     return None
 
@@ -446,14 +446,24 @@ def _regularized_contact_differs(m, d, dx) -> bool:
     return bool(_regularized_slots(m, d, dx))
 
 
-def _c_contacts_explain(m, mx, states: list[dict[str, np.ndarray]]) -> bool:
-    """Whether, from each of C's ``states`` (:func:`_state`), MJX's ``forward`` (of ``mx``, put
-    from ``m``) given C's contacts where they differ by a known kind (:func:`_with_c_contacts`)
-    reproduces C's ``qacc`` and ``sensordata`` within the drill-down's float64 tolerance. Both
-    solvers start from C's warm start; any other error (a bias force, a constraint row) remains
-    and fails the match."""
-    import mujoco
+def _c_contacts_explain(m, states: list[dict[str, np.ndarray]]) -> bool:
+    """Whether, from each of C's ``states`` (:func:`_state`), MJX's ``forward`` given C's
+    contacts where they differ by a known kind (:func:`_with_c_contacts`) reproduces C's
+    ``qacc`` and ``sensordata`` within the drill-down's float64 tolerance. Both engines run a
+    copy of ``m`` with a converged solver (:func:`mjxdiff.noise.converge_solver`), from C's warm
+    start: two solvers stopped by the model's own tolerance part by far more than 1e-9 (a
+    generated model's 1e-10: qacc 1.1e-5 apart, 1.1e-13 converged). Any other error (a bias
+    force, a constraint row) remains and fails the match."""
+    import copy
 
+    import mujoco
+    from mujoco import mjx
+
+    from mjxdiff.noise import converge_solver
+
+    m = copy.deepcopy(m)
+    converge_solver(m)
+    mx = mjx.put_model(m)
     for state in states:
         d = mujoco.MjData(m)
         for k, v in state.items():

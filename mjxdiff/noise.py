@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from mjxdiff.precision import THRESHOLDS, Precision
 from mjxdiff import metrics
 from mjxdiff.engines import Trajectory
 from mjxdiff.inputs import BatchedInputs
@@ -44,7 +45,7 @@ __all__ = ["EPS", "FLOORS", "SOLVER_MARGIN", "NoiseFloor", "combine", "converge_
            "has_constraints", "noise_floor", "perturb"]
 
 #: Unit roundoff of each precision MJX can run in.
-EPS = {"float64": float(np.finfo(np.float64).eps), "float32": float(np.finfo(np.float32).eps)}
+EPS = {p: t.eps for p, t in THRESHOLDS.items()}
 #: Perturbation size, in units of the precision's eps (relative to |x|, absolute below 1).
 ULPS = 4.0
 #: How far above the self-divergence an MJX error may sit and still count as rounding.
@@ -121,7 +122,7 @@ class NoiseFloor:
         return {k: float(metrics.error_growth(jnp.asarray(v), self.dt).rate) for k, v in self._batch_max.items()}
 
 
-def perturb(inputs: BatchedInputs, precision: str) -> BatchedInputs:
+def perturb(inputs: BatchedInputs, precision: Precision) -> BatchedInputs:
     """``inputs`` with ``qpos``/``qvel`` moved by ``ULPS`` units of roundoff, random sign.
 
     delta = ULPS * eps * max(|x|, 1) for each component; the signs of member

@@ -26,6 +26,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from mjxdiff.precision import Precision
 from mjxdiff import metrics
 from mjxdiff.engines import Trajectory
 from mjxdiff.inputs import BatchedInputs
@@ -124,7 +125,7 @@ def _through_rollout(inputs: BatchedInputs, configured: BatchedInputs, engine, r
 
 
 def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine, c_engine,
-          precision: str = "float64", states: int = STATES, evidence: bool = False,
+          precision: Precision = "float64", states: int = STATES, evidence: bool = False,
           steps: np.ndarray | None = None, reuse: tuple[np.ndarray, int] | None = None) -> dict[str, Any]:
     """The one-step check of ``engine`` (MJX or MJWarp) against ``c_engine`` (C) from states of
     C's rollout ``traj_c`` of ``inputs``, and whether the model's own solver settings converge.

@@ -28,6 +28,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from mjxdiff.precision import PRECISIONS
 from mjxdiff.files import atomic_write
 from mjxdiff.inputs import FACTOR_SHAPES, BatchedInputs
 from mjxdiff.scenario import ScenarioError, Tolerances
@@ -157,7 +158,7 @@ def _config(doc: dict) -> dict[str, Any]:
     from mjxdiff.sweep import NOISE_FLOOR_MODES, SweepConfig
 
     config = _get(doc, "config", dict, "an object")
-    choices = dict(precision=("float64", "float32"), noise_floor=NOISE_FLOOR_MODES,
+    choices = dict(precision=PRECISIONS, noise_floor=NOISE_FLOOR_MODES,
                    diagnose=("none", "basic", "full"))
     for key, allowed in choices.items():
         if key in config and config[key] not in allowed:

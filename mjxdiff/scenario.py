@@ -21,6 +21,8 @@ from typing import Any, Mapping
 
 import mujoco
 
+from mjxdiff.precision import THRESHOLDS, Precision
+
 __all__ = [
     # served by the module __getattr__, which neither ruff nor pyright reads for __all__
     "BUNDLED_DIR",  # noqa: F822  # pyright: ignore[reportUnsupportedDunderAll]
@@ -82,17 +84,11 @@ class Tolerances:
     contact_mismatch: float = 0.05
     rangefinder_mismatch: float = 0.02
 
-    # float32 rounding (eps ~1.2e-7) accumulates over hundreds of steps; these
-    # floors were measured on the bundled calm scenarios (see README).
-    _FLOAT32_FLOOR = {"qpos": 1e-3, "qvel": 1e-2, "act": 1e-3, "sensordata": 5e-2}
-
-    def for_precision(self, precision: str) -> "Tolerances":
-        """Tolerances for ``precision``: float64 as given, float32 raised to its floor."""
-        if precision == "float64":
-            return self
-        return dataclasses.replace(
-            self, **{k: max(getattr(self, k), v) for k, v in self._FLOAT32_FLOOR.items()}
-        )
+    def for_precision(self, precision: Precision) -> "Tolerances":
+        """Tolerances for ``precision``, each raised to its floor there
+        (:data:`mjxdiff.precision.THRESHOLDS`: float64 none, float32 the measured floors)."""
+        floor = THRESHOLDS[precision].tolerance_floor
+        return dataclasses.replace(self, **{k: max(getattr(self, k), v) for k, v in floor.items()}) if floor else self
 
     def as_dict(self) -> dict[str, float]:
         return dataclasses.asdict(self)

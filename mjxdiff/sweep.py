@@ -24,6 +24,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from mjxdiff.precision import Precision
 from mjxdiff.errors import one_line
 from mjxdiff import adjust, cost, diagnose, engines, export_cache, onestep, report, reproducer, transfer
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
@@ -109,7 +110,7 @@ class SweepConfig:
     seed: int = 0
     batch: int | None = None
     steps: int | None = None
-    precision: str = "float64"
+    precision: Precision = "float64"
     quick: bool = False
     threshold: float = 0.95
     envelope: bool = True
@@ -374,7 +375,7 @@ def _advised(result: ScenarioResult, advice: str | None) -> ScenarioResult:
     return dataclasses.replace(result, message=f"{result.message}; {advice}")
 
 
-def _with_transfer(result: ScenarioResult, inputs: BatchedInputs, model_path, precision: str) -> ScenarioResult:
+def _with_transfer(result: ScenarioResult, inputs: BatchedInputs, model_path, precision: Precision) -> ScenarioResult:
     """``result`` with :func:`mjxdiff.transfer.check_scenario_states` of member 0 in its ``info``
     and, when MJX's host interface disagrees with C, a failing ``transfer`` field."""
     t = time.perf_counter()
@@ -562,9 +563,10 @@ class _CPieces:
     from the start. C steps ~8x faster than MJX, so catching up costs little.
     """
 
-    def __init__(self, c_engine: CEngine, group: BatchedInputs, chunk: int, precision: str,
+    def __init__(self, c_engine: CEngine, group: BatchedInputs, chunk: int, precision: Precision,
                  seconds: dict[str, float], floor: bool, solver: bool = False):
-        self.c_engine, self.group, self.chunk, self.precision, self.seconds = c_engine, group, chunk, precision, seconds
+        self.c_engine, self.group, self.chunk, self.seconds = c_engine, group, chunk, seconds
+        self.precision: Precision = precision
         self.solver, self.floor = solver, floor
         self._pieces = self._open(floor)
 
@@ -778,7 +780,7 @@ def _stopped(info: dict, clock: dict[str, float]) -> str:
     return f"stopped at its budget of {info.get('plan', {}).get('budget'):g} s: {done}" + (f"; {est}" if est else "")
 
 
-def _drill(result: ScenarioResult, inputs: BatchedInputs, traj_c: Trajectory, precision: str,
+def _drill(result: ScenarioResult, inputs: BatchedInputs, traj_c: Trajectory, precision: Precision,
            impl: str = "mjx") -> diagnose.DrillDown:
     """The stage drill-down at the state before the first divergent step."""
     assert result.first_divergence is not None  # drilled down only for a failure
@@ -928,7 +930,7 @@ def _onestep_cause(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances
     row = int(np.flatnonzero(inputs.ids == member)[0])
     single, traj_row = inputs.take([row]), jax.tree.map(lambda a: a[row:row + 1], traj_c)
 
-    def passes(ablated: BatchedInputs, precision: str) -> bool:
+    def passes(ablated: BatchedInputs, precision: Precision) -> bool:
         with _precision(precision):
             return onestep.check(ablated.models[0], ablated, traj_row, tol, mjx_engine, c_engine, precision,
                                  steps=np.array([step - 1]))["status"] == "pass"
@@ -1063,7 +1065,7 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
     if config.diagnose == "full":
         _phase("diagnosing")
 
-        def passes(ablated: BatchedInputs, precision: str) -> bool:
+        def passes(ablated: BatchedInputs, precision: Precision) -> bool:
             if _out_of_time(rerun=True):  # each ablation compiles and steps again
                 raise BudgetSpent()
             with _precision(precision):
@@ -1090,7 +1092,7 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
     return dataclasses.replace(result, message=message, diagnosis=diagnosis)
 
 
-def _precision(precision: str):
+def _precision(precision: Precision):
     """``jax_enable_x64`` as ``precision`` says, for the calling thread only (JAX's thread-local
     setting): scenarios a sweep runs at once on its workers never see each other's (a float32
     sweep's float64 ablation), and the process-wide setting is left as it was."""

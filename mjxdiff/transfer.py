@@ -31,12 +31,13 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from mjxdiff.precision import THRESHOLDS, Precision
 from mjxdiff.errors import one_line
 
 __all__ = ["RTOL", "Mismatch", "TransferCheck", "check", "check_scenario_states", "CONTACTS_COMPARED"]
 
 #: Largest relative difference a value may pick up going through MJX's host interface.
-RTOL = {"float64": 1e-12, "float32": 1e-6}
+RTOL = {p: t.transfer_rtol for p, t in THRESHOLDS.items()}
 
 #: Contacts ``get_data`` is compared on: the penetrating ones (``dist <= 0``). MJX 3.17's
 #: ``get_data`` drops contacts inside the margin (``0 < dist < margin``) that C holds, with
@@ -300,7 +301,7 @@ def _bind_set(m, d, mx, dx, kind, elements, ids, fields, rtol, out) -> int:
 
 
 def check(m: mujoco.MjModel, d: mujoco.MjData, spec: mujoco.MjSpec | None = None,
-          precision: str = "float64") -> TransferCheck:
+          precision: Precision = "float64") -> TransferCheck:
     """MJX's host interface at the C state ``d`` of ``m`` (``mj_forward`` already run).
 
     Args:
@@ -325,7 +326,7 @@ def check(m: mujoco.MjModel, d: mujoco.MjData, spec: mujoco.MjSpec | None = None
 
 def check_scenario_states(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray,
                           ctrl: np.ndarray, time: float, model_path: str | Path | None = None,
-                          precision: str = "float64") -> TransferCheck:
+                          precision: Precision = "float64") -> TransferCheck:
     """:func:`check` at two C states of one member: its initial state and the state with the
     most contacts along C stepping it with its controls ``ctrl`` ``(T, nu)``.
 
