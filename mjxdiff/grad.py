@@ -43,6 +43,7 @@ import numpy as np
 from mujoco import mjx
 
 from mjxdiff.errors import one_line
+from mjxdiff.inputs import quat_mul
 from mjxdiff.noise import converge_solver, has_constraints
 
 __all__ = ["EPS", "RTOL", "SMOOTH", "MATRICES", "StateResult", "sample_states", "mjx_jacobians", "mjx_fd",
@@ -84,13 +85,6 @@ def _joint_slices(m: mujoco.MjModel) -> list[tuple[int, int, int]]:
     return [(int(m.jnt_type[j]), int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j])) for j in range(m.njnt)]
 
 
-def _quat_mul(a, b):
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    return jnp.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
-
-
 def _integrate(joints, qpos, dq):
     """qpos moved by the tangent vector dq; exact to first order at dq = 0 (all that a Jacobian
     at dq = 0 needs): a rotation by w is the quaternion normalise(q * (1, w / 2))."""
@@ -98,10 +92,10 @@ def _integrate(joints, qpos, dq):
     for jtype, qa, da in joints:
         if jtype == mujoco.mjtJoint.mjJNT_FREE:
             out = out.at[qa:qa + 3].add(dq[da:da + 3])
-            q = _quat_mul(qpos[qa + 3:qa + 7], jnp.concatenate([jnp.ones(1), dq[da + 3:da + 6] / 2]))
+            q = quat_mul(qpos[qa + 3:qa + 7], jnp.concatenate([jnp.ones(1), dq[da + 3:da + 6] / 2]))
             out = out.at[qa + 3:qa + 7].set(q / jnp.linalg.norm(q))
         elif jtype == mujoco.mjtJoint.mjJNT_BALL:
-            q = _quat_mul(qpos[qa:qa + 4], jnp.concatenate([jnp.ones(1), dq[da:da + 3] / 2]))
+            q = quat_mul(qpos[qa:qa + 4], jnp.concatenate([jnp.ones(1), dq[da:da + 3] / 2]))
             out = out.at[qa:qa + 4].set(q / jnp.linalg.norm(q))
         else:
             out = out.at[qa].add(dq[da])
@@ -118,7 +112,7 @@ def _difference(joints, nv, qpos, ref):
             if p:
                 out = out.at[da:da + 3].set(qpos[qa:qa + 3] - ref[qa:qa + 3])
             r = ref[qa + p:qa + p + 4]
-            rel = _quat_mul(r * jnp.array([1.0, -1.0, -1.0, -1.0]), qpos[qa + p:qa + p + 4])
+            rel = quat_mul(r * jnp.array([1.0, -1.0, -1.0, -1.0]), qpos[qa + p:qa + p + 4])
             out = out.at[da + p:da + p + 3].set(2 * rel[1:] * jnp.sign(rel[0]))
         else:
             out = out.at[da].set(qpos[qa] - ref[qa])

@@ -12,7 +12,7 @@ import copy
 import dataclasses
 import re
 import zlib
-from typing import Callable
+from typing import Any, Callable
 
 import mujoco
 import numpy as np
@@ -21,7 +21,8 @@ from mjxdiff.scenario import Randomization, Scenario, ScenarioError
 
 __all__ = ["BatchedInputs", "make_inputs", "make_controls", "settable"]
 
-_CONTROL_KNOT_SECONDS = 0.1  # smooth/step controls change about every 0.1 s of simulated time
+#: Step and smooth controls change about every 0.1 s of simulated time (:func:`knot_every`).
+CONTROL_KNOT_SECONDS = 0.1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,11 +107,15 @@ def _rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng([seed, zlib.crc32(name.encode())])
 
 
-def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of (w, x, y, z) quaternions, ``(..., 4) x (..., 4) -> (..., 4)``."""
-    w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
-    w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
-    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+def quat_mul(a, b):
+    """Hamilton product of (w, x, y, z) quaternions, ``(..., 4) x (..., 4) -> (..., 4)``: NumPy
+    arrays give NumPy, JAX arrays (traced ones too) give JAX."""
+    xp: Any = np
+    if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)):
+        import jax.numpy as xp
+    w1, x1, y1, z1 = xp.moveaxis(xp.asarray(a), -1, 0)
+    w2, x2, y2, z2 = xp.moveaxis(xp.asarray(b), -1, 0)
+    return xp.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
                      w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
                      w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=-1)
@@ -145,6 +150,29 @@ def _initial_qpos(m: mujoco.MjModel, base: np.ndarray, noise: float, batch: int,
     return qpos
 
 
+def knot_every(timestep: float) -> int:
+    """Steps between two knots of step and smooth controls: about :data:`CONTROL_KNOT_SECONDS`
+    of simulated time, at least 1. A rollout of T steps has ``T // knot_every + 2`` knots."""
+    return max(1, int(round(CONTROL_KNOT_SECONDS / timestep)))
+
+
+def knot_levels(knots: np.ndarray, steps: int, every: int, family: str) -> np.ndarray:
+    """(B, T, nu) levels from (B, K, nu) knots ``every`` steps apart: ``step`` holds each knot,
+    ``smooth`` interpolates linearly between neighbours."""
+    s = np.arange(steps) / every
+    i = np.floor(s).astype(int)
+    if family == "step":
+        return knots[:, i]
+    w = (s - i)[None, :, None]
+    return knots[:, i] * (1 - w) + knots[:, i + 1] * w
+
+
+def sine_levels(freq: np.ndarray, phase: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(B, T, nu) ``sin(2 pi freq t + phase)`` of (B, 1, nu) frequencies (Hz) and phases (rad)
+    at times ``t`` (T,) in seconds."""
+    return np.sin(2 * np.pi * freq * t[None, :, None] + phase)
+
+
 def make_controls(m: mujoco.MjModel, randomize: Randomization, batch: int, steps: int,
                   timestep: float, rng: np.random.Generator) -> np.ndarray:
     """(B, T, nu) controls of the scenario's family, clipped to ``ctrlrange``.
@@ -167,18 +195,11 @@ def make_controls(m: mujoco.MjModel, randomize: Randomization, batch: int, steps
     elif family == "sinusoid":
         freq = rng.uniform(0.5, 2.0, (batch, 1, nu))
         phase = rng.uniform(0, 2 * np.pi, (batch, 1, nu))
-        ctrl = centre + amp * np.sin(2 * np.pi * freq * t[None, :, None] + phase)
+        ctrl = centre + amp * sine_levels(freq, phase, t)
     else:
-        knot_every = max(1, int(round(_CONTROL_KNOT_SECONDS / timestep)))
-        nknot = steps // knot_every + 2
-        knots = rng.uniform(-1, 1, (batch, nknot, nu))
-        if family == "step":
-            level = knots[:, np.arange(steps) // knot_every]
-        else:
-            s = np.arange(steps) / knot_every
-            i, w = np.floor(s).astype(int), (s - np.floor(s))[None, :, None]
-            level = knots[:, i] * (1 - w) + knots[:, i + 1] * w
-        ctrl = centre + amp * level
+        every = knot_every(timestep)
+        knots = rng.uniform(-1, 1, (batch, steps // every + 2, nu))
+        ctrl = centre + amp * knot_levels(knots, steps, every, family)
     outside = int(np.floor(randomize.ctrl_outside * batch))
     clipped = np.clip(ctrl, lo, hi)
     if outside and family != "zero" and nu:

@@ -39,7 +39,7 @@ from hypothesis import strategies as st
 from hypothesis.errors import InvalidArgument
 from hypothesis.extra import numpy as hnp
 
-from mjxdiff.inputs import FACTOR_SHAPES, quat_mul, rotvec_quat
+from mjxdiff.inputs import FACTOR_SHAPES, knot_every, knot_levels, quat_mul, rotvec_quat, sine_levels
 
 __all__ = [
     "CONTROL_FAMILIES",
@@ -1183,9 +1183,6 @@ def initial_states(draw: Callable, m: mujoco.MjModel, *, batch: int | None = Non
 CONTROL_FAMILIES = ("zero", "constant", "step", "smooth", "sinusoid", "noise")
 """Control families of :func:`control_sequences`, simplest first."""
 
-_KNOT_SECONDS = 0.1  # step/smooth controls change about every 0.1 s, as in mjxdiff.inputs
-
-
 def _ctrl_bounds(m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
     """(nu,) lower and upper control bounds; [-1, 1] where unlimited."""
     limited = m.actuator_ctrllimited.astype(bool)
@@ -1229,25 +1226,18 @@ def control_sequences(draw: Callable, m: mujoco.MjModel, steps: Any, *, batch: i
         raise InvalidArgument(f"family={family!r}: expected one of {CONTROL_FAMILIES}")
     nu = m.nu
     t = np.arange(steps) * m.opt.timestep
-    knot_every = max(1, int(round(_KNOT_SECONDS / m.opt.timestep)))
+    every = knot_every(m.opt.timestep)
     if family == "zero" or nu == 0:
         level = np.zeros((nbatch, steps, nu))
     elif family == "constant":
         level = np.broadcast_to(draw(_unit_array((nbatch, 1, nu))), (nbatch, steps, nu))
     elif family in ("step", "smooth"):
-        knots = draw(_unit_array((nbatch, steps // knot_every + 2, nu)))
-        s = np.arange(steps) / knot_every
-        i = np.floor(s).astype(int)
-        if family == "step":
-            level = knots[:, i]
-        else:
-            w = (s - i)[None, :, None]
-            level = knots[:, i] * (1 - w) + knots[:, i + 1] * w
+        level = knot_levels(draw(_unit_array((nbatch, steps // every + 2, nu))), steps, every, family)
     elif family == "sinusoid":
         amp = draw(_unit_array((nbatch, 1, nu)))
         freq = draw(hnp.arrays(np.float64, (nbatch, 1, nu), elements=_floats(0.5, 2.0)))  # Hz
         phase = draw(hnp.arrays(np.float64, (nbatch, 1, nu), elements=_floats(0.0, 2 * np.pi)))
-        level = amp * np.sin(2 * np.pi * freq * t[None, :, None] + phase)
+        level = amp * sine_levels(freq, phase, t)
     else:
         level = draw(_unit_array((nbatch, steps, nu)))
     lo, hi = _ctrl_bounds(m)
