@@ -23,7 +23,7 @@ _PUBLIC = {
     "SweepConfig": "mjxdiff.sweep",
     "SweepOptions": "mjxdiff.pipeline",
     "Tolerances": "mjxdiff.scenario",
-    "Trajectory": "mjxdiff.engines",
+    "Trajectory": "mjxdiff.trajectory",
     "UnsupportedError": "mjxdiff.engines",
     "bundled_scenarios": "mjxdiff.scenario",
     "baseline": None,  # the module: what changed since a trusted run

@@ -94,13 +94,13 @@ def _best(fn: Callable[[], Any], repeats: int) -> Measurement:
 
 def _point(inputs: BatchedInputs, repeats: int) -> dict[str, Any]:
     """Both engines on one batch: steps/s, CPU, memory, MJX compile seconds."""
-    c_engine, mjx_engine = CEngine(), MJXEngine()
+    c_engine, under_test = CEngine(), MJXEngine()
     steps = inputs.batch * inputs.steps
     compiles, loaded = compile_count(), export_cache.loaded_count()
-    _, first = measure(lambda: mjx_engine.rollout(inputs))
+    _, first = measure(lambda: under_test.rollout(inputs))
     first_call = ("compiled" if compile_count() > compiles else
                   "loaded" if export_cache.loaded_count() > loaded else "warm")
-    mjx = _best(lambda: mjx_engine.rollout(inputs), repeats)
+    mjx = _best(lambda: under_test.rollout(inputs), repeats)
     c = _best(lambda: c_engine.rollout(inputs), repeats)
     out = dict(batch=inputs.batch, steps=inputs.steps,
                c_steps_per_s=steps / c.seconds, mjx_steps_per_s=steps / mjx.seconds,
@@ -170,14 +170,14 @@ def _tester_overhead(scenario: Scenario, m, inputs: BatchedInputs, repeats: int)
     hits all of them; CPU seconds of the fastest runs are reported beside the wall seconds (the
     work done, which the machine's noise disturbs less).
     """
-    c_engine, mjx_engine = CEngine(), MJXEngine()
+    c_engine, under_test = CEngine(), MJXEngine()
     tol = scenario.tolerance.for_precision("float64")
 
     def verify(mode: str) -> Callable[[], Any]:
         config = SweepConfig(diagnose="none", noise_floor=mode)
-        return lambda: run_inputs(scenario.name, m, inputs, tol, config, mjx_engine, c_engine)
+        return lambda: run_inputs(scenario.name, m, inputs, tol, config, under_test, c_engine)
 
-    runs: dict[str, Callable[[], Any]] = dict(engines=lambda: (c_engine.rollout(inputs), mjx_engine.rollout(inputs)),
+    runs: dict[str, Callable[[], Any]] = dict(engines=lambda: (c_engine.rollout(inputs), under_test.rollout(inputs)),
                 verify=verify("on-demand"), verify_always=verify("always"))
     members = runs["verify"]().info["noise_floor_members"]  # warm: compiles the metrics too
     for fn in runs.values():

@@ -32,7 +32,7 @@ from mjxdiff.inputs import BatchedInputs
 from mjxdiff.noise import converge_solver
 
 if TYPE_CHECKING:
-    from mjxdiff.mjwarp import MJWarpEngine
+    from mjxdiff.trajectory import Engine
 
 __all__ = ["STAGES", "StageDiff", "DrillDown", "drill_down", "local_error", "attribute_cause", "ABLATIONS", "GENUINE",
            "UNCLASSIFIED"]
@@ -247,7 +247,7 @@ def state_before(inputs: BatchedInputs, traj_c: Trajectory, member: int, step: i
 
 
 def local_error(inputs: BatchedInputs, traj_c: Trajectory, m: mujoco.MjModel, rf_mask: np.ndarray,
-                every: int = 1, engine: MJXEngine | MJWarpEngine | None = None) -> dict[str, float]:
+                every: int = 1, engine: Engine | None = None) -> dict[str, float]:
     """Worst re-synchronised error per field: MJX restarted from C every ``every`` steps.
 
     Returns:

@@ -29,7 +29,7 @@ import io
 import os
 import threading
 from pathlib import Path
-from typing import Any, Iterator, Protocol
+from typing import Any, Iterator
 
 # Load-bearing, the XLA CPU thread pool: jax's batched LAPACK kernels (the Newton solver's
 # Cholesky) split a large enough batch into tasks on XLA's intra-op pool and block their own
@@ -68,6 +68,8 @@ from mujoco.batch import Batch, SimulationError  # noqa: E402
 from mjxdiff.precision import Precision  # noqa: E402
 from mjxdiff import export_cache  # noqa: E402
 from mjxdiff.inputs import BatchedInputs  # noqa: E402
+# Trajectory and Engine live in mjxdiff.trajectory (no MJX there); kept importable from here
+from mjxdiff.trajectory import Engine, Trajectory, concat, first_true, shifted  # noqa: E402
 
 __all__ = [
     "CEngine",
@@ -82,40 +84,6 @@ __all__ = [
     "device_count",
     "put_models",
 ]
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class Trajectory:
-    """A batch of rollouts, every field shaped ``(B, T, ...)``.
-
-    Attributes:
-      qpos: (B, T, nq) positions after each step.
-      qvel: (B, T, nv) velocities after each step.
-      act: (B, T, na) actuator activations after each step.
-      sensordata: (B, T, nsensordata) sensors, evaluated before each step.
-      time: (B, T) simulated time after each step, s.
-      ncon: (B, T) number of active contacts, evaluated before each step.
-      energy: (B, T, 2) potential and kinetic energy (J) before each step, as
-        MuJoCo's ``d.energy``; (B, T, 0) unless the inputs ask for energy.
-        Exact for Euler and implicitfast. Under RK4 neither record is the
-        pre-step energy: C's is that of its last RK stage, MJX's mixes stage-4
-        kinematics with the pre-step qpos/qvel (measured 1e-3 apart, relative).
-      diverged_at: (B,) first step at which the engine produced a non-finite
-        state or stopped on a MuJoCo instability warning; -1 if never.
-    """
-
-    qpos: np.ndarray | jax.Array
-    qvel: np.ndarray | jax.Array
-    act: np.ndarray | jax.Array
-    sensordata: np.ndarray | jax.Array
-    time: np.ndarray | jax.Array
-    ncon: np.ndarray | jax.Array
-    energy: np.ndarray | jax.Array
-    diverged_at: np.ndarray | jax.Array
-
-    def to_numpy(self) -> "Trajectory":
-        return jax.tree.map(np.asarray, self)
 
 
 class UnsupportedError(Exception):
@@ -134,14 +102,6 @@ def _unsupported():
         yield
     except NotImplementedError as e:
         raise UnsupportedError(" ".join(str(e).split()) or type(e).__name__) from None
-
-
-class Engine(Protocol):
-    """What the comparison needs from a simulator: batched inputs in, a trajectory out."""
-
-    name: str
-
-    def rollout(self, inputs: BatchedInputs) -> Trajectory: ...
 
 
 def _backend_started() -> bool:
@@ -227,11 +187,6 @@ def _ensure_safe_backend() -> None:
         os.environ["XLA_FLAGS"] = " ".join([flags] + [f for f in SAFETY_FLAGS if f.split("=")[0] not in flags]).strip()
 
 
-def _first_true(mask: np.ndarray) -> np.ndarray:
-    """(B,) index of the first True along axis 1 of a (B, T) mask, -1 if none."""
-    return np.where(mask.any(axis=1), mask.argmax(axis=1), -1)
-
-
 def _record_buffer(m: mujoco.MjModel, d: mujoco.MjData, item, batch: int, steps: int) -> np.ndarray:
     """A zeroed (B, T, ...) array of the shape and dtype ``Batch.rollout`` records ``item`` in."""
     if not isinstance(item, str):  # an mjtState spec
@@ -251,12 +206,52 @@ class CEngine:
     """MuJoCo C: :class:`mujoco.batch.Batch` over all cores, one model per member."""
 
     name = "c"
+    precision: Precision = "float64"
+    capabilities: frozenset[str] = frozenset()
 
     def __init__(self, nthread: int = 0):
         self.nthread = nthread
 
+    def batch_cap(self) -> int:
+        """No cap: one :class:`~mujoco.batch.Batch` steps any number of members."""
+        return 1 << 30
+
+    def split(self, batch: int) -> int:
+        return 1
+
+    def compile_ahead(self, inputs: BatchedInputs, chunk: int) -> None:
+        """Nothing to compile."""
+
     def rollout(self, inputs: BatchedInputs) -> Trajectory:
         return concat(list(self.stream(inputs, inputs.steps)))
+
+    def resync(self, inputs: BatchedInputs, reference: Trajectory, every: int = 1) -> Trajectory:
+        """C restarted from ``reference``'s state every ``every`` steps (as :meth:`MJXEngine.resync`):
+        the S = ceil(T / every) blocks of every member step side by side, as B x S members of one
+        rollout of ``every`` steps; ``time`` continues from the reference's."""
+        B, T, k = inputs.batch, inputs.steps, every
+        S = -(-T // k)
+        starts = np.arange(S) * k
+
+        def state(field, initial):
+            full = np.concatenate([np.asarray(initial)[:, None], np.asarray(getattr(reference, field))], axis=1)
+            return full[:, starts].reshape(B * S, *full.shape[2:])
+        ctrl = np.zeros((B, S * k, inputs.ctrl.shape[2]))
+        ctrl[:, :T] = inputs.ctrl
+        blocks = dataclasses.replace(inputs, qpos=state("qpos", inputs.qpos), qvel=state("qvel", inputs.qvel),
+                                     act=state("act", inputs.act), ctrl=ctrl.reshape(B * S, k, -1), factors={},
+                                     models=tuple(mi for mi in inputs.models for _ in range(S)), member_ids=None)
+        traj = self.rollout(blocks)
+
+        def back(x):
+            return np.asarray(x).reshape(B, S * k, *np.shape(x)[2:])[:, :T]
+        fields = {f.name: back(getattr(traj, f.name)) for f in dataclasses.fields(Trajectory)
+                  if f.name not in ("diverged_at", "time")}
+        at = np.asarray(traj.diverged_at).reshape(B, S)
+        at = np.where(at >= 0, at + starts, -1)
+        first = np.where((at >= 0).any(axis=1), at[np.arange(B), (at >= 0).argmax(axis=1)], -1)
+        time = np.asarray(traj.time) + state("time", np.zeros(B))[:, None]
+        return Trajectory(**fields, time=back(time), diverged_at=np.where(first < T, first, -1))
 
     def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
         """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
@@ -292,37 +287,15 @@ class CEngine:
             time = out[time_spec][..., 0]
             # A member whose warning counters rise stops, and its records then repeat.
             warned = (b.warning[:, :, 1].sum(axis=1) > 0) | raised
-            stalled = _first_true(time <= np.concatenate([last_time, time[:, :-1]], axis=1))
+            stalled = first_true(time <= np.concatenate([last_time, time[:, :-1]], axis=1))
             last_time = time[:, -1:]
             # numpy's stubs type .all(axis) as maybe a scalar
-            nonfinite = _first_true(~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1))  # pyright: ignore[reportArgumentType]
+            nonfinite = first_true(~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1))  # pyright: ignore[reportArgumentType]
             diverged = np.where(warned, np.maximum(stalled, 0), nonfinite)
             yield Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"],
                              sensordata=out["sensordata"], time=time, ncon=out["ncon"].astype(np.int64),
                              energy=out.get("energy", np.zeros((B, k, 0))),
-                             diverged_at=_shifted(diverged, start))
-
-
-def concat(pieces: list[Trajectory]) -> Trajectory:
-    """One trajectory from consecutive pieces (as the engines' ``stream`` yields them)."""
-    if len(pieces) == 1:
-        return pieces[0]
-    fields = {f.name: np.concatenate([getattr(p, f.name) for p in pieces], axis=1)
-              for f in dataclasses.fields(Trajectory) if f.name != "diverged_at"}
-    return Trajectory(**fields, diverged_at=first_diverged([p.diverged_at for p in pieces]))
-
-
-def _shifted(diverged_at: np.ndarray | jax.Array, start: int) -> np.ndarray:
-    """A piece's ``diverged_at`` (steps within the piece, -1 if none) counted from the rollout's start."""
-    return np.where(diverged_at >= 0, diverged_at + start, -1)
-
-
-def first_diverged(diverged_at: list[np.ndarray | jax.Array]) -> np.ndarray:
-    """(B,) the first non-negative ``diverged_at`` of consecutive pieces, -1 if none."""
-    out = np.asarray(diverged_at[0])
-    for later in diverged_at[1:]:
-        out = np.where(out >= 0, out, later)
-    return out
+                             diverged_at=shifted(diverged, start))
 
 
 _NUMERIC_NAMES: dict[tuple[type, tuple[type, ...]], tuple[str, ...]] = export_cache.untraced({})
@@ -706,6 +679,12 @@ class MJXEngine:
     """
 
     name = "mjx"
+    capabilities: frozenset[str] = frozenset({"estimate", "transfer"})
+
+    @property
+    def precision(self) -> Precision:
+        """MJX's precision follows JAX's: float64 under ``jax_enable_x64`` (:func:`configure_jax`)."""
+        return "float64" if jax.config.read("jax_enable_x64") else "float32"
 
     def __init__(self, devices: int | None = None, compile: str = "auto"):
         _ensure_safe_backend()
@@ -818,7 +797,7 @@ class MJXEngine:
 
         def piece(rec, start):
             p = _host_piece(rec, B, min(chunk, T - start))
-            return dataclasses.replace(p, diverged_at=_shifted(p.diverged_at, start))
+            return dataclasses.replace(p, diverged_at=shifted(p.diverged_at, start))
 
         def pieces(dx, rec):
             for start in range(chunk, T, chunk):
@@ -874,4 +853,4 @@ def _trajectory(rec: dict[str, np.ndarray], batch: int, steps: int) -> Trajector
                       sensordata=rec["sensordata"], time=rec["time"], ncon=rec["ncon"].astype(np.int64),
                       energy=rec.get("energy", np.zeros((batch, steps, 0))),
                       # numpy's stubs type .all(axis) as maybe a scalar
-                      diverged_at=_first_true(nonfinite))  # pyright: ignore[reportArgumentType]
+                      diverged_at=first_true(nonfinite))  # pyright: ignore[reportArgumentType]

@@ -27,7 +27,9 @@ import mujoco
 import numpy as np
 
 from mjxdiff.errors import one_line
-from mjxdiff.engines import Trajectory, _first_true, _shifted, _unsupported, concat
+from mjxdiff.engines import _unsupported
+from mjxdiff.precision import Precision
+from mjxdiff.trajectory import Trajectory, concat, first_true, shifted
 from mjxdiff.inputs import BatchedInputs
 
 __all__ = ["MJWarpEngine", "available", "INSTALL", "kernel_cache_dir"]
@@ -172,9 +174,12 @@ class MJWarpEngine:
     """MuJoCo Warp on the CPU: same inputs and streamed trajectory pieces as MJX."""
 
     name = "warp"
-    precision = "float32"
+    precision: Precision = "float32"
+    capabilities: frozenset[str] = frozenset()
 
-    def __init__(self):
+    def __init__(self, compile: str = "auto"):
+        """``compile`` is accepted for the interface's sake: Warp compiles its kernels on first
+        use, whatever is asked."""
         _init()
 
     def batch_cap(self) -> int:
@@ -233,7 +238,7 @@ class MJWarpEngine:
         return Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"], sensordata=out["sensordata"],
                           time=out["time"], ncon=np.stack(rec["ncon"], axis=1).astype(np.int64),
                           # numpy's stubs type .all(axis) as maybe a scalar
-                          energy=np.zeros((B, k, 0)), diverged_at=_shifted(_first_true(nonfinite), start))  # pyright: ignore[reportArgumentType]
+                          energy=np.zeros((B, k, 0)), diverged_at=shifted(first_true(nonfinite), start))  # pyright: ignore[reportArgumentType]
 
     def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
         """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).

@@ -38,7 +38,7 @@ import numpy as np
 
 from mjxdiff.precision import THRESHOLDS, Precision
 from mjxdiff import metrics
-from mjxdiff.engines import Trajectory
+from mjxdiff.trajectory import Trajectory
 from mjxdiff.inputs import BatchedInputs
 
 __all__ = ["EPS", "FLOORS", "SOLVER_MARGIN", "NoiseFloor", "combine", "converge_solver", "converged",

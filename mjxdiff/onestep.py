@@ -28,7 +28,7 @@ import numpy as np
 
 from mjxdiff.precision import Precision
 from mjxdiff import metrics
-from mjxdiff.engines import Trajectory
+from mjxdiff.trajectory import Engine, Trajectory
 from mjxdiff.inputs import BatchedInputs
 from mjxdiff.scenario import Tolerances
 from mjxdiff.noise import converged, perturb
@@ -124,7 +124,7 @@ def _through_rollout(inputs: BatchedInputs, configured: BatchedInputs, engine, r
     return rows, _first_record(engine.first_piece(pairs, chunk))
 
 
-def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine, c_engine,
+def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine: Engine, c_engine: Engine,
           precision: Precision = "float64", states: int = STATES, evidence: bool = False,
           steps: np.ndarray | None = None, reuse: tuple[np.ndarray, int] | None = None) -> dict[str, Any]:
     """The one-step check of ``engine`` (MJX or MJWarp) against ``c_engine`` (C) from states of

@@ -17,7 +17,7 @@ import threading
 import time
 import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import TYPE_CHECKING, Any, Callable, Generator, Iterable, Iterator, Sequence, TypeVar
+from typing import Any, Callable, Generator, Iterable, Iterator, Sequence, TypeVar
 
 import jax
 import mujoco
@@ -27,14 +27,13 @@ from mujoco import mjx
 from mjxdiff.precision import Precision
 from mjxdiff.errors import one_line
 from mjxdiff import adjust, cost, diagnose, engines, export_cache, onestep, report, reproducer, transfer
-from mjxdiff.engines import CEngine, MJXEngine, Trajectory, UnsupportedError
+from mjxdiff.engines import CEngine, MJXEngine, UnsupportedError
+from mjxdiff.trajectory import Engine, Trajectory
 from mjxdiff.inputs import BatchedInputs, make_inputs
 from mjxdiff.scenario import Scenario, ScenarioError, Tolerances, load_model
 from mjxdiff.noise import SOLVER_MARGIN, NoiseFloor, combine, converged, has_constraints, perturb
 from mjxdiff.verdict import TRUNCATION, FieldResult, Judge, ScenarioResult, rangefinder_mask
 
-if TYPE_CHECKING:
-    from mjxdiff.mjwarp import MJWarpEngine
 
 _T = TypeVar("_T")
 
@@ -160,7 +159,7 @@ class SweepConfig:
 
 
 def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
-                 mjx_engine: MJXEngine | None = None, c_engine: CEngine | None = None) -> ScenarioResult:
+                 under_test: Engine | None = None, c_engine: CEngine | None = None) -> ScenarioResult:
     """Sweeps one scenario and returns its verdict; never raises for bad input.
 
     With ``config.reproducers`` set, the first divergent member of a failing
@@ -169,7 +168,7 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
     """
     with _running(config):
         prepared = _prepare(scenario, config)
-        return _finish(prepared, mjx_engine, c_engine)
+        return _finish(prepared, under_test, c_engine)
 
 
 #: The scenario a worker thread runs: its deadline (``time.monotonic()``) and its phase hook.
@@ -273,7 +272,7 @@ def _fit(prepared: _Prepared, batch: int, steps: int) -> tuple[int, int]:
     early ``error`` of kind ``budget`` or ``memory`` that says what to do."""
     config, info, m = prepared.config, prepared.info, prepared.m
     assert m is not None  # _prepare loads the model before planning its run
-    if config.impl != "mjx":
+    if not capable(config, "estimate"):
         return batch, steps
     est = cost.estimate(m)
     info["estimate"] = est.as_dict()
@@ -319,7 +318,7 @@ def _refused_by_mjx(m) -> bool:
     return False
 
 
-def _compile_ahead(scenario: Scenario, config: SweepConfig, mjx_engine: MJXEngine | MJWarpEngine) -> _Prepared:
+def _compile_ahead(scenario: Scenario, config: SweepConfig, under_test: Engine) -> _Prepared:
     """:func:`_prepare`, then MJX's rollout of the scenario compiled (best effort: a problem is
     left for the sweep to meet and report); run by a compile worker of :func:`sweep`."""
     t = time.perf_counter()
@@ -327,15 +326,15 @@ def _compile_ahead(scenario: Scenario, config: SweepConfig, mjx_engine: MJXEngin
         prepared = _prepare(scenario, config)
         if prepared.early is None:
             assert prepared.inputs is not None  # a prepared scenario without an early result has its inputs
-            groups, chunk = _plan(prepared.m, prepared.inputs, prepared.config, mjx_engine)
+            groups, chunk = _plan(prepared.m, prepared.inputs, prepared.config, under_test)
             _phase("compiling", estimate_s=prepared.info.get("estimate", {}).get("compile_s"))
             first = prepared.inputs.take(groups[0]) if len(groups) > 1 else prepared.inputs
-            mjx_engine.compile_ahead(first, chunk)
+            under_test.compile_ahead(first, chunk)
     prepared.ahead = dict(work, wall=time.perf_counter() - t)
     return prepared
 
 
-def _finish(prepared: _Prepared, mjx_engine: MJXEngine | MJWarpEngine | None,
+def _finish(prepared: _Prepared, under_test: Engine | None,
             c_engine: CEngine | None) -> ScenarioResult:
     """Runs a prepared scenario: both engines, the verdict, a reproducer of a failure."""
     changed = prepared.info.get("plan", {}).get("changed")
@@ -345,7 +344,7 @@ def _finish(prepared: _Prepared, mjx_engine: MJXEngine | MJWarpEngine | None,
         return _advised(prepared.early, advice)
     scenario, m, inputs, tol, config = prepared.scenario, prepared.m, prepared.inputs, prepared.tol, prepared.config
     assert inputs is not None  # a prepared scenario without an early result has its inputs
-    result = _advised(run_inputs(scenario.name, m, inputs, tol, config, mjx_engine, c_engine, prepared.info,
+    result = _advised(run_inputs(scenario.name, m, inputs, tol, config, under_test, c_engine, prepared.info,
                                  prepared.ahead), advice)
     if result.status == "fail" and config.reproducers is not None:
         assert result.first_divergence is not None  # a failure names where it starts
@@ -360,9 +359,10 @@ def _finish(prepared: _Prepared, mjx_engine: MJXEngine | MJWarpEngine | None,
             path = None
             result = dataclasses.replace(result, message=f"{result.message}; reproducer not saved: {one_line(e)}")
         result = dataclasses.replace(result, info={**result.info, "reproducer": path})
-    if config.transfer and config.impl == "mjx" and result.status in ("pass", "fail") and _out_of_time():
+    transfer = config.transfer and capable(config, "transfer") and result.status in ("pass", "fail")
+    if transfer and _out_of_time():
         result = dataclasses.replace(result, message=f"{result.message}; host-interface check not run: {BudgetSpent()}")
-    elif config.transfer and config.impl == "mjx" and result.status in ("pass", "fail"):
+    elif transfer:
         result = _with_transfer(result, inputs, scenario.model_path, config.precision)
     return result
 
@@ -447,9 +447,9 @@ def member_groups(batch: int, most: int) -> list[np.ndarray]:
 
 
 def _plan(m, inputs: BatchedInputs, config: SweepConfig,
-          mjx_engine: MJXEngine | MJWarpEngine) -> tuple[list[np.ndarray], int]:
+          under_test: Engine) -> tuple[list[np.ndarray], int]:
     """How the verdict steps ``inputs``: member groups (:func:`member_groups`) and steps per piece."""
-    groups = member_groups(inputs.batch, config.group_size or min(group_size(m, inputs.batch), mjx_engine.batch_cap()))
+    groups = member_groups(inputs.batch, config.group_size or min(group_size(m, inputs.batch), under_test.batch_cap()))
     return groups, config.piece_steps or piece_steps(m, len(groups[0]), inputs.steps)
 
 
@@ -604,7 +604,7 @@ class _CPieces:
 
 
 def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-             mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine, seconds: dict[str, Any],
+             under_test: Engine, c_engine: CEngine, seconds: dict[str, Any],
              solver: bool = False) -> tuple[ScenarioResult, dict[str, Any]]:
     """Streams both engines (and C's perturbed rerun) piece by piece into a :class:`Judge`.
 
@@ -625,7 +625,7 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
       UnsupportedError, _EngineFailed: from the engines.
     """
     B, T = inputs.batch, inputs.steps
-    groups, chunk = _plan(m, inputs, config, mjx_engine)
+    groups, chunk = _plan(m, inputs, config, under_test)
     judge = Judge(m, tol, B, T)
     floor = NoiseFloor(m, rangefinder_mask(m), B, T) if config.envelope else None
     solver_floor = NoiseFloor(m, rangefinder_mask(m), B, T, SOLVER_MARGIN) if floor and solver else None
@@ -643,7 +643,7 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
             envelope = floor.update(_rows(perturbed, n), reference, at, members)
             return combine(envelope, solver_floor and solver_floor.update(_rows(solved, n), reference, at, members))
         # MJX first: its first piece is stepping before C's thread starts
-        mjx = _timed(lambda: mjx_engine.stream(group, chunk), "mjx", seconds)
+        mjx = _timed(lambda: under_test.stream(group, chunk), "mjx", seconds)
         # judged against MJX instead of C (MJX vs MJWarp): C still gives the envelope
         ref = _timed(lambda: MJXEngine(compile=config.compile).stream(group, chunk), "reference", seconds) \
             if config.reference == "mjx" else None
@@ -683,7 +683,7 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
 
 
 def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig = SweepConfig(),
-               mjx_engine: MJXEngine | MJWarpEngine | None = None, c_engine: CEngine | None = None,
+               under_test: Engine | None = None, c_engine: CEngine | None = None,
                info: dict | None = None, ahead: dict | None = None) -> ScenarioResult:
     """Both engines on given inputs, then the verdict (and diagnosis of a failure).
 
@@ -696,7 +696,7 @@ def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Swe
     """
     engines._ensure_safe_backend()  # noqa: SLF001 - mjxdiff's own helper
     with _precision(config.precision), export_cache.tally() as work:  # MJX's dtype follows the config
-        result = _run_inputs(name, m, inputs, tol, config, mjx_engine, c_engine, info)
+        result = _run_inputs(name, m, inputs, tol, config, under_test, c_engine, info)
     ahead = ahead or {}
     info = result.info
     info["seconds"]["compile"] = work.get("seconds", 0.0) + ahead.get("seconds", 0.0)
@@ -709,17 +709,17 @@ def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Swe
 
 
 def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-                mjx_engine: MJXEngine | MJWarpEngine | None, c_engine: CEngine | None,
+                under_test: Engine | None, c_engine: CEngine | None,
                 info: dict | None) -> ScenarioResult:
     info = dict(info or {}, batch=inputs.batch, steps=inputs.steps)
     seconds = info.setdefault("seconds", {})
     base: dict[str, Any] = dict(name=name, tolerances=tol.as_dict(), info=info)
-    mjx_engine, c_engine = mjx_engine or simulator(config), c_engine or CEngine()
-    info["impl"] = mjx_engine.name
+    under_test, c_engine = under_test or simulator(config), c_engine or CEngine()
+    info["impl"] = under_test.name
     clock: dict[str, Any] = {}  # seconds per engine and for the verdict, and how far the stepping got
     t0 = time.monotonic()
     try:
-        result, counts = _verdict(name, m, inputs, tol, config, mjx_engine, c_engine, clock)
+        result, counts = _verdict(name, m, inputs, tol, config, under_test, c_engine, clock)
     except UnsupportedError as e:
         return ScenarioResult(status="unsupported", message=f"MJX does not support: {e.feature}", **base)
     except _EngineFailed as e:
@@ -738,12 +738,12 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     traj_c = drill = None
     if result.status == "fail" and config.envelope and has_constraints(m) and not any(
             d["engine"] == "mjx" for d in result.diverged_members):
-        result, traj_c, drill, info["solver_floor"] = _solver_floor(result, m, inputs, tol, config, mjx_engine,
+        result, traj_c, drill, info["solver_floor"] = _solver_floor(result, m, inputs, tol, config, under_test,
                                                                      c_engine, clock)
     if result.status == "fail" and config.diagnose != "none":
-        result = _diagnose(result, m, inputs, tol, config, mjx_engine, c_engine, traj_c, drill)
+        result = _diagnose(result, m, inputs, tol, config, under_test, c_engine, traj_c, drill)
     if config.reference == "c" and result.status in ("pass", "fail"):
-        result = _sharp(result, m, inputs, tol, config, mjx_engine, c_engine, traj_c, clock, info)
+        result = _sharp(result, m, inputs, tol, config, under_test, c_engine, traj_c, clock, info)
     seconds.update(c=clock.get("c", 0.0), mjx=clock.get("mjx", 0.0), verdict=clock.get("verdict", 0.0),
                    diagnosis=time.perf_counter() - t)
     if counts.get("xla") is not None:
@@ -791,7 +791,7 @@ def _drill(result: ScenarioResult, inputs: BatchedInputs, traj_c: Trajectory, pr
 
 
 def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-                  mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine, clock: dict[str, float]):
+                  under_test: Engine, c_engine: CEngine, clock: dict[str, float]):
     """A second look at a failure that starts in the constraint stage (or in no forward stage at
     all, the step's own use of the solver): judged again against the
     larger of the rounding envelope and the solver floor (C against C with a converged solver,
@@ -808,7 +808,7 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
         return result, None, None, dict(status=f"not run: {BudgetSpent()}")
     try:
         traj_c = c_engine.rollout(inputs)
-        drill = _drill(result, inputs, traj_c, config.precision, mjx_engine.name)
+        drill = _drill(result, inputs, traj_c, config.precision, under_test.name)
         check: dict[str, Any] = dict(
             first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
             margin=SOLVER_MARGIN, status=f"not needed: the divergence starts in the {drill.first_stage} stage")
@@ -819,7 +819,7 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
             return result, traj_c, drill, check
         if _out_of_time(rerun=True):
             raise BudgetSpent()
-        second, _ = _verdict(result.name, m, inputs, tol, config, mjx_engine, c_engine, clock, solver=True)
+        second, _ = _verdict(result.name, m, inputs, tol, config, under_test, c_engine, clock, solver=True)
     except Exception as e:  # noqa: BLE001 - the verdict stands
         return result, traj_c, drill, dict(status=f"could not run: {one_line(e)}")
     first = result.first_divergence
@@ -842,7 +842,7 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
 
 
 def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-           mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine, traj_c: Trajectory | None,
+           under_test: Engine, c_engine: CEngine, traj_c: Trajectory | None,
            clock: dict[str, float], info: dict) -> ScenarioResult:
     """The checks that stay sharp where the rollout's verdict cannot: the one-step check
     (:func:`_onestep`, with ``config.onestep``), then, where the rollout's pass was held only by
@@ -856,13 +856,13 @@ def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, co
     found: dict = {}
     if config.onestep:
         _phase("one-step check")
-        result, found, traj_c = _onestep(result, m, inputs, tol, config, mjx_engine, c_engine, traj_c,
+        result, found, traj_c = _onestep(result, m, inputs, tol, config, under_test, c_engine, traj_c,
                                          evidence=excused or bool(result.weak))
         info["onestep"] = found
     converged_ = found.get("solver", {}).get("converged", True)
     twin = None
     if result.status == "pass" and (excused or (result.weak and not converged_)):
-        result, info["twin"] = _twin(result, m, inputs, tol, config, mjx_engine, c_engine, clock)
+        result, info["twin"] = _twin(result, m, inputs, tol, config, under_test, c_engine, clock)
         twin = info["twin"]
     if result.status == "pass" and excused:
         result = _truncation(result, m, info["solver_floor"], found, twin)
@@ -870,7 +870,7 @@ def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, co
 
 
 def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-             mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine, traj_c: Trajectory | None,
+             under_test: Engine, c_engine: CEngine, traj_c: Trajectory | None,
              evidence: bool = False) -> tuple[ScenarioResult, dict, Trajectory | None]:
     """``result`` judged again by :func:`mjxdiff.onestep.check` (kept in ``info['onestep']``): a
     failure there fails a passing scenario, naming the field, object, step and (from the stage
@@ -880,8 +880,8 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
     Returns (result, what the check found, C's whole rollout or None)."""
     try:
         traj_c = traj_c if traj_c is not None else c_engine.rollout(inputs)
-        groups, chunk = _plan(m, inputs, config, mjx_engine)
-        found = onestep.check(m, inputs, traj_c, tol, mjx_engine, c_engine, config.precision, evidence=evidence,
+        groups, chunk = _plan(m, inputs, config, under_test)
+        found = onestep.check(m, inputs, traj_c, tol, under_test, c_engine, config.precision, evidence=evidence,
                               reuse=(groups[0], chunk))
     except Exception as e:  # noqa: BLE001 - the rollout's verdict stands
         found = dict(status="error", message=one_line(e))
@@ -898,12 +898,12 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
         row = int(np.flatnonzero(inputs.ids == member)[0])
         drill = diagnose.drill_down(converged(inputs.take([row])).models[0],
                                     *diagnose.state_before(inputs, traj_c, row, step),
-                                    precision=config.precision, member=member, step=step, impl=mjx_engine.name)
+                                    precision=config.precision, member=member, step=step, impl=under_test.name)
         found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object)
         where = (f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
                  if drill.first_stage else "; every forward stage agrees (the difference is in the integration)")
     if config.diagnose == "full":
-        found["cause"] = _onestep_cause(m, inputs, traj_c, tol, config, mjx_engine, c_engine, member, step)
+        found["cause"] = _onestep_cause(m, inputs, traj_c, tol, config, under_test, c_engine, member, step)
         if found["cause"]["ablation"]:
             where += f"; one-step cause: {found['cause']['cause']} (passes with {found['cause']['ablation']})"
     said = (f"one-step check: {found['field']} of {found['object'] or 'member ' + str(member)} after step "
@@ -923,7 +923,7 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
 
 
 def _onestep_cause(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, config: SweepConfig,
-                   mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine, member: int, step: int) -> dict:
+                   under_test: Engine, c_engine: CEngine, member: int, step: int) -> dict:
     """:func:`mjxdiff.diagnose.attribute_cause` on the one failing member-state of the one-step
     check: the first ablation under which that one step agrees names the cause. Chaos cannot
     blur it, unlike the rollout's ablations on a model with several differences (a robot)."""
@@ -932,14 +932,14 @@ def _onestep_cause(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances
 
     def passes(ablated: BatchedInputs, precision: Precision) -> bool:
         with _precision(precision):
-            return onestep.check(ablated.models[0], ablated, traj_row, tol, mjx_engine, c_engine, precision,
+            return onestep.check(ablated.models[0], ablated, traj_row, tol, under_test, c_engine, precision,
                                  steps=np.array([step - 1]))["status"] == "pass"
 
     return diagnose.attribute_cause(passes, single, config.precision, skip=("solver convergence",))
 
 
 def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-          mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine,
+          under_test: Engine, c_engine: CEngine,
           clock: dict[str, float]) -> tuple[ScenarioResult, dict | None]:
     """The converged twin: both engines rerun with a converged solver
     (:func:`mjxdiff.noise.converged`), judged as sharply as any converged scenario (rounding
@@ -952,7 +952,7 @@ def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, con
     try:
         if _out_of_time(rerun=True):  # a converged solver compiles again
             raise BudgetSpent()
-        twin, _ = _verdict(result.name, m, twin_inputs, tol, config, mjx_engine, c_engine, clock)
+        twin, _ = _verdict(result.name, m, twin_inputs, tol, config, under_test, c_engine, clock)
     except Exception as e:  # noqa: BLE001 - the rollout's verdict stands, and says what is missing
         return dataclasses.replace(result, message=f"{result.message}; converged twin could not run: "
                                                    f"{one_line(e)}"), dict(status="error", message=one_line(e))
@@ -969,7 +969,7 @@ def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, con
     first = dict(twin.first_divergence or {}, check="twin")
     if twin.status == "fail" and twin.first_divergence:
         with contextlib.suppress(Exception):  # the verdict stands without its drill-down
-            drill = _drill(twin, twin_inputs, c_engine.rollout(twin_inputs), config.precision, mjx_engine.name)
+            drill = _drill(twin, twin_inputs, c_engine.rollout(twin_inputs), config.precision, under_test.name)
             found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object)
             if drill.first_stage:
                 message += f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
@@ -1020,7 +1020,7 @@ def _truncation(result: ScenarioResult, m, floor: dict, found: dict, twin: dict 
 
 
 def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
-              config: SweepConfig, mjx_engine: MJXEngine | MJWarpEngine, c_engine: CEngine,
+              config: SweepConfig, under_test: Engine, c_engine: CEngine,
               traj_c: Trajectory | None = None, drill: diagnose.DrillDown | None = None) -> ScenarioResult:
     """Adds local error, the stage drill-down and (``full``) the likely cause to a failing verdict;
     ``traj_c`` (C's whole rollout) and ``drill`` when already computed.
@@ -1047,9 +1047,9 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
     local = None
     if traj_c is not None:
         if drill is None:
-            drill = attempt("drill-down", lambda: _drill(result, inputs, traj_c, config.precision, mjx_engine.name))
+            drill = attempt("drill-down", lambda: _drill(result, inputs, traj_c, config.precision, under_test.name))
         local = attempt("local error", lambda: diagnose.local_error(
-            inputs, traj_c, m, rangefinder_mask(m), 1, mjx_engine))
+            inputs, traj_c, m, rangefinder_mask(m), 1, under_test))
     if local is not None:
         diagnosis["local_error"] = local
     if drill is not None:
@@ -1069,7 +1069,7 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
             if _out_of_time(rerun=True):  # each ablation compiles and steps again
                 raise BudgetSpent()
             with _precision(precision):
-                return _verdict(result.name, ablated.models[0], ablated, tol, config, mjx_engine, c_engine,
+                return _verdict(result.name, ablated.models[0], ablated, tol, config, under_test, c_engine,
                                 {})[0].status == "pass"
 
         cause = diagnose.attribute_cause(passes, inputs, config.precision)
@@ -1184,7 +1184,7 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
     # MJX warns once per mesh with a large coplanar face; the estimate turns that into one line
     # of the scenario's result (mjxdiff.cost.Estimate.advice_line)
     warnings.filterwarnings("ignore", message=r"Mesh .* has a coplanar face")
-    mjx_engine, c_engine = simulator(config), CEngine()
+    under_test, c_engine = simulator(config), CEngine()
     bar = _Progress(len(scenarios), progress)
     workers = default_compile_workers() if config.compile_workers is None else config.compile_workers
     pool = ThreadPoolExecutor(workers, thread_name_prefix="mjxdiff-scenario") if workers else None
@@ -1194,8 +1194,8 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
         hook = functools.partial(on_event, i) if on_event is not None else None
         with _precision(config.precision), _running(config, hook):
             _phase("preparing")
-            prepared = _compile_ahead(scenario, config, mjx_engine) if pool is not None else _prepare(scenario, config)
-            result = _finish(prepared, mjx_engine, c_engine)
+            prepared = _compile_ahead(scenario, config, under_test) if pool is not None else _prepare(scenario, config)
+            result = _finish(prepared, under_test, c_engine)
             _phase("finished", result=result)  # before its turn comes to be reported in order
             return result
 
@@ -1225,14 +1225,28 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
     return results
 
 
-def simulator(config: SweepConfig):
-    """The engine judged against C: :class:`MJXEngine`, or MuJoCo Warp's
-    (:class:`mjxdiff.mjwarp.MJWarpEngine`) for ``impl='warp'``."""
-    if config.impl == "warp":
-        from mjxdiff.mjwarp import MJWarpEngine
+#: The engines judged against C, by ``SweepConfig.impl``: module and class, imported on first use
+#: (MuJoCo Warp is an extra).
+ENGINES = {"mjx": ("mjxdiff.engines", "MJXEngine"), "warp": ("mjxdiff.mjwarp", "MJWarpEngine")}
 
-        return MJWarpEngine()
-    return MJXEngine(compile=config.compile)
+
+def engine_class(impl: str) -> type:
+    """The :class:`~mjxdiff.trajectory.Engine` class of ``impl`` (:data:`ENGINES`)."""
+    import importlib
+
+    module, name = ENGINES[impl]
+    return getattr(importlib.import_module(module), name)
+
+
+def capable(config: SweepConfig, capability: str) -> bool:
+    """Whether the engine ``config`` judges offers ``capability`` (``Engine.capabilities``)."""
+    return capability in engine_class(config.impl).capabilities
+
+
+def simulator(config: SweepConfig) -> Engine:
+    """The engine judged against C: :class:`MJXEngine`, or MuJoCo Warp's
+    (:class:`mjxdiff.mjwarp.MJWarpEngine`) for ``impl='warp'``, compiling as ``config.compile`` says."""
+    return engine_class(config.impl)(compile=config.compile)
 
 
 def exit_code(results: Iterable[ScenarioResult]) -> int:

@@ -29,7 +29,7 @@ import mujoco
 import numpy as np
 
 from mjxdiff import metrics
-from mjxdiff.engines import Trajectory, first_diverged
+from mjxdiff.trajectory import Trajectory, first_diverged
 from mjxdiff.noise import FLOORS, NoiseFloor, noise_floor
 from mjxdiff.scenario import Tolerances
 
