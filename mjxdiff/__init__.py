@@ -1,5 +1,28 @@
 """mjxdiff: differential testing of MuJoCo MJX against MuJoCo C.
 
+Code map, by stage (data flows down):
+
+- Input: ``scenario`` (scenario files, tolerances), ``config`` (a sweep's settings),
+  ``precision`` (float64/float32 and their thresholds), ``inputs`` (scenario -> batched
+  initial states, controls, per-member models), ``joints`` (qpos walks, quaternions),
+  ``adjust`` (what is changed so MJX can run a model), ``cost`` (compile and memory estimate).
+- Engines: ``trajectory`` (Trajectory, the Engine protocol), ``engines`` (MuJoCo C, MJX),
+  ``mjwarp`` (MuJoCo Warp), ``export_cache`` (compiled MJX rollouts across processes).
+- Comparison: ``metrics`` (errors and behaviour statistics in jax.numpy), ``noise`` (C's own
+  rounding envelope), ``verdict`` (trajectories -> a verdict per scenario), ``onestep`` (one
+  step from C's states), ``transfer`` (MJX's host interface), ``diagnose`` (drill-down, causes),
+  ``segments`` (MJX's regularized capsule contacts, in NumPy).
+- Running: ``sweep`` (scenarios end to end), ``guard`` (a sweep in a watched child process),
+  ``pipeline`` (a whole sweep with known labels, history, baseline, files: :func:`run`).
+- Output: ``report`` (text, report.json), ``html_report`` (report.html), ``reproducer``
+  (failing members, replay), ``history`` (Parquet run history), ``baseline`` (what changed),
+  ``known`` (the known-divergence catalogue), ``files`` (atomic writes), ``errors`` (one-line
+  exceptions).
+- Other uses: ``fuzz`` and ``strategies`` (Hypothesis), ``interactions`` and ``coverage`` (what
+  the scenarios reach), ``grad`` (Jacobians), ``closedloop`` (policies), ``bench``
+  (performance), ``testing`` and ``pytest_plugin`` (users' own tests), ``cli`` (``python -m
+  mjxdiff``).
+
 The public surface, one name per line; everything else is an implementation
 detail of its module. Names are imported on first use (PEP 562), so that
 ``import mjxdiff`` and ``import mjxdiff.metrics`` import neither MuJoCo nor MJX

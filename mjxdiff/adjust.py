@@ -30,14 +30,10 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from mjxdiff.support import HARMLESS_ENABLE_FLAGS
+
 __all__ = ["HARMLESS_ENABLE_FLAGS", "costly_pairs", "drop_costly", "drop_unsupported", "for_mjx", "harmless",
            "unsupported_pairs"]
-
-#: Enable flags MJX refuses and C's compared quantities do not depend on, with the label reported.
-HARMLESS_ENABLE_FLAGS: dict[int, str] = {
-    int(mujoco.mjtEnableBit.mjENBL_ENERGY): "energy flag",
-    int(mujoco.mjtEnableBit.mjENBL_FWDINV): "fwdinv flag",
-}
 
 _ENERGY_SENSORS = (int(mujoco.mjtSensor.mjSENS_E_POTENTIAL), int(mujoco.mjtSensor.mjSENS_E_KINETIC))
 

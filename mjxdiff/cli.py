@@ -600,7 +600,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             continue
         if args.format == "text":
             print(bench.format_text(results[-1:]), flush=True)
-    doc = dict(versions=report.versions(), machine=report.machine(), steps=args.steps, scenarios=results)
+    doc = report.envelope("bench", dict(scenarios=args.scenarios, batch=args.batch, steps=args.steps, seed=args.seed,
+                                        repeats=args.repeats), steps=args.steps, scenarios=results)
     if args.out:
         path = report.write_report(args.out, doc, "bench.json")
         print(f"bench written to {path}", file=sys.stderr)
@@ -622,9 +623,8 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
                   include_known=args.include_known, progress=sys.stderr.isatty())
     written = None
     if args.out:
-        doc = dict(versions=report.versions(),
-                   config=dict(max_examples=args.max_examples, seed=args.seed, budget=budget,
-                               include_known=args.include_known),
+        doc = report.envelope("fuzz", dict(max_examples=args.max_examples, seed=args.seed, budget=budget,
+                                           include_known=args.include_known),
                    examples=result.examples, structures=result.structures, seconds=result.seconds,
                    **result.rates(), failure=result.failure,
                    harness_error=result.harness_error, traceback=result.harness_traceback,
@@ -678,6 +678,8 @@ def _cmd_policy(args: argparse.Namespace) -> int:
     if args.replay:
         try:
             saved = json.loads(Path(args.replay).read_text())
+            if saved.get("kind", "policy-reproducer") != "policy-reproducer":
+                raise ValueError(f"a {saved['kind']} output")
             args.target, args.policy, only = saved["target"], saved["policy"], [int(saved["episode"])]
             args.episodes, args.steps, args.seed, args.n_frames = (int(saved[k]) for k in
                                                                    ("episodes", "steps", "seed", "n_frames"))
@@ -698,16 +700,15 @@ def _cmd_policy(args: argparse.Namespace) -> int:
     n_frames = int(env._n_frames)  # noqa: SLF001 - brax's substeps per control step
     result = closedloop.judge(closedloop.c_model(env), comparison, seed=args.seed, n_frames=n_frames)
     config = dict(episodes=args.episodes, steps=args.steps, seed=args.seed, n_frames=args.n_frames)
-    doc = dict(kind="policy", versions=report.versions(), target=args.target, policy=args.policy,
-               config=dict(config, only=only), **result)
+    doc = report.envelope("policy", dict(config, only=only), target=args.target, policy=args.policy, **result)
     if args.out:
         path = report.write_report(args.out, doc, "policy-report.json")
         print(f"report written to {path}", file=sys.stderr)
         if result["status"] == "fail" and only is None:
             worst = result["first_separation"]["episode"] if result["first_separation"] else result["worst_episode"]
-            path = report.write_report(args.out, dict(target=args.target, policy=args.policy, episode=worst,
-                                                      message=result["message"], **config),
-                                       "policy-reproducer.json")
+            rep = report.envelope("policy-reproducer", config, target=args.target, policy=args.policy,
+                                  episode=worst, message=result["message"], **config)
+            path = report.write_report(args.out, rep, "policy-reproducer.json")
             print(f"reproducer of episode {worst} written to {path} (mjxdiff policy --replay {path})",
                   file=sys.stderr)
     print(json.dumps(doc, indent=2) if args.format == "json" else f"{result['status'].upper():6} {args.target}  "
@@ -773,8 +774,8 @@ def _cmd_grad(args: argparse.Namespace) -> int:
                                         Path(args.out) / "reproducers" if args.out else None))
         if args.format == "text":
             print(grad.format_text(rows[-1:]), flush=True)
-    doc = dict(kind="grad", schema_version=report.SCHEMA_VERSION, versions=report.versions(), code=report.code(),
-               config=dict(states=args.states, seed=args.seed, eps=grad.EPS), scenarios=rows)
+    doc = report.envelope("grad", dict(scenarios=args.scenarios, states=args.states, seed=args.seed, eps=grad.EPS),
+                          scenarios=rows)
     if args.out:
         from mjxdiff import html_report
 
@@ -794,11 +795,14 @@ def _cmd_coverage(args: argparse.Namespace) -> int:
     if scenarios is None:
         return 2
     engines.configure_jax("float64", "")
-    doc = dict(versions=report.versions(), seed=args.seed, **coverage.measure(scenarios, args.seed))
+    measured = coverage.measure(scenarios, args.seed)
+    # "code" of the envelope names the MJX code tested: its line and branch coverage is "code_coverage"
+    body = {("code_coverage" if k == "code" else k): v for k, v in measured.items()}
+    doc = report.envelope("coverage", dict(scenarios=args.scenarios, seed=args.seed), **body)
     if args.out:
         path = report.write_report(args.out, doc, "coverage.json")
         print(f"coverage written to {path}", file=sys.stderr)
-    print(json.dumps(doc, indent=2) if args.format == "json" else coverage.format_text(doc))
+    print(json.dumps(doc, indent=2) if args.format == "json" else coverage.format_text(measured))
     return 0
 
 

@@ -39,6 +39,7 @@ import numpy as np
 from mujoco import mjx
 from mujoco.batch import Batch
 
+from mjxdiff import joints
 from mjxdiff.precision import Precision
 from mjxdiff.errors import one_line
 from mjxdiff.noise import converge_solver, has_constraints
@@ -303,12 +304,8 @@ def mjcf_env(m: mujoco.MjModel, n_frames: int = 1, qpos_noise: float = 0.01, qve
     from brax.io import mjcf
 
     noisy = np.ones(m.nq, bool)  # no noise on quaternions: they stay normalised
-    for j in range(m.njnt):
-        adr, jtype = m.jnt_qposadr[j], m.jnt_type[j]
-        if jtype == mujoco.mjtJoint.mjJNT_FREE:
-            noisy[adr + 3:adr + 7] = False
-        elif jtype == mujoco.mjtJoint.mjJNT_BALL:
-            noisy[adr:adr + 4] = False
+    for p in joints.parts(m):
+        noisy[p.qpos] = p.kind != "rotation"
     limited = np.asarray(m.actuator_ctrllimited, bool)
     lo = np.where(limited, m.actuator_ctrlrange[:, 0], -1.0)
     hi = np.where(limited, m.actuator_ctrlrange[:, 1], 1.0)

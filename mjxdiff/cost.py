@@ -239,14 +239,23 @@ def pair_groups(m: mujoco.MjModel) -> tuple[tuple[PairGroup, ...], tuple[str, ..
     return tuple(out), tuple(dict.fromkeys(advice))
 
 
+#: MJX's working set per member while stepping, in multiples of the size of its ``mjx.Data``
+#: (scan carry, solver and collision temporaries, one piece of records).
+WORKING_SET_FACTOR = 40
+
+
+def member_bytes(m: mujoco.MjModel) -> int:
+    """Estimated bytes MJX holds per batch member while stepping ``m``: WORKING_SET_FACTOR x its data;
+    0 when MJX cannot make data for ``m`` (the rollout then reports why, e.g. as unsupported)."""
+    return WORKING_SET_FACTOR * data_sizes(m)[0]
+
+
 def estimate(m: mujoco.MjModel, batch: int = 1, steps: int = 1) -> Estimate:
     """MJX's compile seconds and bytes per member for ``m`` (see :class:`Estimate`).
 
     ``batch`` and ``steps`` do not change either (a rollout compiles once, whatever its
     size; memory is per member); they are accepted for a plan's convenience.
     """
-    from mjxdiff import engines
-
     try:
         groups, advice = pair_groups(m)
     except Exception:  # noqa: BLE001 - no grouping (MJX refuses the model): primitives only
@@ -263,7 +272,7 @@ def estimate(m: mujoco.MjModel, batch: int = 1, steps: int = 1) -> Estimate:
                  + COMPILE_PER_HULL_GROUP_S * hull + cone_s)
     # each member has its own copies of the C model (visual meshes included: 240 MB for
     # ANYmal C), beside MJX's working set, its hull-hull temporaries and the cone Hessian
-    member = (engines.WORKING_SET_FACTOR * data + MODEL_COPIES * m.nbuffer + BYTES_PER_WORK * work
+    member = (WORKING_SET_FACTOR * data + MODEL_COPIES * m.nbuffer + BYTES_PER_WORK * work
               + (8 * nefc**2 if elliptic else 0))
     return Estimate(compile_s, int(member), groups, advice, m.nv, STEP_BASE_S + STEP_PER_WORK_S * work,
                     COMPILE_BASE_BYTES + COMPILE_BYTES_PER_HULL_GROUP * hull

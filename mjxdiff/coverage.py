@@ -34,6 +34,7 @@ from typing import Any, Iterable, Sequence
 import mujoco
 import numpy as np
 
+from mjxdiff import joints
 from mjxdiff.errors import one_line
 
 __all__ = ["EXCLUDED", "REGIMES", "code_coverage", "parameter_coverage", "regime_coverage", "measure", "format_text"]
@@ -285,26 +286,12 @@ REGIMES = ("lower limit active", "upper limit active", "ball limit active", "ten
            "equality active")
 
 
-def active_limits(m: mujoco.MjModel, d: mujoco.MjData) -> list[tuple[int, str]]:
-    """``(joint, side)`` of every active joint-limit row of ``d``: side ``lower`` or ``upper``
-    (whichever end the joint is nearer) for hinges and slides, ``ball`` for ball joints."""
-    out = []
-    for row in np.flatnonzero(d.efc_type == int(mujoco.mjtConstraint.mjCNSTR_LIMIT_JOINT)):
-        j = int(d.efc_id[row])
-        if m.jnt_type[j] == int(mujoco.mjtJoint.mjJNT_BALL):
-            out.append((j, "ball"))
-        else:
-            q = d.qpos[m.jnt_qposadr[j]]
-            out.append((j, "lower" if q - m.jnt_range[j, 0] < m.jnt_range[j, 1] - q else "upper"))
-    return out
-
-
 def _regimes(m: mujoco.MjModel, d: mujoco.MjData, before: int) -> set[str]:
     """The :data:`REGIMES` present in ``d`` (after a step; ``before``: ncon before it)."""
     C, S = mujoco.mjtConstraint, mujoco.mjtConstraintState
     out = set()
     types, state = d.efc_type, d.efc_state
-    for j, side in active_limits(m, d):
+    for j, side in joints.active_limits(m, d):
         out.add(f"{side} limit active")
     if np.any(types == int(C.mjCNSTR_LIMIT_TENDON)):
         out.add("tendon limit active")
@@ -327,9 +314,8 @@ def _regimes(m: mujoco.MjModel, d: mujoco.MjData, before: int) -> set[str]:
         adr = m.actuator_actadr[a]
         if adr >= 0 and (d.act[adr] <= m.actuator_actrange[a, 0] or d.act[adr] >= m.actuator_actrange[a, 1]):
             out.add("activation clamped")
-    for j in np.flatnonzero(np.isin(m.jnt_type, [int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)])):
-        adr = m.jnt_qposadr[j] + (3 if m.jnt_type[j] == int(mujoco.mjtJoint.mjJNT_FREE) else 0)
-        if 2 * np.arccos(min(1.0, abs(d.qpos[adr]))) > 1.0:  # rotated by more than 1 rad
+    for p in joints.parts(m):
+        if p.kind == "rotation" and 2 * np.arccos(min(1.0, abs(d.qpos[p.qpos_adr]))) > 1.0:  # turned > 1 rad
             out.add("quaternion far from identity")
     return out
 

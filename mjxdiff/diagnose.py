@@ -23,11 +23,11 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from mjxdiff.stages import Contacts, contacts_c as _contacts_c, contacts_mjx as _contacts_mjx  # noqa: F401
 from mjxdiff.precision import THRESHOLDS, Precision
 from mjxdiff.errors import one_line
 from mjxdiff import metrics
-from mjxdiff import engines, export_cache
-from mjxdiff.engines import MJXEngine, Trajectory, mjx
+from mjxdiff.engines import CEngine, MJXEngine, Trajectory
 from mjxdiff.inputs import BatchedInputs
 from mjxdiff.noise import converge_solver
 
@@ -108,49 +108,6 @@ def _object(m: mujoco.MjModel, field: str, index: int) -> str:
     return ""
 
 
-Contacts = dict[tuple[int, ...], list[tuple[float, ...]]]
-
-
-def _frame(m: mujoco.MjModel, frame: np.ndarray, friction: np.ndarray, geom: np.ndarray) -> tuple[float, ...]:
-    """The part of a contact frame (9 numbers, rows normal and two tangents) that shapes the
-    constraint, made comparable between engines: the normal, pointing from the lower geom id to
-    the higher; the tangents, each up to its sign (a friction pyramid is the same with either),
-    where friction is directional (a pyramidal cone turns with them, and so does anisotropic
-    friction), else zeros."""
-    rows = np.asarray(frame, float).reshape(3, 3).copy()
-    if geom[0] > geom[1]:
-        rows[0] = -rows[0]
-    directional = m.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL or friction[0] != friction[1]
-    if not directional:
-        rows[1:] = 0.0
-    for t in rows[1:]:
-        t *= np.sign(t[np.abs(t).argmax()]) or 1.0
-    return tuple(map(float, rows.ravel()))
-
-
-def _contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> Contacts:
-    """Active contacts by geom pair: (dist, pos x, y, z, friction[0], friction[1], frame (9,),
-    :func:`_frame`) each."""
-    out: Contacts = {}
-    for c in d.contact[:d.ncon]:
-        key = tuple(sorted(int(g) for g in c.geom))  # geom1/geom2 are not filled by mujoco_warp.get_data_into
-        out.setdefault(key, []).append((float(c.dist), *map(float, c.pos), float(c.friction[0]), float(c.friction[1]),
-                                        *_frame(m, c.frame, c.friction, c.geom)))
-    return out
-
-
-def _contacts_mjx(m: mujoco.MjModel, dx: Any) -> Contacts:
-    c = dx._impl.contact  # noqa: SLF001 - MJX's contacts
-    dist, margin, geom, pos, friction, frame = map(np.asarray, (c.dist, c.includemargin, c.geom, c.pos, c.friction,
-                                                                c.frame))
-    out: Contacts = {}
-    for i in np.flatnonzero(dist < margin):
-        key = tuple(sorted(int(g) for g in geom[i]))
-        out.setdefault(key, []).append((float(dist[i]), *map(float, pos[i]), float(friction[i, 0]),
-                                        float(friction[i, 1]), *_frame(m, frame[i], friction[i], geom[i])))
-    return out
-
-
 def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float, str]:
     """Worst contact disagreement: inf for a geom pair whose contact count differs, else the
     largest |dist|, |pos| or |friction| difference, each engine's contacts matched by position."""
@@ -178,7 +135,7 @@ _CONTACT_PARTS = ("dist",) + ("position",) * 3 + ("friction",) * 2 + ("normal",)
 def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray | jax.Array,
                act: np.ndarray | jax.Array, ctrl: np.ndarray, time: float, precision: Precision = "float64",
                member: int = 0, step: int = 0, qacc_warmstart: np.ndarray | None = None,
-               impl: str = "mjx") -> DrillDown:
+               engine: Engine | None = None) -> DrillDown:
     """Compares every stage of ``mj_forward`` and the other implementation's forward from one state.
 
     Args:
@@ -186,8 +143,8 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
       qpos, qvel, act, ctrl, time: the state and controls before the step.
       precision: sets the relative threshold, :data:`STAGE_RTOL`.
       qacc_warmstart: the solver's warm start there (both engines start from it); None: zero.
-      impl: ``mjx`` (``mjx.forward``) or ``warp`` (MuJoCo Warp's ``forward`` on the CPU, its
-        data read back into an MjData with ``mujoco_warp.get_data_into``).
+      engine: the engine under test (default MJX), whose ``forward`` (:meth:`mjxdiff.trajectory.Engine.forward`)
+        is compared with C's.
     """
     d = mujoco.MjData(m)
     d.qpos[:], d.qvel[:], d.ctrl[:], d.time = qpos, qvel, ctrl, time
@@ -195,34 +152,17 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
         d.qacc_warmstart[:] = qacc_warmstart
     if m.na:
         d.act[:] = act
-    if impl == "warp":
-        from mjxdiff import mjwarp
-
-        d_x = mjwarp.forward(m, d)
-        qm_x = np.zeros((m.nv, m.nv))
-        mujoco.mj_fullM(m, d_x, qm_x)
-        values_x = {f: np.asarray(getattr(d_x, f)).ravel()
-                    for _, fs in STAGES for f in fs if f not in ("qM", "contact")}
-        contacts_x = _contacts_c(m, d_x)
-    else:
-        export_cache.fresh_digest()  # engines.forward is jitted: never its trace of code since changed
-        mx = mjx.put_model(m)
-        dx = engines.forward(mx, mjx.put_data(m, d))
-        values_x = {f: np.asarray(getattr(dx, f)).ravel() for _, fs in STAGES for f in fs if f not in ("qM", "contact")}
-        qm_x = np.asarray(mjx.full_m(mx, dx))
-        contacts_x = _contacts_mjx(m, dx)
-    values_x["qM"] = np.asarray(qm_x).ravel()
-    mujoco.mj_forward(m, d)
-    c_qm = np.zeros((m.nv, m.nv))
-    mujoco.mj_fullM(m, d, c_qm)
-    values_c = {f: np.asarray(getattr(d, f)).ravel() for _, fs in STAGES for f in fs if f not in ("qM", "contact")}
-    values_c["qM"] = c_qm.ravel()
+    fields = tuple(f for _, fs in STAGES for f in fs if f not in ("qM", "contact"))
+    under_test = (engine or MJXEngine()).forward(m, d, fields)
+    values_x, contacts_x = dict(under_test.values, qM=under_test.qM.ravel()), under_test.contacts
+    reference = CEngine().forward(m, d, fields)
+    values_c = dict(reference.values, qM=reference.qM.ravel())
     rtol = STAGE_RTOL[precision]
     diffs = []
     for stage, fields in STAGES:
         for f in fields:
             if f == "contact":
-                err, obj = _contact_diff(m, _contacts_c(m, d), contacts_x)
+                err, obj = _contact_diff(m, reference.contacts, contacts_x)
                 diffs.append(StageDiff(stage, f, err, obj, err > 1e3 * rtol))
                 continue
             c, x = values_c[f], values_x[f]

@@ -66,10 +66,11 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
 from mujoco.batch import Batch, SimulationError  # noqa: E402
 
 from mjxdiff.precision import Precision  # noqa: E402
-from mjxdiff import export_cache  # noqa: E402
+from mjxdiff import export_cache, joints, stages  # noqa: E402
+from mjxdiff.stages import Forward  # noqa: E402
 from mjxdiff.inputs import BatchedInputs  # noqa: E402
 # Trajectory and Engine live in mjxdiff.trajectory (no MJX there); kept importable from here
-from mjxdiff.trajectory import Engine, Trajectory, concat, first_true, shifted  # noqa: E402
+from mjxdiff.trajectory import Engine, Streaming, Trajectory, concat, first_true, shifted  # noqa: E402
 
 __all__ = [
     "CEngine",
@@ -202,7 +203,7 @@ def _with_energy(m: mujoco.MjModel) -> mujoco.MjModel:
     return m
 
 
-class CEngine:
+class CEngine(Streaming):
     """MuJoCo C: :class:`mujoco.batch.Batch` over all cores, one model per member."""
 
     name = "c"
@@ -212,18 +213,11 @@ class CEngine:
     def __init__(self, nthread: int = 0):
         self.nthread = nthread
 
-    def batch_cap(self) -> int:
-        """No cap: one :class:`~mujoco.batch.Batch` steps any number of members."""
-        return 1 << 30
-
-    def split(self, batch: int) -> int:
-        return 1
-
-    def compile_ahead(self, inputs: BatchedInputs, chunk: int) -> None:
-        """Nothing to compile."""
-
-    def rollout(self, inputs: BatchedInputs) -> Trajectory:
-        return concat(list(self.stream(inputs, inputs.steps)))
+    def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]) -> Forward:
+        """``mj_forward`` of a copy of ``d``, read back (:func:`mjxdiff.stages.read`)."""
+        d = copy.copy(d)
+        mujoco.mj_forward(m, d)
+        return stages.read(m, d, fields)
 
     def resync(self, inputs: BatchedInputs, reference: Trajectory, every: int = 1) -> Trajectory:
         """C restarted from ``reference``'s state every ``every`` steps (as :meth:`MJXEngine.resync`):
@@ -466,18 +460,12 @@ def energy(mx: mjx.Model, dx: mjx.Data, qpos: jax.Array, qvel: jax.Array) -> jax
     if not disabled & int(mujoco.mjtDisableBit.mjDSBL_GRAVITY):
         pot -= jnp.sum(mx.body_mass * (dx.xipos @ mx.opt.gravity))
     if not disabled & int(mujoco.mjtDisableBit.mjDSBL_SPRING):
-        free, ball = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)
-        for j, jtype in enumerate(int(t) for t in mx.jnt_type):
-            k, adr = mx.jnt_stiffness[j], int(mx.jnt_qposadr[j])
-            if jtype == free:
-                dif = qpos[adr:adr + 3] - mx.qpos_spring[adr:adr + 3]
-                pot += 0.5 * k * dif @ dif
-                adr += 3
-            if jtype in (free, ball):
-                dif = mjx_math.quat_sub(mjx_math.normalize(qpos[adr:adr + 4]), mx.qpos_spring[adr:adr + 4])
-                pot += 0.5 * k * dif @ dif
+        for p in joints.parts(mx):
+            if p.kind == "rotation":
+                dif = mjx_math.quat_sub(mjx_math.normalize(qpos[p.qpos]), mx.qpos_spring[p.qpos])
             else:
-                pot += 0.5 * k * (qpos[adr] - mx.qpos_spring[adr]) ** 2
+                dif = qpos[p.qpos] - mx.qpos_spring[p.qpos]
+            pot += 0.5 * mx.jnt_stiffness[p.joint] * dif @ dif
         if mx.ntendon:
             lower, upper = mx.tendon_lengthspring.T
             length = dx.ten_length
@@ -564,19 +552,6 @@ def _canonical_ints(dx: mjx.Data) -> mjx.Data:
     # scan needs the carry's dtypes fixed.
     int_t = jnp.asarray(0).dtype
     return jax.tree.map(lambda x: x.astype(int_t) if jnp.issubdtype(x.dtype, jnp.integer) else x, dx)
-
-
-#: MJX's working set per member while stepping, in multiples of the size of its ``mjx.Data``
-#: (scan carry, solver and collision temporaries, one piece of records).
-WORKING_SET_FACTOR = 40
-
-
-def member_bytes(m: mujoco.MjModel) -> int:
-    """Estimated bytes MJX holds per batch member while stepping ``m``: WORKING_SET_FACTOR x its data;
-    0 when MJX cannot make data for ``m`` (the rollout then reports why, e.g. as unsupported)."""
-    from mjxdiff import cost
-
-    return WORKING_SET_FACTOR * cost.data_sizes(m)[0]
 
 
 def device_count() -> int:
@@ -685,6 +660,14 @@ class MJXEngine:
     def precision(self) -> Precision:
         """MJX's precision follows JAX's: float64 under ``jax_enable_x64`` (:func:`configure_jax`)."""
         return "float64" if jax.config.read("jax_enable_x64") else "float32"
+
+    def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]) -> Forward:
+        """``mjx.forward`` from C's ``d`` (put with ``put_model``/``put_data``), read back."""
+        export_cache.fresh_digest()  # forward is jitted: never its trace of code since changed
+        mx = mjx.put_model(m)
+        dx = forward(mx, mjx.put_data(m, d))
+        return Forward({f: np.asarray(getattr(dx, f)).ravel() for f in fields}, np.asarray(mjx.full_m(mx, dx)),
+                       stages.contacts_mjx(m, dx))
 
     def __init__(self, devices: int | None = None, compile: str = "auto"):
         _ensure_safe_backend()

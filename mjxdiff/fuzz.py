@@ -39,6 +39,7 @@ from hypothesis.errors import Flaky, HypothesisException
 
 from mjxdiff.errors import one_line
 from mjxdiff import interactions, report, reproducer, segments, strategies
+from mjxdiff.support import KNOWN_DIVERGENCES
 from mjxdiff.inputs import BatchedInputs
 from mjxdiff.scenario import Tolerances
 from mjxdiff.sweep import release_compiled_if_crowded
@@ -51,51 +52,6 @@ __all__ = ["DEFAULT_BUDGET", "DEFAULT_VARIANTS", "KNOWN_DIVERGENCES", "FuzzResul
 DEFAULT_BUDGET = 60.0
 #: Variants (parameters, state, controls) judged per generated structure: one compile serves them all.
 DEFAULT_VARIANTS = 64
-
-#: Features left out by default because C 4.0.0 and MJX 3.17.0 are known to differ on them.
-KNOWN_DIVERGENCES = {
-    "connect/weld equality": "efc_aref of equality rows differs (scenarios/equality.toml notes)",
-    "RK4, implicitfast": "free/ball rotation and RK4 sensordata differ (scenarios/integrator_*.toml notes)",
-    "box and mesh geoms": "box-box contact points differ (scenarios/box_stack.toml notes)",
-    "acceleration sensors without constraints": "MJX's forward skips sensor_acc when the model has no "
-                                                "constraint rows: accelerometer, force, torque, framelinacc "
-                                                "and frameangacc read 0 (tests/test_known_divergences.py)",
-    "contact tangent frames": "MJX's plane-capsule contact has the fixed tangent frame (0, 1, 0, ...) where "
-                              "C's first tangent follows the capsule's axis; with a pyramidal cone or anisotropic "
-                              "friction the friction pyramid turns and the contact forces differ "
-                              "(tests/test_known_divergences.py)",
-    "tendon wrap sidesite": "C 4.0 picks a wrap's side by the winding of the path end0 -> sidesite -> end1 "
-                            "around the wrap geom (as MuJoCo Warp 4.0 does); MJX 3.17 by the older rule, the arc "
-                            "whose middle is nearest the sidesite's direction: near the sidesite's symmetry plane "
-                            "they wrap opposite sides (tests/test_known_divergences.py)",
-    "spring or damper flag alone": "MJX 3.17's passive() drops all passive forces (and gravcomp) when either "
-                                   "flag is disabled, C 4.0 only the one disabled; with the damper disabled "
-                                   "MJX's Euler step still damps implicitly (tests/test_known_divergences.py)",
-    "actearly": "MJX 3.17 ignores actearly: its force uses the current activation, C's the next one "
-                "(tests/test_known_divergences.py)",
-    "tendon armature across trees": "a tendon with armature coupling two kinematic trees: C 4.0's mass matrix "
-                                    "keeps the trees' sparsity, MJX 3.17's differs (tests/data/"
-                                    "fuzz_tendon_armature_trees.json, tests/test_known_divergences.py)",
-    "damped tendons across trees under implicitfast": "C 4.0 keeps qDeriv within the mass matrix's sparsity, "
-                                                      "MJX 3.17 adds the cross-tree terms "
-                                                      "(tests/test_known_divergences.py)",
-    "plane-cylinder far cap": "C adds a contact on a cylinder's far cap when it is within the margin (a cylinder "
-                              "lying on its side, or sunk); MJX's plane_cylinder returns the near cap's three "
-                              "only (tests/test_known_divergences.py)",
-    "convex pairs by SDF descent": "MJX 3.17 collides a sphere, capsule, ellipsoid or cylinder with an ellipsoid or "
-                                   "cylinder by 10 steps of gradient descent on an SDF clearance (collision_sdf.py), "
-                                   "C 4.0 analytically or by GJK/EPA: depth, point, normal and contact count differ "
-                                   "(an ellipsoid-cylinder contact 2.882 mm deep in C, 1.354 mm in MJX, normals "
-                                   "0.037 rad apart, qacc 99 apart; tests/data/fuzz_ellipsoid_cylinder_contact.json); "
-                                   "set aside only where MJX given C's contacts reproduces C (tests/test_fuzz.py)",
-    "capsule segment solves": "MJX 3.17 adds 1e-6 to the denominators of its closest-point solves on segments "
-                              "(sphere-capsule, capsule-capsule; mjx/_src/math.py), C 4.0 solves them exactly: "
-                              "points and normals part by about 1e-6 / (1 - cos^2 of the axes' angle), and a deep "
-                              "contact's qacc by 1e-5 relative at step 0 (fuzz seed 1 in CI: normal 4.3e-6 apart, "
-                              "qvel 0.0036; tests/data/fuzz_capsule_capsule_contact.json); set aside only where "
-                              "MJX's contact is its formulas with the 1e-6 and C's the same without, to 1e-9 "
-                              "(mjxdiff/segments.py), and MJX given C's contacts reproduces C (tests/test_fuzz.py)",
-}
 
 #: Sensor types MJX computes in ``sensor_acc``.
 _ACC_SENSORS = frozenset({"mjSENS_ACCELEROMETER", "mjSENS_FORCE", "mjSENS_TORQUE", "mjSENS_FRAMELINACC",

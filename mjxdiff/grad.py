@@ -43,7 +43,7 @@ import numpy as np
 from mujoco import mjx
 
 from mjxdiff.errors import one_line
-from mjxdiff.inputs import quat_mul
+from mjxdiff import joints
 from mjxdiff.noise import converge_solver, has_constraints
 
 __all__ = ["EPS", "RTOL", "SMOOTH", "MATRICES", "StateResult", "sample_states", "mjx_jacobians", "mjx_fd",
@@ -80,58 +80,19 @@ class StateResult:
 # the state and its tangent space
 
 
-def _joint_slices(m: mujoco.MjModel) -> list[tuple[int, int, int]]:
-    """(type, qpos address, dof address) of every joint."""
-    return [(int(m.jnt_type[j]), int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j])) for j in range(m.njnt)]
-
-
-def _integrate(joints, qpos, dq):
-    """qpos moved by the tangent vector dq; exact to first order at dq = 0 (all that a Jacobian
-    at dq = 0 needs): a rotation by w is the quaternion normalise(q * (1, w / 2))."""
-    out = qpos
-    for jtype, qa, da in joints:
-        if jtype == mujoco.mjtJoint.mjJNT_FREE:
-            out = out.at[qa:qa + 3].add(dq[da:da + 3])
-            q = quat_mul(qpos[qa + 3:qa + 7], jnp.concatenate([jnp.ones(1), dq[da + 3:da + 6] / 2]))
-            out = out.at[qa + 3:qa + 7].set(q / jnp.linalg.norm(q))
-        elif jtype == mujoco.mjtJoint.mjJNT_BALL:
-            q = quat_mul(qpos[qa:qa + 4], jnp.concatenate([jnp.ones(1), dq[da:da + 3] / 2]))
-            out = out.at[qa:qa + 4].set(q / jnp.linalg.norm(q))
-        else:
-            out = out.at[qa].add(dq[da])
-    return out
-
-
-def _difference(joints, nv, qpos, ref):
-    """The tangent vector from ``ref`` to ``qpos``; exact to first order where they coincide:
-    2 x the vector part of ref^-1 * q, signed by its scalar part."""
-    out = jnp.zeros(nv, qpos.dtype)
-    for jtype, qa, da in joints:
-        if jtype in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL):
-            p = 3 if jtype == mujoco.mjtJoint.mjJNT_FREE else 0
-            if p:
-                out = out.at[da:da + 3].set(qpos[qa:qa + 3] - ref[qa:qa + 3])
-            r = ref[qa + p:qa + p + 4]
-            rel = quat_mul(r * jnp.array([1.0, -1.0, -1.0, -1.0]), qpos[qa + p:qa + p + 4])
-            out = out.at[da + p:da + p + 3].set(2 * rel[1:] * jnp.sign(rel[0]))
-        else:
-            out = out.at[da].set(qpos[qa] - ref[qa])
-    return out
-
-
 # ----------------------------------------------------------------------------
 # Jacobians both ways
 
 
-def _next(joints: tuple, nv: int):
+def _next(parts: tuple, nv: int):
     """f(mx, dx, ref_qpos, x, u): the next state (qpos as a tangent vector from ``ref_qpos``, qvel,
     act) and the sensors after one ``mjx.step`` from ``dx`` moved by the state tangent ``x``,
     with controls ``u``."""
     def f(mx, dx, ref_qpos, x, u):
-        qpos = _integrate(joints, dx.qpos, x[:nv])
+        qpos = joints.integrate(parts, dx.qpos, x[:nv])
         d1 = mjx.step(mx, dx.replace(qpos=qpos, qvel=dx.qvel + x[nv:2 * nv], act=dx.act + x[2 * nv:], ctrl=u))
         # its sensordata are the sensors at (x, u), as in mjd_transitionFD
-        return jnp.concatenate([_difference(joints, nv, d1.qpos, ref_qpos), d1.qvel, d1.act, d1.sensordata])
+        return jnp.concatenate([joints.difference(parts, nv, d1.qpos, ref_qpos), d1.qvel, d1.act, d1.sensordata])
     return f
 
 
@@ -141,11 +102,11 @@ def _reference(mx, dx, u):
 
 
 @functools.lru_cache(maxsize=16)
-def _jacobian_fn(joints: tuple, nv: int, na: int, code: str):
+def _jacobian_fn(parts: tuple, nv: int, na: int, code: str):
     """jit(jacfwd) of one mjx.step around a state, for models with these joints (the model
     itself is an argument: one compile serves every member and state) and this MJX ``code``
     (:func:`mjxdiff.export_cache.code_digest`: an edited or patched MJX is traced anew)."""
-    f = _next(joints, nv)
+    f = _next(parts, nv)
 
     def jac(mx, dx, u):
         x = jnp.zeros(2 * nv + na, dx.qpos.dtype)
@@ -155,9 +116,9 @@ def _jacobian_fn(joints: tuple, nv: int, na: int, code: str):
 
 
 @functools.lru_cache(maxsize=16)
-def _values_fn(joints: tuple, nv: int, na: int, code: str):
+def _values_fn(parts: tuple, nv: int, na: int, code: str):
     """jit(vmap) of :func:`_next` over a batch of (x, u): MJX's own finite-difference stencil."""
-    f = jax.vmap(_next(joints, nv), in_axes=(None, None, None, 0, 0))
+    f = jax.vmap(_next(parts, nv), in_axes=(None, None, None, 0, 0))
     return jax.jit(lambda mx, dx, u, xs, us: f(mx, dx, _reference(mx, dx, u), xs, us))
 
 
@@ -179,7 +140,7 @@ def mjx_jacobians(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | N
     from mjxdiff import export_cache
 
     d = _data(m, state)
-    fn = _jacobian_fn(tuple(_joint_slices(m)), m.nv, m.na, code or export_cache.code_digest())
+    fn = _jacobian_fn(joints.parts(m), m.nv, m.na, code or export_cache.code_digest())
     AC, BD = (np.asarray(j) for j in fn(mjx.put_model(m), mjx.put_data(m, d), jnp.asarray(d.ctrl)))
     n = 2 * m.nv + m.na
     return AC[:n], BD[:n], AC[n:], BD[n:]
@@ -196,7 +157,7 @@ def mjx_fd(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | None = N
 
     d = _data(m, state)
     n, nu = 2 * m.nv + m.na, m.nu
-    fn = _values_fn(tuple(_joint_slices(m)), m.nv, m.na, code or export_cache.code_digest())
+    fn = _values_fn(joints.parts(m), m.nv, m.na, code or export_cache.code_digest())
     basis = np.eye(n + nu)
     steps = np.concatenate([sign * eps * basis for eps in (EPS / 10, EPS) for sign in (1.0, -1.0)])
     out = np.asarray(fn(mjx.put_model(m), mjx.put_data(m, d), jnp.asarray(d.ctrl), jnp.asarray(steps[:, :n]),

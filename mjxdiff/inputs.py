@@ -12,11 +12,13 @@ import copy
 import dataclasses
 import re
 import zlib
-from typing import Any, Callable
+from typing import Callable
 
 import mujoco
 import numpy as np
 
+from mjxdiff import joints
+from mjxdiff.joints import quat_mul, rotvec_quat  # here too: their first home
 from mjxdiff.scenario import Randomization, Scenario, ScenarioError
 
 __all__ = ["BatchedInputs", "make_inputs", "make_controls", "settable"]
@@ -107,39 +109,17 @@ def _rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng([seed, zlib.crc32(name.encode())])
 
 
-def quat_mul(a, b):
-    """Hamilton product of (w, x, y, z) quaternions, ``(..., 4) x (..., 4) -> (..., 4)``: NumPy
-    arrays give NumPy, JAX arrays (traced ones too) give JAX."""
-    xp: Any = np
-    if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)):
-        import jax.numpy as xp
-    w1, x1, y1, z1 = xp.moveaxis(xp.asarray(a), -1, 0)
-    w2, x2, y2, z2 = xp.moveaxis(xp.asarray(b), -1, 0)
-    return xp.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-                     w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                     w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=-1)
-
-
-def rotvec_quat(rotvec: np.ndarray) -> np.ndarray:
-    """Unit quaternions (w, x, y, z) of rotation vectors (rad), ``(..., 3) -> (..., 4)``."""
-    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-    axis = np.divide(rotvec, angle, out=np.zeros_like(rotvec), where=angle > 0)
-    return np.concatenate([np.cos(angle / 2), axis * np.sin(angle / 2)], axis=-1)
-
-
 def _initial_qpos(m: mujoco.MjModel, base: np.ndarray, noise: float, batch: int,
                   rng: np.random.Generator) -> np.ndarray:
     """(B, nq) ``base`` plus noise: Gaussian on scalars, random small rotations on quaternions."""
     qpos = np.tile(base, (batch, 1))
-    for j in range(m.njnt):
-        adr, jtype = int(m.jnt_qposadr[j]), int(m.jnt_type[j])
-        if jtype == int(mujoco.mjtJoint.mjJNT_FREE):
-            qpos[:, adr:adr + 3] += rng.normal(0, noise, (batch, 3))
-            adr += 3
-        if jtype in (int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)):
-            q = quat_mul(qpos[:, adr:adr + 4], rotvec_quat(rng.normal(0, noise, (batch, 3))))
-            qpos[:, adr:adr + 4] = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    for p in joints.parts(m):
+        j, adr = p.joint, p.qpos_adr
+        if p.kind == "translation":
+            qpos[:, p.qpos] += rng.normal(0, noise, (batch, 3))
+        elif p.kind == "rotation":
+            q = quat_mul(qpos[:, p.qpos], rotvec_quat(rng.normal(0, noise, (batch, 3))))
+            qpos[:, p.qpos] = q / np.linalg.norm(q, axis=-1, keepdims=True)
         else:
             qpos[:, adr] += rng.normal(0, noise, batch)
             if m.jnt_limited[j]:

@@ -29,7 +29,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import mujoco
 import numpy as np
 
-from mjxdiff.coverage import active_limits
+from mjxdiff.joints import active_limits
 
 __all__ = ["GROUPS", "Factor", "Group", "Observed", "covered_pairs", "feasible_pairs", "format_text", "observe",
            "pair_name", "pairwise", "rows"]

@@ -177,30 +177,16 @@ def qpos_layout(m: Any) -> QposLayout:
       >>> lay.scalar_idx.tolist(), lay.quat_idx.tolist()
       ([0, 1, 2, 7], [[3, 4, 5, 6]])
     """
-    import mujoco  # pylint: disable=import-outside-toplevel
-
-    free = int(mujoco.mjtJoint.mjJNT_FREE)
-    ball = int(mujoco.mjtJoint.mjJNT_BALL)
-    slide = int(mujoco.mjtJoint.mjJNT_SLIDE)
-    hinge = int(mujoco.mjtJoint.mjJNT_HINGE)
+    from mjxdiff import joints  # pylint: disable=import-outside-toplevel
 
     scalar_idx, scalar_jnt, quat_idx, quat_jnt = [], [], [], []
-    for j in range(int(m.njnt)):
-        t = int(m.jnt_type[j])
-        adr = int(m.jnt_qposadr[j])
-        if t == free:
-            scalar_idx += [adr, adr + 1, adr + 2]
-            scalar_jnt += [j, j, j]
-            quat_idx.append([adr + 3, adr + 4, adr + 5, adr + 6])
-            quat_jnt.append(j)
-        elif t == ball:
-            quat_idx.append([adr, adr + 1, adr + 2, adr + 3])
-            quat_jnt.append(j)
-        elif t in (slide, hinge):
-            scalar_idx.append(adr)
-            scalar_jnt.append(j)
+    for p in joints.parts(m):
+        if p.kind == "rotation":
+            quat_idx.append(list(range(p.qpos.start, p.qpos.stop)))
+            quat_jnt.append(p.joint)
         else:
-            raise ValueError(f"joint {j}: unknown jnt_type {t}")
+            scalar_idx += list(range(p.qpos.start, p.qpos.stop))
+            scalar_jnt += [p.joint] * p.nq
     return QposLayout(
         scalar_idx=np.asarray(scalar_idx, dtype=np.int64),
         scalar_jnt=np.asarray(scalar_jnt, dtype=np.int64),

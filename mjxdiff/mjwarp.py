@@ -28,8 +28,10 @@ import numpy as np
 
 from mjxdiff.errors import one_line
 from mjxdiff.engines import _unsupported
+from mjxdiff import stages
 from mjxdiff.precision import Precision
-from mjxdiff.trajectory import Trajectory, concat, first_true, shifted
+from mjxdiff.stages import Forward
+from mjxdiff.trajectory import Streaming, Trajectory, first_true, shifted
 from mjxdiff.inputs import BatchedInputs
 
 __all__ = ["MJWarpEngine", "available", "INSTALL", "kernel_cache_dir"]
@@ -170,7 +172,7 @@ def forward(m: mujoco.MjModel, d: mujoco.MjData) -> mujoco.MjData:
     return out
 
 
-class MJWarpEngine:
+class MJWarpEngine(Streaming):
     """MuJoCo Warp on the CPU: same inputs and streamed trajectory pieces as MJX."""
 
     name = "warp"
@@ -182,17 +184,9 @@ class MJWarpEngine:
         use, whatever is asked."""
         _init()
 
-    def batch_cap(self) -> int:
-        return 1 << 30
-
-    def split(self, batch: int) -> int:
-        return 1
-
-    def compile_ahead(self, inputs: BatchedInputs, chunk: int) -> None:
-        """Nothing ahead: Warp compiles its kernels on the first step (once per kernel, cached)."""
-
-    def rollout(self, inputs: BatchedInputs) -> Trajectory:
-        return concat(list(self.stream(inputs, inputs.steps)))
+    def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]) -> Forward:
+        """MuJoCo Warp's ``forward`` from C's ``d`` (:func:`forward`), read back."""
+        return stages.read(m, forward(m, d), fields)
 
     def _setup(self, inputs: BatchedInputs):
         """MJWarp model and data of the members, at their initial states (UnsupportedError)."""

@@ -20,10 +20,17 @@ from typing import Any, Sequence
 from mjxdiff.files import atomic_write
 from mjxdiff.verdict import TRUNCATION, WEAK_BOUND, ScenarioResult
 
-__all__ = ["SCHEMA_VERSION", "code", "summary", "to_json", "format_text", "write_report", "versions", "safe_filename",
-           "path_under"]
+__all__ = ["ENVELOPE", "KINDS", "SCHEMA_VERSION", "code", "envelope", "summary", "to_json", "format_text",
+           "validate", "write_report", "versions", "safe_filename", "path_under"]
 
-SCHEMA_VERSION = 2  # 2: summary.error excludes input errors (summary.input_error), verdict, code
+SCHEMA_VERSION = 3  # 3: every output in one envelope (kind, seed, code, machine); 2: summary.input_error, verdict, code
+
+#: What every JSON output begins with (:func:`envelope`), in this order.
+ENVELOPE = ("kind", "schema_version", "versions", "code", "machine", "config", "seed")
+#: The kinds of JSON output, by the file they are written to.
+KINDS = {"sweep": "report.json", "grad": "grad-report.json", "policy": "policy-report.json",
+         "policy-reproducer": "policy-reproducer.json", "bench": "bench.json", "coverage": "coverage.json",
+         "fuzz": "fuzz-report.json"}
 _SYMBOL = {"pass": "PASS", "fail": "FAIL", "unsupported": "UNSUP", "error": "ERROR"}
 
 
@@ -124,17 +131,46 @@ def format_cache(cache: dict[str, Any]) -> str:
     return line
 
 
+def envelope(kind: str, config: dict[str, Any], **body: Any) -> dict[str, Any]:
+    """A JSON output of ``kind`` (:data:`KINDS`) in the one shape every output has: ``kind``,
+    ``schema_version``, ``versions`` (:func:`versions`), ``code`` (digests of the MJX code
+    tested, :func:`code`), ``machine``, ``config`` (what the run was asked), ``seed`` (the
+    config's, None where it has none), then ``body``; JSON-ready (non-finite floats as strings)."""
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {sorted(KINDS)}, not {kind!r}")
+    return _clean(dict(kind=kind, schema_version=SCHEMA_VERSION, versions=versions(), code=code(), machine=machine(),
+                       config=config, seed=config.get("seed"), **body))
+
+
+def validate(doc: Any, kind: str | None = None) -> list[str]:
+    """What is wrong with ``doc`` as a JSON output (of ``kind``, when given): the
+    :data:`ENVELOPE` keys first, in order; a known kind; this :data:`SCHEMA_VERSION`; the
+    versions of MuJoCo, MJX and JAX; the MJX code digest (64 hex digits); a config object; an
+    integer seed or null. Empty when it is a valid output."""
+    if not isinstance(doc, dict):
+        return [f"not an object: {type(doc).__name__}"]
+    problems = []
+    if list(doc)[:len(ENVELOPE)] != list(ENVELOPE):
+        problems.append(f"begins with {list(doc)[:len(ENVELOPE)]}, not {list(ENVELOPE)}")
+    if doc.get("kind") not in KINDS or (kind is not None and doc.get("kind") != kind):
+        problems.append(f"kind {doc.get('kind')!r}, not {kind or sorted(KINDS)!r}")
+    if doc.get("schema_version") != SCHEMA_VERSION:
+        problems.append(f"schema_version {doc.get('schema_version')!r}, not {SCHEMA_VERSION}")
+    if not all((doc.get("versions") or {}).get(k) for k in ("mujoco", "mujoco-mjx", "jax")):
+        problems.append(f"versions {doc.get('versions')!r} lack mujoco, mujoco-mjx or jax")
+    if not re.fullmatch(r"[0-9a-f]{64}", str((doc.get("code") or {}).get("mjx"))):
+        problems.append(f"code.mjx {(doc.get('code') or {}).get('mjx')!r} is no SHA-256 digest")
+    if not isinstance(doc.get("config"), dict):
+        problems.append("config is not an object")
+    if not (doc.get("seed") is None or isinstance(doc.get("seed"), int)):
+        problems.append(f"seed {doc.get('seed')!r} is neither an integer nor null")
+    return problems
+
+
 def to_json(results: Sequence[ScenarioResult], config: dict[str, Any]) -> dict[str, Any]:
-    """The whole report as a JSON-ready dict."""
-    return _clean(dict(
-        schema_version=SCHEMA_VERSION,
-        versions=versions(),
-        code=code(),
-        machine=machine(),
-        config=config,
-        summary=summary(results, config.get("threshold", 0.95)),
-        scenarios=[result_dict(r) for r in results],
-    ))
+    """The whole sweep report as a JSON-ready dict (:func:`envelope` of kind ``sweep``)."""
+    return envelope("sweep", config, summary=summary(results, config.get("threshold", 0.95)),
+                    scenarios=[result_dict(r) for r in results])
 
 
 #: Longest file name :func:`safe_filename` returns (well under the usual 255-byte limit,

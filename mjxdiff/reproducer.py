@@ -155,7 +155,7 @@ def _tolerances(doc: dict) -> Tolerances:
 
 def _config(doc: dict) -> dict[str, Any]:
     """The saved sweep configuration; its known settings are checked as ``replay`` will use them."""
-    from mjxdiff.sweep import NOISE_FLOOR_MODES, SweepConfig
+    from mjxdiff.config import NOISE_FLOOR_MODES, SweepConfig
 
     config = _get(doc, "config", dict, "an object")
     choices = dict(precision=PRECISIONS, noise_floor=NOISE_FLOOR_MODES,

@@ -39,7 +39,12 @@ from hypothesis import strategies as st
 from hypothesis.errors import InvalidArgument
 from hypothesis.extra import numpy as hnp
 
-from mjxdiff.inputs import FACTOR_SHAPES, knot_every, knot_levels, quat_mul, rotvec_quat, sine_levels
+# what MJX supports lives in mjxdiff.support; public here too, as before
+from mjxdiff.support import (SUPPORTED_PAIRS, UNSUPPORTED_FEATURES, UNSUPPORTED_PAIRS, UnsupportedFeature,  # noqa: F401
+                             _TYPE_ORDER, pair_supported)
+from mjxdiff import joints
+from mjxdiff.inputs import FACTOR_SHAPES, knot_every, knot_levels, sine_levels
+from mjxdiff.joints import quat_mul, rotvec_quat
 
 __all__ = [
     "CONTROL_FAMILIES",
@@ -65,54 +70,6 @@ JOINT_TYPES = ("hinge", "slide", "ball", "free")
 
 GEOM_TYPES = ("sphere", "capsule", "box", "ellipsoid", "cylinder", "mesh")
 """Body geom types :func:`mjcf_models` can draw, simplest first (plus a ground plane)."""
-
-# Measured once with mujoco 4.0.0 and mujoco-mjx 3.17.0 (JAX backend): for every
-# unordered pair of geom types, a model with a static geom of one type in the world
-# (or a free body, for non-static types) and a free body with a geom of the other
-# was compiled, then mjx.put_model, mjx.make_data and jax.eval_shape(mjx.step, ...)
-# were called. Listed pairs passed; every other pair of colliding types raised
-# NotImplementedError("(mjGEOM_A, mjGEOM_B) collisions not implemented.") in
-# put_model. Pairs are ordered as MuJoCo orders geom types (plane < hfield < sphere
-# < capsule < ellipsoid < cylinder < box < mesh); plane and hfield are static and
-# never collide with each other. tests/test_strategies.py re-measures this table
-# with put_model against the installed versions.
-SUPPORTED_PAIRS = frozenset({
-    ("plane", "sphere"), ("plane", "capsule"), ("plane", "ellipsoid"),
-    ("plane", "cylinder"), ("plane", "box"), ("plane", "mesh"),
-    ("hfield", "sphere"), ("hfield", "capsule"), ("hfield", "box"), ("hfield", "mesh"),
-    ("sphere", "sphere"), ("sphere", "capsule"), ("sphere", "ellipsoid"),
-    ("sphere", "cylinder"), ("sphere", "box"), ("sphere", "mesh"),
-    ("capsule", "capsule"), ("capsule", "ellipsoid"), ("capsule", "cylinder"),
-    ("capsule", "box"), ("capsule", "mesh"),
-    ("ellipsoid", "ellipsoid"), ("ellipsoid", "cylinder"),
-    ("cylinder", "cylinder"),
-    ("box", "box"), ("box", "mesh"),
-    ("mesh", "mesh"),
-})
-"""Geom type pairs MJX 3.17 collides, in MuJoCo's type order (measured, see the comment above)."""
-
-UNSUPPORTED_PAIRS = (
-    ("hfield", "ellipsoid"), ("hfield", "cylinder"),
-    ("ellipsoid", "box"), ("ellipsoid", "mesh"),
-    ("cylinder", "box"), ("cylinder", "mesh"),
-)
-"""Colliding geom type pairs for which ``mjx.put_model`` raises NotImplementedError."""
-
-_TYPE_ORDER = ("plane", "hfield", "sphere", "capsule", "ellipsoid", "cylinder", "box", "mesh")
-
-
-def pair_supported(a: str, b: str) -> bool:
-    """Whether MJX can collide geoms of types ``a`` and ``b`` (MJCF names, any order).
-
-    Args:
-      a, b: geom type names, e.g. ``"box"``, ``"mesh"``.
-
-    Returns:
-      True when the pair is in :data:`SUPPORTED_PAIRS`.
-    """
-    a, b = sorted((a, b), key=_TYPE_ORDER.index)
-    return (a, b) in SUPPORTED_PAIRS
-
 
 def _collision_masks(types: tuple[str, ...]) -> dict[str, int]:
     """contype = conaffinity bit masks under which two geoms collide iff MJX supports their pair.
@@ -153,54 +110,6 @@ DEFAULT_OPTIONS: Mapping[str, Any] = {
 """``<option>`` attributes of every model unless drawn otherwise: a converged
 Newton solve, so that C and MJX agree to float64 round-off (timestep in s)."""
 
-
-class UnsupportedFeature(NamedTuple):
-    """An MJCF feature MJX 3.17 rejects, measured on mujoco 4.0.0.
-
-    Attributes:
-      name: the feature, as recorded in :attr:`MjcfModel.unsupported_feature`.
-      stage: where MJX raises NotImplementedError: ``"put_model"``,
-        ``"make_data"`` or ``"step"`` (when tracing ``mjx.step``).
-      message: a substring of the NotImplementedError message.
-    """
-
-    name: str
-    stage: str
-    message: str
-
-
-UNSUPPORTED_FEATURES: tuple[UnsupportedFeature, ...] = (
-    UnsupportedFeature("energy flag", "put_model", "mjENBL_ENERGY"),
-    UnsupportedFeature("override flag", "put_model", "mjENBL_OVERRIDE"),
-    UnsupportedFeature("fwdinv flag", "put_model", "mjENBL_FWDINV"),
-    UnsupportedFeature("diagexact flag", "put_model", "mjENBL_DIAGEXACT"),
-    UnsupportedFeature("speculative flag", "put_model", "mjENBL_SPECULATIVE"),
-    UnsupportedFeature("PGS solver", "put_model", "mjSOL_PGS"),
-    UnsupportedFeature("implicit integrator", "put_model", "mjINT_IMPLICIT"),
-    UnsupportedFeature("discrete integrator", "step", "integrator"),
-    UnsupportedFeature("fluid drag with implicitfast", "put_model", "fluid drag"),
-    UnsupportedFeature("unsupported geom pair", "put_model", "collisions not implemented"),
-    UnsupportedFeature("mesh margin", "put_model", "margin/gap not implemented"),
-    UnsupportedFeature("condim 1 with elliptic cone", "make_data", "condim=1"),
-    UnsupportedFeature("flex", "put_model", "Flex not implemented"),
-    UnsupportedFeature("adhesion actuator", "put_model", "mjTRN_BODY"),
-    UnsupportedFeature("slider-crank actuator", "put_model", "mjTRN_SLIDERCRANK"),
-    UnsupportedFeature("dcmotor actuator", "put_model", "DCMOTOR"),
-    UnsupportedFeature("pid actuator", "put_model", "PID"),
-    UnsupportedFeature("geom distance sensor", "put_model", "mjSENS_GEOMDIST"),
-    UnsupportedFeature("potential energy sensor", "put_model", "mjSENS_E_POTENTIAL"),
-    UnsupportedFeature("kinetic energy sensor", "put_model", "mjSENS_E_KINETIC"),
-    UnsupportedFeature("insidesite sensor", "put_model", "mjSENS_INSIDESITE"),
-    UnsupportedFeature("joint limit sensor", "put_model", "mjSENS_JOINTLIMITPOS"),
-    UnsupportedFeature("contact sensor with body matching", "put_model", "body matching"),
-    UnsupportedFeature("contact sensor with site matching", "put_model", "site matching"),
-)
-"""Features ``mjcf_models(unsupported=True)`` injects, one per model. Each was
-measured as :data:`SUPPORTED_PAIRS` was: the model compiles and steps in C, and
-MJX raises NotImplementedError at ``stage`` with ``message`` in its text.
-(Found but left out: a rangefinder sensor in a model without any ``<material>``
-fails to trace in MJX with a TypeError, not NotImplementedError, so generated
-models with a rangefinder carry a dummy material.)"""
 
 _UNSUPPORTED_BY_NAME = {f.name: f for f in UNSUPPORTED_FEATURES}
 
@@ -1118,20 +1027,19 @@ def _perturbed_qpos(m: mujoco.MjModel, noise: np.ndarray, scale: float, within_l
     """
     qpos = np.tile(m.qpos0, (noise.shape[0], 1))
     limited = m.jnt_limited.astype(bool)
-    for j in range(m.njnt):
-        q, v, jtype = int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j]), int(m.jnt_type[j])
-        if jtype == mujoco.mjtJoint.mjJNT_FREE:
-            qpos[:, q:q + 3] += scale * noise[:, v:v + 3]
-            q, v = q + 3, v + 3
-        if jtype in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL):
-            rotvec = scale * noise[:, v:v + 3]
-            if within_limits and limited[j] and jtype == mujoco.mjtJoint.mjJNT_BALL:
+    for p in joints.parts(m):
+        j, q, v = p.joint, p.qpos_adr, p.dof_adr
+        if p.kind == "translation":
+            qpos[:, p.qpos] += scale * noise[:, p.dof]
+        elif p.kind == "rotation":
+            rotvec = scale * noise[:, p.dof]
+            if within_limits and limited[j] and m.jnt_type[j] == mujoco.mjtJoint.mjJNT_BALL:
                 # ball limit: rotation angle (from qpos0, usually identity) below range[1]
                 top = (1 - 1e-3) * m.jnt_range[j, 1]
                 angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
                 rotvec = rotvec * np.minimum(1.0, top / np.maximum(angle, 1e-300))
-            quat = quat_mul(qpos[:, q:q + 4], rotvec_quat(rotvec))
-            qpos[:, q:q + 4] = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
+            quat = quat_mul(qpos[:, p.qpos], rotvec_quat(rotvec))
+            qpos[:, p.qpos] = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
         else:
             qpos[:, q] += scale * noise[:, v]
             if within_limits and limited[j]:

@@ -24,6 +24,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from mjxdiff.config import IMPLS, NOISE_FLOOR_MODES, SweepConfig  # noqa: F401 - public here
 from mjxdiff.precision import Precision
 from mjxdiff.errors import one_line
 from mjxdiff import adjust, cost, diagnose, engines, export_cache, onestep, report, reproducer, transfer
@@ -39,120 +40,9 @@ _T = TypeVar("_T")
 
 __all__ = ["SweepConfig", "run_scenario", "sweep"]
 
-
-#: When C's perturbed rerun runs (:attr:`SweepConfig.noise_floor`).
-NOISE_FLOOR_MODES = ("on-demand", "always")
-#: Implementations a sweep can judge against MuJoCo C.
-IMPLS = ("mjx", "warp")
+# SweepConfig lives in mjxdiff.config (a reproducer reads one without the sweep); public here too
 
 
-@dataclasses.dataclass(frozen=True)
-class SweepConfig:
-    """Settings shared by every scenario of a sweep.
-
-    Attributes:
-      seed: master seed for all randomization.
-      batch: overrides each scenario's batch size when set.
-      steps: overrides each scenario's horizon when set.
-      precision: ``float64`` or ``float32`` (MJX side; C is always float64).
-      quick: a smoke run: batch <= 4 and steps <= 50.
-      threshold: least fraction of batch members within tolerance for a scenario to pass.
-      envelope: judge against the chaos envelope from C's self-divergence
-        (:mod:`mjxdiff.noise`); False holds errors to the fixed tolerances only.
-      noise_floor: when C's perturbed rerun (the envelope's source) runs: ``on-demand``
-        only for groups of members whose errors exceed the fixed tolerances (or whose
-        contact counts mismatch too often), the only ones whose verdict it can change;
-        ``always`` for every member, so that every report carries the envelope and
-        ``noise_rate``.
-      diagnose: for failing scenarios, ``none``; ``basic``: local
-        (re-synchronised) error and the stage drill-down; ``full``: also the
-        cause attribution by ablations (each ablation recompiles).
-      reproducers: directory to save failing members in, or None.
-      piece_steps: steps per streamed piece; None: :func:`piece_steps` of the memory budget.
-      group_size: members MJX steps at once; None: the smaller of :func:`group_size` (memory
-        budget) and the MJX engine's ``batch_cap()`` (32 members per device).
-      adjust: set aside settings MJX refuses that change nothing compared (the energy
-        flag; :func:`mjxdiff.adjust.harmless`), reported as ``adjusted``.
-      drop_unsupported: remove the geom pairs MJX cannot collide from the model both
-        engines step (:func:`mjxdiff.adjust.drop_unsupported`); changes the dynamics, so
-        off by default and reported as ``adjusted``.
-      compile: how hard XLA optimises each MJX rollout: ``auto`` (from the stepping it
-        will do, :func:`mjxdiff.engines.xla_options`), ``fast`` or ``optimized``.
-      compile_workers: threads that run scenarios side by side, each from compile to
-        verdict (:func:`sweep`); None: :func:`default_compile_workers`; 0: none, one
-        scenario after another on the calling thread.
-      transfer: also check MJX's host interface (``put_data``, ``get_data``,
-        ``get_state``/``set_state``, names, ``bind``) against C at two C states of member 0
-        (:mod:`mjxdiff.transfer`); a mismatch fails the scenario as field ``transfer``.
-      onestep: the one-step check on every scenario that ran (:mod:`mjxdiff.onestep`): from
-        states of C's rollout, one step in both engines, bounded by C's own rounding; it can
-        fail the scenario on its own (``info['onestep']``), and it tells whether the model's
-        solver settings converge, which decides the converged twin (:func:`_sharp`).
-      impl: the implementation judged against C: ``mjx`` or ``warp`` (MuJoCo Warp on the
-        CPU, :mod:`mjxdiff.mjwarp`; float32, so ``precision`` becomes ``float32``: tolerance
-        floors, the perturbation of C's rerun and the metrics are float32's; no host-interface
-        check; the drill-down compares MJWarp's forward stages with C's, the local error
-        restarts MJWarp from C's states, the cause attribution runs its ablations on MJWarp).
-      reference: what ``impl`` is judged against: ``c``, or ``mjx`` (with ``impl='warp'``:
-        MJWarp against MJX, in float32, still with C's own envelope and solver floor).
-      budget: seconds a scenario may take (None: no limit). A compile estimated past it
-        (:mod:`mjxdiff.cost`) ends the scenario before it starts, as an ``error`` of kind
-        ``budget``; past it, the diagnosis and the sharp checks are cut short (each says so).
-        :func:`mjxdiff.guard.sweep` also stops a scenario that runs past it.
-      max_memory: bytes of resident memory the process may hold (None: no limit): MJX's member
-        group shrinks until its stepping fits, and a model one member of which cannot fit ends
-        as an ``error`` of kind ``memory``, before it starts (:func:`mjxdiff.cost.plan`).
-      drop_costly: remove the mesh-mesh and box-mesh pairs from the model both engines step
-        (:func:`mjxdiff.adjust.drop_costly`); changes the dynamics, so off by default.
-    """
-
-    seed: int = 0
-    batch: int | None = None
-    steps: int | None = None
-    precision: Precision = "float64"
-    quick: bool = False
-    threshold: float = 0.95
-    envelope: bool = True
-    noise_floor: str = "on-demand"
-    diagnose: str = "full"
-    reproducers: str | None = None
-    piece_steps: int | None = None
-    group_size: int | None = None
-    adjust: bool = True
-    drop_unsupported: bool = False
-    compile: str = "auto"
-    compile_workers: int | None = None
-    transfer: bool = True
-    onestep: bool = True
-    impl: str = "mjx"
-    reference: str = "c"
-    budget: float | None = None
-    max_memory: float | None = None
-    drop_costly: bool = False
-
-    def __post_init__(self):
-        if self.impl not in IMPLS:
-            raise ValueError(f"impl must be one of {IMPLS}, not {self.impl!r}")
-        if self.impl == "warp":  # MJWarp computes in float32: judged, perturbed and toleranced as such
-            object.__setattr__(self, "precision", "float32")
-        if self.reference not in ("c", "mjx") or (self.reference == "mjx" and self.impl != "warp"):
-            raise ValueError(f"reference must be 'c', or 'mjx' with impl='warp', not {self.reference!r}")
-        if self.noise_floor not in NOISE_FLOOR_MODES:
-            raise ValueError(f"noise_floor must be one of {NOISE_FLOOR_MODES}, not {self.noise_floor!r}")
-        if self.compile not in engines.COMPILE_MODES:
-            raise ValueError(f"compile must be one of {engines.COMPILE_MODES}, not {self.compile!r}")
-        if self.compile_workers is not None and self.compile_workers < 0:
-            raise ValueError(f"compile_workers must be >= 0, not {self.compile_workers!r}")
-
-    def as_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    def sizes(self, scenario: Scenario) -> tuple[int, int]:
-        batch = self.batch or scenario.batch
-        steps = self.steps or scenario.steps
-        if self.quick:
-            batch, steps = min(batch, 4), min(steps, 50)
-        return batch, steps
 
 
 
@@ -433,7 +323,7 @@ def piece_steps(m, batch: int, steps: int, budget_mib: float = PIECE_BUDGET_MIB)
 def group_size(m, batch: int, budget_mib: float = GROUP_BUDGET_MIB) -> int:
     """Members MJX steps at once: all of them, unless their working set exceeds ``budget_mib``
     (:func:`mjxdiff.engines.member_bytes` per member)."""
-    per_member = engines.member_bytes(m)
+    per_member = cost.member_bytes(m)
     return max(1, min(batch, int(budget_mib * 2**20 // per_member))) if per_member else batch
 
 
@@ -781,13 +671,13 @@ def _stopped(info: dict, clock: dict[str, float]) -> str:
 
 
 def _drill(result: ScenarioResult, inputs: BatchedInputs, traj_c: Trajectory, precision: Precision,
-           impl: str = "mjx") -> diagnose.DrillDown:
+           engine: Engine | None = None) -> diagnose.DrillDown:
     """The stage drill-down at the state before the first divergent step."""
     assert result.first_divergence is not None  # drilled down only for a failure
     member: int = result.first_divergence["member"]
     step: int = result.first_divergence["step"]
     return diagnose.drill_down(inputs.models[member], *diagnose.state_before(inputs, traj_c, member, step),
-                               precision=precision, member=member, step=step, impl=impl)
+                               precision=precision, member=member, step=step, engine=engine)
 
 
 def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
@@ -808,7 +698,7 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
         return result, None, None, dict(status=f"not run: {BudgetSpent()}")
     try:
         traj_c = c_engine.rollout(inputs)
-        drill = _drill(result, inputs, traj_c, config.precision, under_test.name)
+        drill = _drill(result, inputs, traj_c, config.precision, under_test)
         check: dict[str, Any] = dict(
             first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
             margin=SOLVER_MARGIN, status=f"not needed: the divergence starts in the {drill.first_stage} stage")
@@ -898,7 +788,7 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
         row = int(np.flatnonzero(inputs.ids == member)[0])
         drill = diagnose.drill_down(converged(inputs.take([row])).models[0],
                                     *diagnose.state_before(inputs, traj_c, row, step),
-                                    precision=config.precision, member=member, step=step, impl=under_test.name)
+                                    precision=config.precision, member=member, step=step, engine=under_test)
         found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object)
         where = (f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
                  if drill.first_stage else "; every forward stage agrees (the difference is in the integration)")
@@ -969,7 +859,7 @@ def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, con
     first = dict(twin.first_divergence or {}, check="twin")
     if twin.status == "fail" and twin.first_divergence:
         with contextlib.suppress(Exception):  # the verdict stands without its drill-down
-            drill = _drill(twin, twin_inputs, c_engine.rollout(twin_inputs), config.precision, under_test.name)
+            drill = _drill(twin, twin_inputs, c_engine.rollout(twin_inputs), config.precision, under_test)
             found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object)
             if drill.first_stage:
                 message += f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
@@ -1047,7 +937,7 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
     local = None
     if traj_c is not None:
         if drill is None:
-            drill = attempt("drill-down", lambda: _drill(result, inputs, traj_c, config.precision, under_test.name))
+            drill = attempt("drill-down", lambda: _drill(result, inputs, traj_c, config.precision, under_test))
         local = attempt("local error", lambda: diagnose.local_error(
             inputs, traj_c, m, rangefinder_mask(m), 1, under_test))
     if local is not None:

@@ -17,10 +17,13 @@ import jax
 import numpy as np
 
 if TYPE_CHECKING:
+    import mujoco
+
     from mjxdiff.inputs import BatchedInputs
+    from mjxdiff.stages import Forward
     from mjxdiff.precision import Precision
 
-__all__ = ["Engine", "Trajectory", "concat", "first_diverged", "first_true", "shifted"]
+__all__ = ["Engine", "Streaming", "Trajectory", "concat", "first_diverged", "first_true", "shifted"]
 
 
 @jax.tree_util.register_dataclass
@@ -101,6 +104,32 @@ class Engine(Protocol):
     def compile_ahead(self, inputs: BatchedInputs, chunk: int) -> None:
         """Prepares what :meth:`stream` of ``inputs`` will run (best effort; may do nothing)."""
         ...
+
+    def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]) -> Forward:
+        """The engine's forward from C's state ``d`` (``d`` unchanged), read back on the host:
+        ``fields`` by MjData name, the mass matrix, the contacts (for the drill-down)."""
+        ...
+
+
+class Streaming:
+    """What an engine that steps on the host gets for free: :meth:`rollout` is its joined
+    :meth:`stream`, no cap on the batch, no split, nothing to compile ahead."""
+
+    def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
+        raise NotImplementedError
+
+    def rollout(self, inputs: BatchedInputs) -> Trajectory:
+        return concat(list(self.stream(inputs, inputs.steps)))
+
+    def batch_cap(self) -> int:
+        return 1 << 30
+
+    def split(self, batch: int) -> int:
+        return 1
+
+    def compile_ahead(self, inputs: BatchedInputs, chunk: int) -> None:
+        """Nothing ahead (C has nothing to compile; Warp compiles its kernels on the first step,
+        once per kernel, cached)."""
 
 
 def first_true(mask: np.ndarray) -> np.ndarray:

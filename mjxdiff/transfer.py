@@ -31,6 +31,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from mjxdiff import joints
 from mjxdiff.precision import THRESHOLDS, Precision
 from mjxdiff.errors import one_line
 
@@ -218,8 +219,7 @@ def _count(m: mujoco.MjModel, obj: mujoco.mjtObj) -> int:
             mujoco.mjtObj.mjOBJ_KEY: m.nkey}[obj]
 
 
-_QPOS_WIDTH = {0: 7, 1: 4, 2: 1, 3: 1}  # mjtJoint: free, ball, slide, hinge
-_DOF_WIDTH = {0: 6, 1: 3, 2: 1, 3: 1}
+_QPOS_WIDTH, _DOF_WIDTH = joints.QPOS_WIDTH, joints.DOF_WIDTH
 
 
 def _data_slice(m: mujoco.MjModel, d: mujoco.MjData, kind: str, field: str, ids: np.ndarray) -> np.ndarray:

@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from mjxdiff import joints
 from mjxdiff import metrics
 from mjxdiff.trajectory import Trajectory, first_diverged
 from mjxdiff.noise import FLOORS, NoiseFloor, noise_floor
@@ -328,13 +329,11 @@ def _nonfinite_fields(traj: Trajectory, row: int | np.integer, k: int) -> list[s
 def _track(m: mujoco.MjModel, qpos: np.ndarray | jax.Array) -> np.ndarray | jax.Array:
     """(B, T, k) positions whose behaviour is summarised: the first free joint's
     translation if there is one, else every hinge/slide coordinate."""
-    free = np.flatnonzero(m.jnt_type == mujoco.mjtJoint.mjJNT_FREE)
-    if free.size:
-        adr = m.jnt_qposadr[free[0]]
-        return qpos[..., adr:adr + 3]
-    scalar = [m.jnt_qposadr[j] for j in range(m.njnt)
-              if int(m.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))]
-    return qpos[..., scalar]
+    parts = joints.parts(m)
+    translation = next((p for p in parts if p.kind == "translation"), None)
+    if translation is not None:
+        return qpos[..., translation.qpos]
+    return qpos[..., [p.qpos_adr for p in parts if p.kind == "scalar"]]
 
 
 @jax.jit

@@ -4,6 +4,7 @@ import json
 
 import pytest
 
+from mjxdiff import report
 from mjxdiff.bench import measure, recommendations
 from mjxdiff.cli import main
 
@@ -14,6 +15,7 @@ def test_bench_measures_both_engines(tmp_path, capsys):
     assert code == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc == json.loads((tmp_path / "bench.json").read_text())
+    assert report.validate(doc, "bench") == []
     assert doc["versions"]["mujoco"] and doc["machine"]["jax_cpu_devices"] >= 1
     (r,) = doc["scenarios"]
     assert [p["batch"] for p in r["curve"]] == [2, 4]

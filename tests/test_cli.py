@@ -6,6 +6,7 @@ import sys
 
 import pytest
 
+from mjxdiff import report
 from mjxdiff.cli import main
 
 SMALL = ["--batch", "2", "--steps", "60"]
@@ -101,7 +102,7 @@ def test_report_schema_and_same_seed_same_report(tmp_path, capsys):
     assert main([*args, "--out", str(tmp_path / "b")]) == 0
     a = json.loads((tmp_path / "a" / "report.json").read_text())
     b = json.loads((tmp_path / "b" / "report.json").read_text())
-    assert a["schema_version"] == 2
+    assert a["schema_version"] == 3 and report.validate(a, "sweep") == []
     assert {"jax", "mujoco", "mujoco-mjx", "mjxdiff"} <= a["versions"].keys()
     cache_a, cache_b = a["code"].pop("cache"), b["code"].pop("cache")  # what the cache held, not what was found
     assert a["code"] == b["code"] and len(a["code"]["mjx"]) == 64, "the tested MJX, named by content"

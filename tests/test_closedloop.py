@@ -17,6 +17,7 @@ from brax.training.agents.ppo import checkpoint as ppo_checkpoint
 from brax.training.agents.ppo import networks as ppo_networks
 from mujoco.mjx._src import forward as mjx_forward
 
+from mjxdiff import report
 from mjxdiff import closedloop, diagnose
 from mjxdiff.cli import main
 
@@ -177,6 +178,7 @@ def test_a_failing_run_saves_its_episode_and_replay_reruns_it(checkpoint_dir, tm
         assert main(["policy", "inverted_pendulum", "--policy", str(checkpoint_dir), "--episodes", "3",
                      "--steps", "20", "--out", str(tmp_path)]) == 1
         saved = json.loads((tmp_path / "policy-reproducer.json").read_text())
+        assert report.validate(saved, "policy-reproducer") == []
         assert saved["episode"] == 0 and saved["episodes"] == 3 and saved["policy"] == str(checkpoint_dir)
         assert main(["policy", "--replay", str(tmp_path / "policy-reproducer.json")]) == 1
         assert "first separation at control step 0 of episode 0" in capsys.readouterr().out
@@ -208,6 +210,7 @@ def test_cli_on_a_bundled_scenario_writes_the_report(tmp_path, capsys, x64):
         sys.path.remove(str(tmp_path))
     assert rc == 0, capsys.readouterr().out
     doc = json.loads((tmp_path / "policy-report.json").read_text())
+    assert report.validate(doc, "policy") == []
     assert doc["kind"] == "policy" and doc["status"] == "pass" and len(doc["returns"]["c"]) == 2
 
 

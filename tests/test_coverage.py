@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from mjxdiff import report
 from mjxdiff import coverage
 from mjxdiff.cli import main
 from mjxdiff.scenario import bundled_scenarios
@@ -67,5 +68,6 @@ def test_a_model_that_moves_nothing_moves_nothing(tmp_path):
 def test_cli_writes_coverage_json(tmp_path, capsys):
     assert main(["coverage", "pendulum", "--out", str(tmp_path)]) == 0
     doc = json.loads((tmp_path / "coverage.json").read_text())
-    assert doc["scenarios"] == ["pendulum"] and doc["code"]["totals"]["lines_covered"] > 0
+    assert report.validate(doc, "coverage") == []
+    assert doc["scenarios"] == ["pendulum"] and doc["code_coverage"]["totals"]["lines_covered"] > 0
     assert "MJX code traced" in capsys.readouterr().out

@@ -177,7 +177,7 @@ def _global_patch(m, d):  # reads the module-level FACTOR
 
 @pytest.mark.parametrize("change", [
     "mjxdiff's own traced code", "a partial", "a closure's value", "a global the patch reads",
-    "an MJX module constant", "a default argument",
+    "an MJX module constant", "a default argument", "a moved helper the rollout calls (mjxdiff.joints)",
 ])
 def test_every_kind_of_code_change_changes_the_digest(change, monkeypatch):
     before = export_cache.rollout_digest()
@@ -195,6 +195,11 @@ def test_every_kind_of_code_change_changes_the_digest(change, monkeypatch):
         first = export_cache.rollout_digest()
         monkeypatch.setitem(globals(), "FACTOR", 2e-3)
         assert export_cache.rollout_digest() != first
+    elif change == "a moved helper the rollout calls (mjxdiff.joints)":  # engines' energy walks joints.parts
+        from mjxdiff import joints
+
+        orig = joints.parts
+        monkeypatch.setattr(joints, "parts", lambda m: orig(m)[::-1])
     elif change == "an MJX module constant":
         from mujoco.mjx._src import collision_driver
 

@@ -8,6 +8,7 @@ import json
 
 import pytest
 
+from mjxdiff import report
 from mjxdiff import cli, fuzz
 from mjxdiff.verdict import ScenarioResult
 
@@ -35,6 +36,7 @@ def test_harness_error_is_reported_not_read_as_no_divergence(error, line, monkey
     assert lines[1] == "Traceback (most recent call last):"
     assert "in divergence" in err and line in lines[-2:]  # the raising frame, then the error itself
     doc = json.loads((tmp_path / "fuzz-report.json").read_text())
+    assert report.validate(doc, "fuzz") == []
     assert doc["harness_error"] == line
     assert doc["traceback"].startswith("Traceback (most recent call last):")
     assert "in divergence" in doc["traceback"] and line in doc["traceback"]

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from mujoco.mjx._src import forward as mjx_forward
 
+from mjxdiff import report
 from mjxdiff import grad
 from mjxdiff.cli import main
 from mjxdiff.scenario import load_model, load_scenario
@@ -68,6 +69,7 @@ def test_a_contact_switching_inside_the_stencil_is_non_smooth():
 def test_the_cli_reports_and_rejects_bad_input(tmp_path, capsys):
     assert main(["grad", "pendulum", "--states", "2", "--out", str(tmp_path)]) == 0
     doc = json.loads((tmp_path / "grad-report.json").read_text())
+    assert report.validate(doc, "grad") == []
     assert doc["kind"] == "grad" and doc["scenarios"][0]["status"] == "pass" and doc["scenarios"][0]["smooth"] == 2
     assert "PASS" in capsys.readouterr().out
     assert main(["grad", "no_such_scenario"]) == 2

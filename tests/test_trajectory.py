@@ -90,3 +90,37 @@ def test_the_sweep_asks_the_engine_what_it_offers(impl):
     config = SweepConfig(impl=impl)
     assert capable(config, "estimate") == capable(config, "transfer") == (impl == "mjx")
     assert engine_class(impl).name == impl
+
+
+def test_the_import_graph_has_no_cycle():
+    """No module of mjxdiff imports, at any depth and at any place in its code, one that imports
+    it back (the pipeline's data flows one way)."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).parent.parent / "mjxdiff"
+    mods = {p.stem for p in root.glob("*.py")} - {"__init__", "__main__"}
+    graph = {}
+    for m in mods:
+        deps = set()
+        for node in ast.walk(ast.parse((root / f"{m}.py").read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module == "mjxdiff":
+                deps |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("mjxdiff."):
+                deps.add(node.module.split(".")[1])
+            elif isinstance(node, ast.Import):
+                deps |= {a.name.split(".")[1] for a in node.names if a.name.startswith("mjxdiff.")}
+        graph[m] = (deps & mods) - {m}
+
+    def reaches_itself(start):
+        seen, todo = set(), list(graph[start])
+        while todo:
+            m = todo.pop()
+            if m == start:
+                return True
+            if m not in seen:
+                seen.add(m)
+                todo += graph[m]
+        return False
+    cycles = sorted(m for m in mods if reaches_itself(m))
+    assert cycles == [], cycles

@@ -1,0 +1,74 @@
+"""An engine's ``forward`` read back on the host, for the drill-down: the stage fields by their
+MjData names, the full mass matrix and the active contacts by geom pair, in one form whatever
+the engine (:meth:`mjxdiff.trajectory.Engine.forward`)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import mujoco
+import numpy as np
+
+__all__ = ["Contacts", "Forward", "contacts_c", "contacts_mjx", "frame", "read"]
+
+
+Contacts = dict[tuple[int, ...], list[tuple[float, ...]]]
+
+
+def frame(m: mujoco.MjModel, nine: np.ndarray, friction: np.ndarray, geom: np.ndarray) -> tuple[float, ...]:
+    """The part of a contact frame (9 numbers, rows normal and two tangents) that shapes the
+    constraint, made comparable between engines: the normal, pointing from the lower geom id to
+    the higher; the tangents, each up to its sign (a friction pyramid is the same with either),
+    where friction is directional (a pyramidal cone turns with them, and so does anisotropic
+    friction), else zeros."""
+    rows = np.asarray(nine, float).reshape(3, 3).copy()
+    if geom[0] > geom[1]:
+        rows[0] = -rows[0]
+    directional = m.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL or friction[0] != friction[1]
+    if not directional:
+        rows[1:] = 0.0
+    for t in rows[1:]:
+        t *= np.sign(t[np.abs(t).argmax()]) or 1.0
+    return tuple(map(float, rows.ravel()))
+
+
+def contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> Contacts:
+    """Active contacts by geom pair: (dist, pos x, y, z, friction[0], friction[1], frame (9,),
+    :func:`frame`) each."""
+    out: Contacts = {}
+    for c in d.contact[:d.ncon]:
+        key = tuple(sorted(int(g) for g in c.geom))  # geom1/geom2 are not filled by mujoco_warp.get_data_into
+        out.setdefault(key, []).append((float(c.dist), *map(float, c.pos), float(c.friction[0]), float(c.friction[1]),
+                                        *frame(m, c.frame, c.friction, c.geom)))
+    return out
+
+
+def contacts_mjx(m: mujoco.MjModel, dx: Any) -> Contacts:
+    c = dx._impl.contact  # noqa: SLF001 - MJX's contacts
+    dist, margin, geom, pos, friction, frames = map(np.asarray, (c.dist, c.includemargin, c.geom, c.pos, c.friction,
+                                                                 c.frame))
+    out: Contacts = {}
+    for i in np.flatnonzero(dist < margin):
+        key = tuple(sorted(int(g) for g in geom[i]))
+        out.setdefault(key, []).append((float(dist[i]), *map(float, pos[i]), float(friction[i, 0]),
+                                        float(friction[i, 1]), *frame(m, frames[i], friction[i], geom[i])))
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Forward:
+    """One engine's forward from one state: ``values`` (field name -> flat array, MjData's
+    names), ``qM`` (nv, nv) the full mass matrix, ``contacts`` by geom pair (:func:`contacts_c`)."""
+
+    values: dict[str, np.ndarray]
+    qM: np.ndarray
+    contacts: Contacts
+
+
+def read(m: mujoco.MjModel, d: Any, fields: tuple[str, ...]) -> Forward:
+    """The :class:`Forward` of an ``MjData`` ``d`` after ``mj_forward`` (or an engine's data read
+    back into one)."""
+    qm = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, qm)
+    return Forward({f: np.asarray(getattr(d, f)).ravel() for f in fields}, qm, contacts_c(m, d))

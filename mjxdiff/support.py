@@ -1,0 +1,276 @@
+"""What MJX supports, refuses and gets wrong, in one place: the geom pairs it collides, the
+features it refuses (and where), the flags mjxdiff may set aside for it, the features the
+fuzzer leaves out and the catalogue of known MJX-vs-C divergences with their evidence.
+:mod:`mjxdiff.strategies` (generation), :mod:`mjxdiff.adjust` (what is changed so MJX can run a
+model), :mod:`mjxdiff.fuzz` (what is left out or set aside) and :mod:`mjxdiff.known` (matching
+failures to the catalogue) read it. Measured on mujoco 4.0.0 and mujoco-mjx 3.17.0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from typing import Any, NamedTuple
+
+import mujoco
+
+__all__ = ["CATALOGUE", "HARMLESS_ENABLE_FLAGS", "KNOWN_DIVERGENCES", "SUPPORTED_PAIRS", "UNSUPPORTED_FEATURES",
+           "UNSUPPORTED_PAIRS", "Entry", "UnsupportedFeature", "pair_supported"]
+
+
+# -- geom pairs -----------------------------------------------------------------------------------
+
+# Measured once with mujoco 4.0.0 and mujoco-mjx 3.17.0 (JAX backend): for every
+# unordered pair of geom types, a model with a static geom of one type in the world
+# (or a free body, for non-static types) and a free body with a geom of the other
+# was compiled, then mjx.put_model, mjx.make_data and jax.eval_shape(mjx.step, ...)
+# were called. Listed pairs passed; every other pair of colliding types raised
+# NotImplementedError("(mjGEOM_A, mjGEOM_B) collisions not implemented.") in
+# put_model. Pairs are ordered as MuJoCo orders geom types (plane < hfield < sphere
+# < capsule < ellipsoid < cylinder < box < mesh); plane and hfield are static and
+# never collide with each other. tests/test_strategies.py re-measures this table
+# with put_model against the installed versions.
+SUPPORTED_PAIRS = frozenset({
+    ("plane", "sphere"), ("plane", "capsule"), ("plane", "ellipsoid"),
+    ("plane", "cylinder"), ("plane", "box"), ("plane", "mesh"),
+    ("hfield", "sphere"), ("hfield", "capsule"), ("hfield", "box"), ("hfield", "mesh"),
+    ("sphere", "sphere"), ("sphere", "capsule"), ("sphere", "ellipsoid"),
+    ("sphere", "cylinder"), ("sphere", "box"), ("sphere", "mesh"),
+    ("capsule", "capsule"), ("capsule", "ellipsoid"), ("capsule", "cylinder"),
+    ("capsule", "box"), ("capsule", "mesh"),
+    ("ellipsoid", "ellipsoid"), ("ellipsoid", "cylinder"),
+    ("cylinder", "cylinder"),
+    ("box", "box"), ("box", "mesh"),
+    ("mesh", "mesh"),
+})
+"""Geom type pairs MJX 3.17 collides, in MuJoCo's type order (measured, see the comment above)."""
+
+UNSUPPORTED_PAIRS = (
+    ("hfield", "ellipsoid"), ("hfield", "cylinder"),
+    ("ellipsoid", "box"), ("ellipsoid", "mesh"),
+    ("cylinder", "box"), ("cylinder", "mesh"),
+)
+"""Colliding geom type pairs for which ``mjx.put_model`` raises NotImplementedError."""
+
+_TYPE_ORDER = ("plane", "hfield", "sphere", "capsule", "ellipsoid", "cylinder", "box", "mesh")
+
+
+def pair_supported(a: str, b: str) -> bool:
+    """Whether MJX can collide geoms of types ``a`` and ``b`` (MJCF names, any order).
+
+    Args:
+      a, b: geom type names, e.g. ``"box"``, ``"mesh"``.
+
+    Returns:
+      True when the pair is in :data:`SUPPORTED_PAIRS`.
+    """
+    a, b = sorted((a, b), key=_TYPE_ORDER.index)
+    return (a, b) in SUPPORTED_PAIRS
+
+
+
+# -- refused features -----------------------------------------------------------------------------
+
+class UnsupportedFeature(NamedTuple):
+    """An MJCF feature MJX 3.17 rejects, measured on mujoco 4.0.0.
+
+    Attributes:
+      name: the feature, as recorded in :attr:`MjcfModel.unsupported_feature`.
+      stage: where MJX raises NotImplementedError: ``"put_model"``,
+        ``"make_data"`` or ``"step"`` (when tracing ``mjx.step``).
+      message: a substring of the NotImplementedError message.
+    """
+
+    name: str
+    stage: str
+    message: str
+
+
+UNSUPPORTED_FEATURES: tuple[UnsupportedFeature, ...] = (
+    UnsupportedFeature("energy flag", "put_model", "mjENBL_ENERGY"),
+    UnsupportedFeature("override flag", "put_model", "mjENBL_OVERRIDE"),
+    UnsupportedFeature("fwdinv flag", "put_model", "mjENBL_FWDINV"),
+    UnsupportedFeature("diagexact flag", "put_model", "mjENBL_DIAGEXACT"),
+    UnsupportedFeature("speculative flag", "put_model", "mjENBL_SPECULATIVE"),
+    UnsupportedFeature("PGS solver", "put_model", "mjSOL_PGS"),
+    UnsupportedFeature("implicit integrator", "put_model", "mjINT_IMPLICIT"),
+    UnsupportedFeature("discrete integrator", "step", "integrator"),
+    UnsupportedFeature("fluid drag with implicitfast", "put_model", "fluid drag"),
+    UnsupportedFeature("unsupported geom pair", "put_model", "collisions not implemented"),
+    UnsupportedFeature("mesh margin", "put_model", "margin/gap not implemented"),
+    UnsupportedFeature("condim 1 with elliptic cone", "make_data", "condim=1"),
+    UnsupportedFeature("flex", "put_model", "Flex not implemented"),
+    UnsupportedFeature("adhesion actuator", "put_model", "mjTRN_BODY"),
+    UnsupportedFeature("slider-crank actuator", "put_model", "mjTRN_SLIDERCRANK"),
+    UnsupportedFeature("dcmotor actuator", "put_model", "DCMOTOR"),
+    UnsupportedFeature("pid actuator", "put_model", "PID"),
+    UnsupportedFeature("geom distance sensor", "put_model", "mjSENS_GEOMDIST"),
+    UnsupportedFeature("potential energy sensor", "put_model", "mjSENS_E_POTENTIAL"),
+    UnsupportedFeature("kinetic energy sensor", "put_model", "mjSENS_E_KINETIC"),
+    UnsupportedFeature("insidesite sensor", "put_model", "mjSENS_INSIDESITE"),
+    UnsupportedFeature("joint limit sensor", "put_model", "mjSENS_JOINTLIMITPOS"),
+    UnsupportedFeature("contact sensor with body matching", "put_model", "body matching"),
+    UnsupportedFeature("contact sensor with site matching", "put_model", "site matching"),
+)
+"""Features ``mjcf_models(unsupported=True)`` injects, one per model. Each was
+measured as :data:`SUPPORTED_PAIRS` was: the model compiles and steps in C, and
+MJX raises NotImplementedError at ``stage`` with ``message`` in its text.
+(Found but left out: a rangefinder sensor in a model without any ``<material>``
+fails to trace in MJX with a TypeError, not NotImplementedError, so generated
+models with a rangefinder carry a dummy material.)"""
+
+
+# -- set aside for MJX (mjxdiff.adjust) -----------------------------------------------------------
+
+#: Enable flags MJX refuses and C's compared quantities do not depend on, with the label reported.
+HARMLESS_ENABLE_FLAGS: dict[int, str] = {
+    int(mujoco.mjtEnableBit.mjENBL_ENERGY): "energy flag",
+    int(mujoco.mjtEnableBit.mjENBL_FWDINV): "fwdinv flag",
+}
+
+
+# -- left out of generated models (mjxdiff.fuzz) ---------------------------------------------------
+
+#: Features left out by default because C 4.0.0 and MJX 3.17.0 are known to differ on them.
+KNOWN_DIVERGENCES = {
+    "connect/weld equality": "efc_aref of equality rows differs (scenarios/equality.toml notes)",
+    "RK4, implicitfast": "free/ball rotation and RK4 sensordata differ (scenarios/integrator_*.toml notes)",
+    "box and mesh geoms": "box-box contact points differ (scenarios/box_stack.toml notes)",
+    "acceleration sensors without constraints": "MJX's forward skips sensor_acc when the model has no "
+                                                "constraint rows: accelerometer, force, torque, framelinacc "
+                                                "and frameangacc read 0 (tests/test_known_divergences.py)",
+    "contact tangent frames": "MJX's plane-capsule contact has the fixed tangent frame (0, 1, 0, ...) where "
+                              "C's first tangent follows the capsule's axis; with a pyramidal cone or anisotropic "
+                              "friction the friction pyramid turns and the contact forces differ "
+                              "(tests/test_known_divergences.py)",
+    "tendon wrap sidesite": "C 4.0 picks a wrap's side by the winding of the path end0 -> sidesite -> end1 "
+                            "around the wrap geom (as MuJoCo Warp 4.0 does); MJX 3.17 by the older rule, the arc "
+                            "whose middle is nearest the sidesite's direction: near the sidesite's symmetry plane "
+                            "they wrap opposite sides (tests/test_known_divergences.py)",
+    "spring or damper flag alone": "MJX 3.17's passive() drops all passive forces (and gravcomp) when either "
+                                   "flag is disabled, C 4.0 only the one disabled; with the damper disabled "
+                                   "MJX's Euler step still damps implicitly (tests/test_known_divergences.py)",
+    "actearly": "MJX 3.17 ignores actearly: its force uses the current activation, C's the next one "
+                "(tests/test_known_divergences.py)",
+    "tendon armature across trees": "a tendon with armature coupling two kinematic trees: C 4.0's mass matrix "
+                                    "keeps the trees' sparsity, MJX 3.17's differs (tests/data/"
+                                    "fuzz_tendon_armature_trees.json, tests/test_known_divergences.py)",
+    "damped tendons across trees under implicitfast": "C 4.0 keeps qDeriv within the mass matrix's sparsity, "
+                                                      "MJX 3.17 adds the cross-tree terms "
+                                                      "(tests/test_known_divergences.py)",
+    "plane-cylinder far cap": "C adds a contact on a cylinder's far cap when it is within the margin (a cylinder "
+                              "lying on its side, or sunk); MJX's plane_cylinder returns the near cap's three "
+                              "only (tests/test_known_divergences.py)",
+    "convex pairs by SDF descent": "MJX 3.17 collides a sphere, capsule, ellipsoid or cylinder with an ellipsoid or "
+                                   "cylinder by 10 steps of gradient descent on an SDF clearance (collision_sdf.py), "
+                                   "C 4.0 analytically or by GJK/EPA: depth, point, normal and contact count differ "
+                                   "(an ellipsoid-cylinder contact 2.882 mm deep in C, 1.354 mm in MJX, normals "
+                                   "0.037 rad apart, qacc 99 apart; tests/data/fuzz_ellipsoid_cylinder_contact.json); "
+                                   "set aside only where MJX given C's contacts reproduces C (tests/test_fuzz.py)",
+    "capsule segment solves": "MJX 3.17 adds 1e-6 to the denominators of its closest-point solves on segments "
+                              "(sphere-capsule, capsule-capsule; mjx/_src/math.py), C 4.0 solves them exactly: "
+                              "points and normals part by about 1e-6 / (1 - cos^2 of the axes' angle), and a deep "
+                              "contact's qacc by 1e-5 relative at step 0 (fuzz seed 1 in CI: normal 4.3e-6 apart, "
+                              "qvel 0.0036; tests/data/fuzz_capsule_capsule_contact.json); set aside only where "
+                              "MJX's contact is its formulas with the 1e-6 and C's the same without, to 1e-9 "
+                              "(mjxdiff/segments.py), and MJX given C's contacts reproduces C (tests/test_fuzz.py)",
+}
+
+
+# -- the known-divergence catalogue (mjxdiff.known) -------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class Entry:
+    id: str
+    title: str
+    evidence: str
+    stage: str | None = None
+    field: str | None = None
+    pattern: str | None = None
+    cause: str | None = None
+    integrator: tuple[str, ...] = ()
+    scenario: str | None = None
+    accepted: bool = False
+
+    def matches(self, s: dict[str, Any]) -> bool:
+        """Whether a failing scenario (a report's scenario dict) fits this entry."""
+        diag = s.get("diagnosis") or {}
+        drill = diag.get("drill_down") or {}
+        first = s.get("first_divergence") or {}
+        one = (s.get("info") or {}).get("onestep") or {}  # the one-step check's drill-down, where it failed
+        text = " ".join(str(x) for x in (s.get("message", ""), drill.get("object", ""), drill.get("first_field", ""),
+                                         one.get("stage_object", "")))
+        checks = [
+            self.stage is None or self.stage in (drill.get("first_stage"), one.get("first_stage")),
+            self.field is None or first.get("field") == self.field,
+            self.pattern is None or re.search(self.pattern, text) is not None,
+            self.cause is None or (diag.get("cause") or {}).get("cause") == self.cause,
+            not self.integrator or (s.get("info") or {}).get("integrator") in self.integrator,
+            self.scenario is None or re.fullmatch(self.scenario, s.get("name", "")) is not None,
+        ]
+        return all(checks)
+
+
+#: What mjxdiff has measured of MJX 3.17 against MuJoCo 4.0 (README, "Known C/MJX divergences";
+#: scenario notes). Approximations by design first, then bugs; the first matching entry wins.
+CATALOGUE: tuple[Entry, ...] = (
+    Entry("solver-truncation", "solver settings capped short of convergence: MJX and C part where each stops",
+          "tests/test_solver_floor.py: a 1-iteration quadruped parts by radians over 200 steps; with a converged "
+          "solver (the twin) and one step from C's states the engines agree to rounding", cause="solver truncation",
+          accepted=True),
+    Entry("plane-box-corners", "plane-box/mesh: MJX keeps only corners within 1 mm of the deepest",
+          "primitives_on_plane notes: a box that lands on a corner or rocks (> 1 mm depth spread) diverges ~1e-3; "
+          "a tipped cube in sensing: C 4 corners, MJX 3", stage="collision", pattern=r"\(plane-(box|mesh):"),
+    Entry("plane-cylinder-rim", "plane-cylinder: MJX adds the second rim point only near parallel",
+          "primitives_on_plane notes: the second rim point only when the axis is within ~1e-3 of parallel; a "
+          "cylinder sunk into a plane: C 4 contacts, MJX 3", stage="collision", pattern=r"\(plane-cylinder:"),
+    Entry("contact-tangent-frame", "contact tangent frames: MJX's plane-capsule (and other) frames differ from C's, "
+          "which turns a pyramidal friction cone",
+          "tests/test_known_divergences.py: a plane-capsule contact's first tangent is (0, 1, 0) in MJX, along the "
+          "capsule's axis in C; Unitree H1 (playground scene_mjx_feetonly.xml, pyramidal): one step from the same "
+          "state with converged solvers, qfrc_constraint 52 apart, same contacts, other efc_aref",
+          stage="collision", pattern=r"tangent frame differs"),
+    Entry("box-box-manifold", "box-box: MJX pads the manifold and places points on a surface",
+          "primitive_pairs / box_stack notes: edge-first landings C 2, MJX 4 contacts; contact points on a surface "
+          "(C halfway): friction arms differ by dist/2", pattern=r"\(box-box:"),
+    Entry("ellipsoid-cylinder-pairs", "sphere/capsule/ellipsoid/cylinder against ellipsoid/cylinder: MJX's "
+          "10-step SDF descent vs C's exact collision",
+          "tests/data/fuzz_ellipsoid_cylinder_contact.json: at its first contact an ellipsoid-cylinder pair is "
+          "2.882 mm deep in C (GJK/EPA; 2.883 mm exactly), 1.354 mm in MJX (collision_sdf.py), normals 0.037 rad "
+          "and points 9.7 mm apart, qacc 99 apart; MJX given C's contacts agrees to 7e-13 (tests/test_fuzz.py); "
+          "scenarios/wip/sdf_pairs.toml notes", stage="collision",
+          pattern=r"\(((sphere|capsule|ellipsoid)-(ellipsoid|cylinder)|cylinder-cylinder):"),
+    Entry("capsule-regularisation", "capsule pairs: MJX's +1e-6 segment regularisation tilts normals",
+          "primitive_pairs notes: closest_segment_point divides by |ab|^2 + 1e-6; a sphere rolling along a 1 m "
+          "capsule rail drifts 2e-3 qvel in 300 steps", pattern=r"\((sphere-capsule|capsule-capsule|capsule-\w+):"),
+    Entry("heightfield-pairs", "heightfield pairs: MJX keeps other contacts than C",
+          "tests/test_known_divergences.py: a sphere across a valley C 2, MJX 1 contact (qacc 16.4 apart); a box "
+          "on a slope C 3, MJX 4", pattern=r"\(hfield-\w+:"),
+    Entry("rk4-sensor-stage", "RK4: MJX's sensordata is from the last Runge-Kutta stage",
+          "integrator_rk4 notes: after an RK4 step MJX's sensordata is from the last stage, C's from the state "
+          "before the step", field="sensordata", integrator=("rk4",)),
+    Entry("implicit-clamped-actuator", "implicit/implicitfast: C leaves a clamped actuator's velocity derivative "
+          "out of the implicit update, MJX 3.17 keeps it",
+          "Unitree G1 (menagerie scene_mjx.xml: position servos with kv, joint actuatorfrcrange, implicitfast): one "
+          "step from the same state 13 rad/s apart in qvel, 1e-13 with the joint clamps removed, with Euler or with "
+          "kv = 0; MuJoCo C commit b466829, mirrored in mujoco_warp PR #1149", cause="actuator force clamping",
+          integrator=("implicitfast", "implicit")),
+    Entry("rotation-integration", "implicitfast/RK4: free-body rotation integrated differently (grows like ω²)",
+          "integrator_* notes: fast-spinning free bodies", integrator=("implicitfast", "rk4"),
+          pattern=r"integration|free"),
+    Entry("acceleration-sensors-without-constraints", "MJX skips sensor_acc in a model without constraint rows",
+          "tests/test_known_divergences.py: a spring-loaded slider's accelerometer C -0.0234 m/s², MJX 0",
+          field="sensordata", pattern=r"\((accelerometer|force|torque|framelinacc|frameangacc)\)"),
+    Entry("contact-sensor-explicit-pair", "contact sensor reads the explicit pair's contact",
+          "tests/test_known_divergences.py: with a <pair>, a geom-matched contact sensor reads the pair's force",
+          field="sensordata", pattern=r"\(contact\)"),
+    Entry("truncated-solver", "a solver capped at few iterations: the engines stop at different points",
+          "ant at 1000 steps: 4 of 64 members jump 1e-11 -> 5e-6 qvel at a contact; gone with 100 iterations",
+          cause="solver convergence"),
+    Entry("equality-aref", "connect/weld: other efc_aref (anchor off the body origin, spinning)",
+          "equality notes: same efc_pos/efc_J/efc_KBIP, qvel 0.4 rad/s apart after one step; connect off-origin "
+          "on a spinning body z 1.8018 C, 1.7658 MJX", stage="constraint", pattern=r"equality|connect|weld"),
+    Entry("get-data-margin-contacts", "get_data drops contacts inside the margin (dist > 0)",
+          "tests/test_known_divergences.py: a sphere 2 mm above the floor, margin 5 mm: C 1 contact, get_data 0",
+          field="transfer", pattern=r"contact"),
+)
