@@ -38,6 +38,7 @@ __version__ = "0.1.0"
 _PUBLIC = {
     "BatchedInputs": "mjxdiff.inputs",
     "CEngine": "mjxdiff.engines",
+    "Engine": "mjxdiff.trajectory",  # the protocol C, MJX and MuJoCo Warp implement
     "MJWarpEngine": "mjxdiff.mjwarp",  # needs the warp extra
     "MJXEngine": "mjxdiff.engines",
     "Scenario": "mjxdiff.scenario",

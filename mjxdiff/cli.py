@@ -681,7 +681,8 @@ def _cmd_policy(args: argparse.Namespace) -> int:
             if saved.get("kind", "policy-reproducer") != "policy-reproducer":
                 raise ValueError(f"a {saved['kind']} output")
             args.target, args.policy, only = saved["target"], saved["policy"], [int(saved["episode"])]
-            args.episodes, args.steps, args.seed, args.n_frames = (int(saved[k]) for k in
+            config = saved["config"] if "kind" in saved else saved  # before the envelope: at the top level
+            args.episodes, args.steps, args.seed, args.n_frames = (int(config[k]) for k in
                                                                    ("episodes", "steps", "seed", "n_frames"))
         except (OSError, ValueError, KeyError, TypeError) as e:
             print(f"mjxdiff policy: {args.replay}: not a policy reproducer ({one_line(e)})", file=sys.stderr)
@@ -707,7 +708,7 @@ def _cmd_policy(args: argparse.Namespace) -> int:
         if result["status"] == "fail" and only is None:
             worst = result["first_separation"]["episode"] if result["first_separation"] else result["worst_episode"]
             rep = report.envelope("policy-reproducer", config, target=args.target, policy=args.policy,
-                                  episode=worst, message=result["message"], **config)
+                                  episode=worst, message=result["message"])
             path = report.write_report(args.out, rep, "policy-reproducer.json")
             print(f"reproducer of episode {worst} written to {path} (mjxdiff policy --replay {path})",
                   file=sys.stderr)

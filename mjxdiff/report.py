@@ -138,6 +138,8 @@ def envelope(kind: str, config: dict[str, Any], **body: Any) -> dict[str, Any]:
     config's, None where it has none), then ``body``; JSON-ready (non-finite floats as strings)."""
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {sorted(KINDS)}, not {kind!r}")
+    if set(body) & set(ENVELOPE):
+        raise ValueError(f"the body of a {kind} output repeats envelope keys: {sorted(set(body) & set(ENVELOPE))}")
     return _clean(dict(kind=kind, schema_version=SCHEMA_VERSION, versions=versions(), code=code(), machine=machine(),
                        config=config, seed=config.get("seed"), **body))
 

@@ -179,7 +179,7 @@ def test_a_failing_run_saves_its_episode_and_replay_reruns_it(checkpoint_dir, tm
                      "--steps", "20", "--out", str(tmp_path)]) == 1
         saved = json.loads((tmp_path / "policy-reproducer.json").read_text())
         assert report.validate(saved, "policy-reproducer") == []
-        assert saved["episode"] == 0 and saved["episodes"] == 3 and saved["policy"] == str(checkpoint_dir)
+        assert saved["episode"] == 0 and saved["config"]["episodes"] == 3 and saved["policy"] == str(checkpoint_dir)
         assert main(["policy", "--replay", str(tmp_path / "policy-reproducer.json")]) == 1
         assert "first separation at control step 0 of episode 0" in capsys.readouterr().out
     assert main(["policy", "--replay", str(tmp_path / "policy-reproducer.json")]) == 0  # unmodified MJX
