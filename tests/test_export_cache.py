@@ -233,9 +233,20 @@ def _artifact():
     return path
 
 
-def test_a_damaged_artifact_is_traced_again_and_rewritten(pendulum):
+@pytest.fixture
+def own_export_dir(tmp_path):
+    """Artifacts in a directory of this test's own (JAX's cache dir setting, read at each use by
+    export_dir): what it damages and counts is not shared with the user's warm cache."""
+    before = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path))
+    yield tmp_path / "mjxdiff-exports"
+    jax.config.update("jax_compilation_cache_dir", before)
+
+
+def test_a_damaged_artifact_is_traced_again_and_rewritten(pendulum, own_export_dir):
     _, inputs = pendulum
     reference = _rollout(inputs)
+    assert export_cache.export_dir() == own_export_dir
     path = _artifact()  # this rollout's artifact, just loaded or saved
     for damaged in (b"", b"not a pickle", path.read_bytes()[:100]):
         path.write_bytes(damaged)
