@@ -636,13 +636,30 @@ def _live_functions(keys: set[str]) -> dict[str, list[types.FunctionType]]:
     import gc
 
     out: dict[str, list[types.FunctionType]] = {}
-    if keys:  # no gc.collect() (~0.5 s): a dead function not yet collected only makes a key stricter
-        files = {k[1:].rsplit(":", 1)[0] for k in keys}
-        for obj in gc.get_objects():
-            if type(obj) is types.FunctionType and obj.__code__.co_filename in files:
-                for key in {_foreign_key(obj.__code__), _foreign_key(obj.__code__, obj.__code__.co_qualname)}:
-                    if key in keys:
-                        out.setdefault(key, []).append(obj)
+    if not keys:
+        return out
+    files = {k[1:].rsplit(":", 1)[0] for k in keys}
+    # gc.get_objects() holds a reference to every tracked object, tuples another thread is still
+    # building included; if that thread resumed and resized one (tuple(generator)), CPython would
+    # raise "SystemError: Objects/tupleobject.c:927: bad argument to internal function" there (seen
+    # once in a host-interface check beside a compile worker). So no other thread runs until the
+    # list is gone. No gc.collect() (~0.5 s): a dead function not yet collected only makes a key
+    # stricter.
+    # Only the filter runs meanwhile (hashing, which may release the GIL, comes after).
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e6)
+    try:
+        objects = gc.get_objects()
+        try:
+            found = [o for o in objects if type(o) is types.FunctionType and o.__code__.co_filename in files]
+        finally:
+            del objects
+    finally:
+        sys.setswitchinterval(interval)
+    for fn in found:
+        for key in {_foreign_key(fn.__code__), _foreign_key(fn.__code__, fn.__code__.co_qualname)}:
+            if key in keys:
+                out.setdefault(key, []).append(fn)
     return out
 
 

@@ -66,12 +66,9 @@ def test_the_python_api_gives_what_the_cli_gives(two_sweeps, tmp_path, monkeypat
     monkeypatch.setattr(mjx_forward, "fwd_actuation",
                         lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d))
     engines.clear_compiled()
-    # no host-interface check: once in a full run it recorded a CPython SystemError in one of the
-    # two runs (left as a note; the verdicts stand), which is not what this test compares
-    common = dict(quick=True, cache_dir="", baseline=str(root / "clean"), fail_on="new", diagnose="basic",
-                  transfer=False)
+    common = dict(quick=True, cache_dir="", baseline=str(root / "clean"), fail_on="new", diagnose="basic")
     code = main(["sweep", *REPORT_SCENARIOS, "--quick", "--cache-dir", "", "--baseline", str(root / "clean"),
-                 "--fail-on", "new", "--diagnose", "basic", "--no-transfer", "--history", str(tmp_path / "cli-history"),
+                 "--fail-on", "new", "--diagnose", "basic", "--history", str(tmp_path / "cli-history"),
                  "--out", str(tmp_path / "cli")])
     run = mjxdiff.run(scenarios=REPORT_SCENARIOS, history=str(tmp_path / "api-history"), out=str(tmp_path / "api"),
                       **common)
