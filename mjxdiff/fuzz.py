@@ -298,7 +298,7 @@ def _signature(inputs: BatchedInputs, member: int, step: int) -> str | None:
                 shown.append("contact tangent frames")
             if _sdf_contact_differs(mi, cc, cx):
                 shown.append("convex pairs by SDF descent")
-            if _regularized_contact_differs(mi, d, dx):
+            if _regularized_slots(mi, d, dx):
                 shown.append("capsule segment solves")
         mujoco.mj_step(mi, d)
     if shown and _c_contacts_explain(mi, states):
@@ -394,12 +394,6 @@ def _regularized_slots(m, d, dx) -> dict[int, Any]:
             if apart > segments.TOLERANCE and segments.explains(m, d, con, mjx_contact):
                 slots[int(s)] = con
     return slots
-
-
-def _regularized_contact_differs(m, d, dx) -> bool:
-    """Whether a sphere-capsule or capsule-capsule contact differs from C's by MJX's
-    regularized segment solves (:func:`_regularized_slots`)."""
-    return bool(_regularized_slots(m, d, dx))
 
 
 def _c_contacts_explain(m, states: list[dict[str, np.ndarray]]) -> bool:

@@ -43,11 +43,6 @@ __all__ = ["SweepConfig", "run_scenario", "sweep"]
 # SweepConfig lives in mjxdiff.config (a reproducer reads one without the sweep); public here too
 
 
-
-
-
-
-
 def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
                  under_test: Engine | None = None, c_engine: CEngine | None = None) -> ScenarioResult:
     """Sweeps one scenario and returns its verdict; never raises for bad input.
