@@ -39,7 +39,8 @@ class SweepConfig:
       diagnose: for failing scenarios, ``none``; ``basic``: local
         (re-synchronised) error and the stage drill-down; ``full``: also the
         cause attribution by ablations (each ablation recompiles).
-      reproducers: directory to save failing members in, or None.
+      reproducers: directory for the reproducers of failing members (written by the caller:
+        :func:`mjxdiff.report.write_pending`), or None.
       piece_steps: steps per streamed piece; None: :func:`piece_steps` of the memory budget.
       group_size: members MJX steps at once; None: the smaller of :func:`group_size` (memory
         budget) and the MJX engine's ``batch_cap()`` (32 members per device).

@@ -637,7 +637,7 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
     if out is not None:
         member = max(result.first_divergence["member"], 0) if result.first_divergence else 0
         path = reproducer.save(report.path_under(Path(out) / "reproducers", "fuzz.json"), "fuzz", member, inputs,
-                               mj.xml, Tolerances(), config.as_dict(), report.result_dict(result), report.versions())
+                               mj.xml, Tolerances(), config.as_dict(), report.result_dict(result))
     return FuzzResult(structures * batch, seconds, dict(
         xml=mj.xml, nbody=mj.nbody, ngeom=mj.ngeom, features=list(mj.features), message=result.message,
         status=result.status, reproducer=str(path) if path else None), structures=structures, set_aside=set_aside,

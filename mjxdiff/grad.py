@@ -491,7 +491,7 @@ def check_scenario(scenario, count: int = 8, seed: int = 0, reproducers=None) ->
     if failed:
         w = max(failed, key=lambda r: r.ratio)
         if reproducers is not None:
-            path = _save_reproducer(reproducers, scenario, w, judged_at)
+            path = _save_reproducer(reproducers, scenario, w, judged_at, dict(states=count, seed=seed))
         with jax.enable_x64(True):
             heatmap = dict(state=w.index, log10_ratio=log10_ratios(*judged_at[w.index], code))
     return dict(name=scenario.name, status=status, message=message, states=len(results), smooth=len(judged),
@@ -508,15 +508,15 @@ def log10_ratios(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | No
             for name, (r, *_) in _ratios(m, state, code).items()}
 
 
-def _save_reproducer(directory, scenario, result: StateResult, judged_at) -> str | None:
-    """The failing state ``result`` saved under ``directory`` for ``mjxdiff replay``; its path."""
+def _save_reproducer(directory, scenario, result: StateResult, judged_at, config: dict[str, Any]) -> str | None:
+    """The failing state ``result`` saved under ``directory`` for ``mjxdiff replay``; its path.
+    ``config``: how the states were drawn (count, seed)."""
     from mjxdiff import report, reproducer
 
     m, state = judged_at[result.index]
     file = f"{report.safe_filename(scenario.name)}-grad-state{result.index}.json"
     return str(reproducer.save_grad(report.path_under(directory, file), scenario.name, result.index, m,
-                                    scenario.model_path.read_text(), state, dataclasses.asdict(result),
-                                    report.versions()))
+                                    scenario.model_path.read_text(), state, dataclasses.asdict(result), config))
 
 
 def replay(rep) -> tuple[StateResult, bool]:

@@ -164,7 +164,8 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
     """Sweeps, then labels known divergences, reads the history's anomalies and the baseline's
     changes, and decides the exit code: 1 on any ``fail`` or ``error`` (with ``fail_on="new"``,
     only on failures no accepted known entry explains and, with a baseline, that it did not
-    have), else 0. Writes nothing but reproducers (under ``out``).
+    have), else 0. Writes nothing: the reproducers of failures are carried (``pending``) for
+    :func:`write`.
 
     ``on_result(result, known_entry)`` is called as each scenario's verdict arrives (the
     results of ``impl="both"``'s other pairs renamed ``NAME@warp``, ``NAME@mjx-warp``)."""
@@ -253,12 +254,19 @@ def _read_history(out: SweepRun) -> None:
 
 
 def write(out: SweepRun) -> dict[str, str]:
-    """Appends the run to the history (where it was read), then writes ``report.json`` and
-    ``report.html`` under the options' ``out``; returns the files written (``out.files``). A
-    history or page that cannot be written is a warning (``out.warnings``)."""
+    """Writes the failures' reproducers (under ``out/reproducers``), appends the run to the
+    history (where it was read), then writes ``report.json`` and ``report.html`` under the
+    options' ``out``; returns the files written (``out.files``). A reproducer that cannot be
+    written is a part of its verdict's message; a history or page, a warning (``out.warnings``)."""
     from mjxdiff import history
 
     options, doc = out.options, out.doc
+    for i, r in enumerate(out.results):  # doc["scenarios"] holds the results in order
+        if r.pending:
+            out.results[i] = written = report.write_pending(r)
+            sc = doc["scenarios"][i]
+            sc["message"] = written.message
+            sc["info"].update({key: written.info[key] for key, *_ in r.pending})
     if "history" in doc:
         directory = _history_dir(options)
         try:

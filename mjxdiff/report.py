@@ -17,11 +17,12 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any, Sequence
 
+from mjxdiff.errors import one_line
 from mjxdiff.files import atomic_write
 from mjxdiff.verdict import TRUNCATION, WEAK_BOUND, ScenarioResult
 
 __all__ = ["ENVELOPE", "KINDS", "SCHEMA_VERSION", "code", "envelope", "summary", "to_json", "format_text",
-           "validate", "write_report", "versions", "safe_filename", "path_under"]
+           "validate", "write_report", "write_pending", "versions", "safe_filename", "path_under"]
 
 SCHEMA_VERSION = 3  # 3: every output in one envelope (kind, seed, code, machine); 2: summary.input_error, verdict, code
 
@@ -30,7 +31,8 @@ ENVELOPE = ("kind", "schema_version", "versions", "code", "machine", "config", "
 #: The kinds of JSON output, by the file they are written to.
 KINDS = {"sweep": "report.json", "grad": "grad-report.json", "policy": "policy-report.json",
          "policy-reproducer": "policy-reproducer.json", "bench": "bench.json", "coverage": "coverage.json",
-         "fuzz": "fuzz-report.json"}
+         "fuzz": "fuzz-report.json", "reproducer": "reproducers/NAME-memberI.json",
+         "grad-reproducer": "reproducers/NAME-grad-stateI.json"}
 _SYMBOL = {"pass": "PASS", "fail": "FAIL", "unsupported": "UNSUP", "error": "ERROR"}
 
 
@@ -101,10 +103,25 @@ def _clean(x: Any) -> Any:
 
 
 def result_dict(r: ScenarioResult) -> dict[str, Any]:
-    """One verdict as a JSON-ready dict, fields keyed by name."""
-    d = dataclasses.asdict(r)
+    """One verdict as a JSON-ready dict, fields keyed by name (its unwritten files left out)."""
+    d = dataclasses.asdict(dataclasses.replace(r, pending=()))
+    del d["pending"]
     d["fields"] = {f.pop("field"): f for f in d["fields"]}
     return _clean(d)
+
+
+def write_pending(r: ScenarioResult) -> ScenarioResult:
+    """Writes the files a verdict carries (:attr:`ScenarioResult.pending`); returns the verdict
+    with each file's path under its key in ``info``. A file that cannot be written is a part of
+    the message (``<key> not saved: why``) and a None path: the verdict stands without it."""
+    info, message = dict(r.info), r.message
+    for key, path, doc in r.pending:
+        try:
+            info[key] = str(atomic_write(path, json.dumps(doc, indent=1) + "\n"))
+        except Exception as e:  # noqa: BLE001 - the verdict stands without its file
+            info[key] = None
+            message = f"{message}; {key} not saved: {one_line(e)}"
+    return dataclasses.replace(r, info=info, message=message, pending=())
 
 
 def code() -> dict[str, str]:

@@ -9,8 +9,12 @@ versions, and the verdict it produced. ``python -m mjxdiff replay FILE`` runs
 it again; both engines are deterministic on the CPU, so the replay prints the
 same diagnosis every time.
 
-A derivative reproducer (format ``mjxdiff-grad-reproducer/1``, written by ``mjxdiff grad --out``)
-holds one state of a model whose MJX Jacobians disagree with C's: replay judges that state again.
+A derivative reproducer (kind ``grad-reproducer``, written by ``mjxdiff grad --out``) holds one
+state of a model whose MJX Jacobians disagree with C's: replay judges that state again.
+
+Both are JSON outputs in the report envelope (:func:`mjxdiff.report.envelope`: ``kind``,
+``schema_version``, versions, code digests, machine, config, seed). Files of the older shape
+(``format: mjxdiff-reproducer/1`` or ``mjxdiff-grad-reproducer/1``) are still read.
 """
 
 from __future__ import annotations
@@ -33,12 +37,14 @@ from mjxdiff.files import atomic_write
 from mjxdiff.inputs import FACTOR_SHAPES, BatchedInputs
 from mjxdiff.scenario import ScenarioError, Tolerances
 
-__all__ = ["FORMAT", "GRAD_FORMAT", "Reproducer", "GradReproducer", "save", "load", "save_grad", "load_any",
-           "member_inputs"]
+__all__ = ["KIND", "GRAD_KIND", "FORMAT", "GRAD_FORMAT", "Reproducer", "GradReproducer", "document", "save", "load",
+           "save_grad", "load_any", "member_inputs"]
 
-FORMAT = "mjxdiff-reproducer/1"
+KIND = "reproducer"  # the envelope kind of a sweep reproducer
+GRAD_KIND = "grad-reproducer"
+FORMAT = "mjxdiff-reproducer/1"  # the shape before the envelope: read, no longer written
 GRAD_FORMAT = "mjxdiff-grad-reproducer/1"
-_VERSION = 1  # the format version this mjxdiff reads and writes
+_VERSION = 1  # the last version of the old shape
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,18 +92,30 @@ def member_inputs(inputs: BatchedInputs, member: int) -> BatchedInputs:
     return inputs.take(slice(member, member + 1))
 
 
-def save(path: str | Path, scenario: str, member: int, inputs: BatchedInputs, model_xml: str,
-         tolerances: Tolerances, config: dict[str, Any], verdict: dict[str, Any], versions: dict[str, str]) -> Path:
-    """Writes member ``member`` of ``inputs`` as a reproducer file."""
+def document(scenario: str, member: int, inputs: BatchedInputs, model_xml: str, tolerances: Tolerances,
+             config: dict[str, Any], verdict: dict[str, Any]) -> dict[str, Any]:
+    """Member ``member`` of ``inputs`` as a reproducer: a JSON-ready document of kind
+    :data:`KIND` (the config's seed is the one the inputs were drawn from)."""
+    from mjxdiff import report
+
     one = member_inputs(inputs, member)
-    doc = dict(
-        format=FORMAT, scenario=scenario, member=member, member_id=int(one.ids[0]), seed=inputs.seed,
-        energy=inputs.energy, steps=inputs.steps, config=config, tolerances=tolerances.as_dict(), versions=versions,
-        verdict=verdict, model_mjb_base64=_model_to_b64(one.models[0]), model_xml=model_xml,
+    return report.envelope(
+        KIND, dict(config, seed=inputs.seed), scenario=scenario, member=member, member_id=int(one.ids[0]),
+        energy=inputs.energy, steps=inputs.steps, tolerances=tolerances.as_dict(), verdict=verdict,
+        model_mjb_base64=_model_to_b64(one.models[0]), model_xml=model_xml,
         factors={k: v[0].tolist() for k, v in one.factors.items()},
-        qpos=one.qpos[0].tolist(), qvel=one.qvel[0].tolist(), act=one.act[0].tolist(), ctrl=one.ctrl[0].tolist(),
-    )
-    return atomic_write(path, json.dumps(doc, indent=1) + "\n")  # floats round-trip exactly through repr
+        qpos=one.qpos[0].tolist(), qvel=one.qvel[0].tolist(), act=one.act[0].tolist(), ctrl=one.ctrl[0].tolist())
+
+
+def write(path: str | Path, doc: dict[str, Any]) -> Path:
+    """Writes a reproducer document (atomically); floats round-trip exactly through repr."""
+    return atomic_write(path, json.dumps(doc, indent=1) + "\n")
+
+
+def save(path: str | Path, scenario: str, member: int, inputs: BatchedInputs, model_xml: str,
+         tolerances: Tolerances, config: dict[str, Any], verdict: dict[str, Any]) -> Path:
+    """Writes member ``member`` of ``inputs`` as a reproducer file (:func:`document`)."""
+    return write(path, document(scenario, member, inputs, model_xml, tolerances, config, verdict))
 
 
 class _Bad(Exception):
@@ -184,10 +202,24 @@ def _config(doc: dict) -> dict[str, Any]:
 
 
 def _format_problem(doc: Any, formats: tuple[str, ...] = (FORMAT,)) -> str | None:
-    """Why ``doc`` is not a reproducer in one of ``formats`` that this mjxdiff reads, or None."""
+    """Why ``doc`` is not a reproducer in one of ``formats`` (old shape) or of their kinds (the
+    envelope) that this mjxdiff reads, or None."""
+    from mjxdiff import report
+
     expected = " or ".join(repr(f) for f in formats)
+    kinds = tuple(_KIND_OF[f] for f in formats)
     if not isinstance(doc, dict):
-        return f"not a reproducer (a JSON {type(doc).__name__}, expected an object with format {expected})"
+        return f"not a reproducer (a JSON {type(doc).__name__}, expected an object of kind {' or '.join(kinds)})"
+    if "kind" in doc:
+        version = doc.get("schema_version")
+        if doc["kind"] not in kinds:
+            return f"not a reproducer (kind {doc['kind']!r}, expected {' or '.join(map(repr, kinds))})"
+        if isinstance(version, int) and not isinstance(version, bool) and version > report.SCHEMA_VERSION:
+            return (f"reproducer written by a newer mjxdiff (schema_version {version}); this mjxdiff reads "
+                    f"{report.SCHEMA_VERSION}: upgrade mjxdiff to replay it")
+        if version != report.SCHEMA_VERSION:
+            return f"unsupported reproducer schema_version {version!r}, expected {report.SCHEMA_VERSION}"
+        return None
     fmt = doc.get("format")
     version = re.fullmatch(r"(mjxdiff-(?:grad-)?reproducer)/(\d+)", fmt) if isinstance(fmt, str) else None
     if version is None or not any(f.startswith(version.group(1) + "/") for f in formats):
@@ -198,6 +230,13 @@ def _format_problem(doc: Any, formats: tuple[str, ...] = (FORMAT,)) -> str | Non
     if fmt not in formats:
         return f"unsupported reproducer format {fmt!r}, expected {expected}"
     return None
+
+
+_KIND_OF = {FORMAT: KIND, GRAD_FORMAT: GRAD_KIND}
+
+
+def _is_grad(doc: dict) -> bool:
+    return doc.get("kind") == GRAD_KIND or doc.get("format") == GRAD_FORMAT
 
 
 def _parse(doc: dict) -> Reproducer:
@@ -299,12 +338,14 @@ class GradReproducer:
 
 
 def save_grad(path: str | Path, scenario: str, index: int, m: mujoco.MjModel, model_xml: str,
-              state: dict[str, np.ndarray], verdict: dict[str, Any], versions: dict[str, str]) -> Path:
-    """Writes the ``index``-th sampled state of ``scenario`` as a derivative reproducer."""
-    doc = dict(format=GRAD_FORMAT, scenario=scenario, index=index, versions=versions, verdict=verdict,
-               model_mjb_base64=_model_to_b64(m), model_xml=model_xml,
-               **{k: np.asarray(state[k], np.float64).tolist() for k in ("qpos", "qvel", "act", "ctrl")})
-    return atomic_write(path, json.dumps(doc, indent=1) + "\n")
+              state: dict[str, np.ndarray], verdict: dict[str, Any], config: dict[str, Any]) -> Path:
+    """Writes the ``index``-th sampled state of ``scenario`` as a derivative reproducer (kind
+    :data:`GRAD_KIND`); ``config``: how the state was drawn and judged."""
+    from mjxdiff import report
+
+    return write(path, report.envelope(
+        GRAD_KIND, config, scenario=scenario, index=index, verdict=verdict, model_mjb_base64=_model_to_b64(m),
+        model_xml=model_xml, **{k: np.asarray(state[k], np.float64).tolist() for k in ("qpos", "qvel", "act", "ctrl")}))
 
 
 def _parse_grad(doc: dict) -> GradReproducer:
@@ -329,6 +370,6 @@ def load_any(path: str | Path) -> Reproducer | GradReproducer:
     ScenarioError as :func:`load`."""
     doc = _read(path, (FORMAT, GRAD_FORMAT))
     try:
-        return _parse(doc) if doc["format"] == FORMAT else _parse_grad(doc)
+        return _parse_grad(doc) if _is_grad(doc) else _parse(doc)
     except _Bad as e:
         raise ScenarioError(f"{path}: bad reproducer: {_one_line(e)}") from None

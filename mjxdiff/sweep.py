@@ -47,9 +47,12 @@ def run_scenario(scenario: Scenario, config: SweepConfig = SweepConfig(),
                  under_test: Engine | None = None, c_engine: CEngine | None = None) -> ScenarioResult:
     """Sweeps one scenario and returns its verdict; never raises for bad input.
 
-    With ``config.reproducers`` set, the first divergent member of a failing
-    scenario is saved there as ``<name>-member<i>.json`` (see :mod:`mjxdiff.reproducer`), the
-    name made a plain file name (:func:`mjxdiff.report.safe_filename`) so it stays in that directory.
+    With ``config.reproducers`` set, a failing verdict carries the reproducer of its first
+    divergent member (:mod:`mjxdiff.reproducer`) in ``pending``, to be written as
+    ``<reproducers>/<name>-member<i>.json`` by the caller's output step
+    (:func:`mjxdiff.report.write_pending`; :func:`mjxdiff.pipeline.write` does it), the name made
+    a plain file name (:func:`mjxdiff.report.safe_filename`) so it stays in that directory. The
+    sweep itself writes nothing.
     """
     with _running(config):
         prepared = _prepare(scenario, config)
@@ -232,24 +235,29 @@ def _finish(prepared: _Prepared, under_test: Engine | None,
     result = _advised(run_inputs(scenario.name, m, inputs, tol, config, under_test, c_engine, prepared.info,
                                  prepared.ahead), advice)
     if result.status == "fail" and config.reproducers is not None:
-        assert result.first_divergence is not None  # a failure names where it starts
-        member = result.first_divergence["member"]
-        file = f"{report.safe_filename(scenario.name)}-member{member}.json"
-        try:
-            path = str(reproducer.save(
-                report.path_under(config.reproducers, file), scenario.name, member, inputs,
-                scenario.model_path.read_text(), tol, config.as_dict(), report.result_dict(result),
-                report.versions()))
-        except Exception as e:  # noqa: BLE001 - the verdict stands without its reproducer
-            path = None
-            result = dataclasses.replace(result, message=f"{result.message}; reproducer not saved: {one_line(e)}")
-        result = dataclasses.replace(result, info={**result.info, "reproducer": path})
+        result = _with_reproducer(result, scenario, inputs, tol, config)
     transfer = config.transfer and capable(config, "transfer") and result.status in ("pass", "fail")
     if transfer and _out_of_time():
         result = dataclasses.replace(result, message=f"{result.message}; host-interface check not run: {BudgetSpent()}")
     elif transfer:
         result = _with_transfer(result, inputs, scenario.model_path, config.precision)
     return result
+
+
+def _with_reproducer(result: ScenarioResult, scenario: Scenario, inputs: BatchedInputs, tol: Tolerances,
+                     config: SweepConfig) -> ScenarioResult:
+    """``result`` carrying the reproducer of its first divergent member (``pending``: the caller's
+    output step writes it, :func:`mjxdiff.report.write_pending`)."""
+    assert result.first_divergence is not None and config.reproducers is not None  # a failure names where
+    member = result.first_divergence["member"]
+    try:
+        path = report.path_under(config.reproducers, f"{report.safe_filename(scenario.name)}-member{member}.json")
+        doc = reproducer.document(scenario.name, member, inputs, scenario.model_path.read_text(), tol,
+                                  config.as_dict(), report.result_dict(result))
+    except Exception as e:  # noqa: BLE001 - the verdict stands without its reproducer
+        return dataclasses.replace(result, message=f"{result.message}; reproducer not saved: {one_line(e)}",
+                                   info={**result.info, "reproducer": None})
+    return dataclasses.replace(result, pending=(("reproducer", str(path), doc),))
 
 
 def _advised(result: ScenarioResult, advice: str | None) -> ScenarioResult:

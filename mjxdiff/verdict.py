@@ -143,6 +143,9 @@ class ScenarioResult:
     noise_rate: dict[str, float] = dataclasses.field(default_factory=dict)
     diagnosis: dict[str, Any] = dataclasses.field(default_factory=dict)
     weak: tuple[str, ...] = ()
+    #: Files computed for the caller's output step to write (:func:`mjxdiff.report.write_pending`):
+    #: ``(info key, path, JSON document)``, e.g. a failure's reproducer; not part of the verdict.
+    pending: tuple[tuple[str, str, dict[str, Any]], ...] = dataclasses.field(default=(), compare=False, repr=False)
 
     def field(self, name: str) -> FieldResult:
         return next(f for f in self.fields if f.field == name)

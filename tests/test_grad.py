@@ -106,6 +106,7 @@ def test_a_failing_state_is_saved_and_replays_to_the_same_entry(monkeypatch, tmp
     row = json.loads(capsys.readouterr().out)["scenarios"][0]
     path = tmp_path / "reproducers" / "pendulum-grad-state0.json"
     assert row["reproducer"] == str(path) and path.is_file()
+    assert report.validate(json.loads(path.read_text()), "grad-reproducer") == []
     assert main(["replay", str(path)]) == 1  # still wrong: the same entry
     out = capsys.readouterr().out
     assert "reproduced: same status and worst entry" in out and "B[1, 0]" in out

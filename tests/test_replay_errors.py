@@ -25,7 +25,7 @@ def good(tmp_path_factory):
     verdict = dict(name="pendulum", status="fail", first_divergence=dict(field="qvel", step=3, member=1))
     path = reproducer.save(tmp_path_factory.mktemp("good") / "pendulum-member1.json", "pendulum", 1, inputs,
                            scenario.model_path.read_text(), scenario.tolerance, SweepConfig(diagnose="none").as_dict(),
-                           verdict, report.versions())
+                           verdict)
     return path, json.loads(path.read_text())
 
 
@@ -47,10 +47,12 @@ _B64_GARBAGE = base64.b64encode(b"not an mjb model at all" * 4).decode()
 
 # id -> (key, new value, words the message must contain)
 MALFORMED = {
-    "no format": ("format", _DELETE, "not a reproducer"),
-    "other format": ("format", "something-else/1", "not a reproducer"),
-    "newer format": ("format", "mjxdiff-reproducer/2", "newer mjxdiff"),
-    "much newer format": ("format", "mjxdiff-reproducer/17", "newer mjxdiff"),
+    "no kind": ("kind", _DELETE, "not a reproducer"),
+    "other kind": ("kind", "sweep", "not a reproducer"),
+    "newer schema": ("schema_version", report.SCHEMA_VERSION + 1, "newer mjxdiff"),
+    "much newer schema": ("schema_version", 17, "newer mjxdiff"),
+    "older schema": ("schema_version", 2, "schema_version 2"),
+    "schema a string": ("schema_version", "3", "schema_version '3'"),
     "missing qpos": ("qpos", _DELETE, "'qpos'"),
     "missing model": ("model_mjb_base64", _DELETE, "'model_mjb_base64'"),
     "missing tolerances": ("tolerances", _DELETE, "'tolerances'"),
@@ -155,13 +157,47 @@ def test_wrong_lengths(case, good, tmp_path, capfd):
     _replay_rejects(bad, capfd, word)
 
 
+def _old_shape(doc):
+    """``doc`` as reproducers were written before the report envelope (``format``, no ``kind``)."""
+    old = {k: v for k, v in doc.items() if k not in report.ENVELOPE or k in ("versions", "config", "seed")}
+    return dict(format=reproducer.FORMAT, **old)
+
+
+def test_a_reproducer_is_a_report_envelope(good):
+    path, doc = good
+    assert report.validate(doc, "reproducer") == []
+    assert doc["seed"] == 0 and doc["config"]["diagnose"] == "none"
+
+
+def test_the_shape_before_the_envelope_still_loads(good, tmp_path):
+    path, doc = good
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps(_old_shape(doc)))
+    a, b = reproducer.load(path), reproducer.load(old)
+    assert (a.scenario, a.member, a.config, a.verdict) == (b.scenario, b.member, b.config, b.verdict)
+    np.testing.assert_array_equal(a.inputs.ctrl, b.inputs.ctrl)
+
+
+@pytest.mark.parametrize("key, value, word", [
+    ("format", _DELETE, "not a reproducer"),
+    ("format", "something-else/1", "not a reproducer"),
+    ("format", "mjxdiff-reproducer/2", "newer mjxdiff"),
+    ("format", "mjxdiff-reproducer/17", "newer mjxdiff"),
+], ids=["no format", "other format", "newer format", "much newer format"])
+def test_malformed_old_shape(key, value, word, good, tmp_path, capfd):
+    path, doc = good
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(_edit(_old_shape(doc), key, value)))
+    _replay_rejects(bad, capfd, word)
+
+
 def test_newer_format_says_so(good, tmp_path, capfd):
     path, doc = good
     bad = tmp_path / "future.json"
-    bad.write_text(json.dumps(dict(_edit(doc, "format", "mjxdiff-reproducer/2"), new_key={"x": 1})))
-    line = _replay_rejects(bad, capfd, "newer mjxdiff", "version 1")
+    bad.write_text(json.dumps(dict(_edit(doc, "schema_version", report.SCHEMA_VERSION + 1), new_key={"x": 1})))
+    line = _replay_rejects(bad, capfd, "newer mjxdiff", f"reads {report.SCHEMA_VERSION}")
     assert reproducer.FORMAT == "mjxdiff-reproducer/1"
-    assert "mjxdiff-reproducer/2" in line
+    assert f"schema_version {report.SCHEMA_VERSION + 1}" in line
 
 
 @pytest.mark.parametrize("fraction", [0.01, 0.5, 0.99])

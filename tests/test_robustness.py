@@ -1,10 +1,13 @@
 """One scenario's trouble stays that scenario's: a diagnosis step or an ablation that raises
 becomes a line of that scenario's diagnosis, the verdict stands, and the sweep goes on."""
 
+import json
+from pathlib import Path
+
 import mujoco
 import pytest
 
-from mjxdiff import diagnose
+from mjxdiff import diagnose, report
 from mjxdiff.scenario import load_scenario
 from mjxdiff.sweep import SweepConfig, sweep
 from tests.test_detection import extra_damping
@@ -40,7 +43,10 @@ def test_ablations_that_raise_are_lines_of_the_diagnosis(fresh_mjx, monkeypatch,
     assert first.diagnosis["cause"]["cause"] == diagnose.GENUINE  # the one ablation that ran did not pass
     assert "ablation 'override flag' could not run" in first.message
     assert "ablation 'broken edit' could not run: ValueError: this edit cannot be made" in first.message
+    assert first.pending and not Path(first.pending[0][1]).exists(), "the sweep itself writes nothing"
+    first = report.write_pending(first)  # the caller's output step
     assert first.info["reproducer"], "the reproducer is still written"
+    assert report.validate(json.loads(Path(first.info["reproducer"]).read_text()), "reproducer") == []
     assert second.name == "cartpole" and second.status in ("pass", "fail"), "the sweep went on"
 
 
