@@ -67,6 +67,66 @@ accepted = true) and, with --baseline, failures the baseline already had, exit 0
 
 
 _BENCH_DEFAULT = ("pendulum", "cartpole", "ant")
+#: The long descriptions of the subcommands (``--help``; argparse refills the lines).
+_DESCRIPTIONS = {
+    "replay": """\
+Re-run a reproducer file (written under DIR/reproducers/ by 'sweep --out DIR' for each failing
+scenario, or by 'grad --out DIR' for a state whose Jacobians disagree) and print its diagnosis. Exit
+1 if it still diverges, 0 if it now passes, 2 if the file is bad.""",
+    "fuzz": """\
+Generate MJX-supported models, initial states and controls with Hypothesis, compare MJX with MuJoCo
+C on each (as 'sweep' does), and shrink a divergence to a minimal MJCF. The shrunk model is printed
+and, with --out, saved as a reproducer for 'mjxdiff replay'. Found failures are kept in Hypothesis's
+example database and tried first next time. Exit 0 none found, 1 found, 2 the harness itself failed
+(traceback shown and, with --out, in DIR/fuzz-report.json).""",
+    "policy": """\
+Drive the same environment with the same policy, initial states and policy keys on MJX (vmapped
+episodes, the policy inside the scan), on MuJoCo C (a mujoco.batch.Batch, the policy jitted over the
+batch of C observations each control step) and on C again from initial states moved by a few units
+of roundoff (C's own closed-loop floor; also with a converged solver where the model has
+constraints), all in float64, streamed 50 control steps at a time. Episodes are compared paired:
+return, length, termination and behaviour statistics (mean |action|, |Δaction|, |qvel|, the
+environment's metrics); FAIL when the 95%% bootstrap CI of a mean gap lies outside C's own band,
+lengths differ more often than C against itself, or the states separate beyond 10x C's own
+separation. Names the first such control step, the stage that differs first there and its cause (one
+control step from C's state under ablations). Exit 0 pass, 1 fail, 2 bad input.""",
+    "coverage": """\
+Trace MJX (put_model, make_data, one mjx.step) for every scenario under coverage.py and report line
+and branch coverage of mujoco/mjx/_src per module, the functions never traced, which floating-point
+model fields and options some member of some scenario moves away from MuJoCo's default, and which
+pairs of the conditions MJX branches on (options and flags, actuator, sensor, tendon, equality and
+limit attributes, controls outside their range, limits and deadbands reached;
+mjxdiff.interactions.GROUPS) some member holds together, with the pairs not covered and those no
+model can hold (and why). MuJoCo C steps the members for the state-dependent conditions; MJX is
+traced, not compiled. 'mjxdiff fuzz' reports the same pairs for what it generated. --out DIR writes
+DIR/coverage.json.""",
+    "grad": """\
+At states sampled from each scenario (initial states and states along C rollouts), compare the
+transition Jacobians of one step, A = dx'/dx and B = dx'/du (x: qpos in the tangent space, qvel,
+act), and the sensors' C = ds/dx and D = ds/du, from jax.jacfwd of mjx.step in float64 with
+mujoco.mjd_transitionFD (centred, at 1e-6 and 1e-7). Each entry is judged against the finite
+differences' own error floor (3x their change between the two steps, at least their row's, plus
+roundoff) plus 1e-4 of its size. States where the constraint set changes inside the stencil, or
+where MJX's own forward jumps there, are reported as non-smooth, not judged (a scenario with no
+smooth state is NONSM: nothing judged). Models with constraints use a converged solver on both
+sides. A failure names the worst entry (d output / d input: joints, actuators, sensors), whether it
+sits in the smooth dynamics or the constraint part, and its kind from MJX's own finite differences:
+'derivative only' (a gradient bug: MJX's forward agrees with C) or 'forward dynamics' (MJX's forward
+has another slope). Exit 0 pass, 1 fail, 2 bad input.""",
+    "history": """\
+Trends per scenario and field over the runs the sweeps appended (runs, passes, median/min/max error,
+the last status and ratio to bound), runs compared by MuJoCo/MJX version and MJX code digest
+(--by-version), or the runs themselves (--runs). The history is a directory of Parquet files, one
+per run; any DuckDB or Parquet reader can read it too.""",
+    "cache": """\
+Verifies every saved MJX rollout (DIR/mjxdiff-exports) against the MJX and mjxdiff code loaded now:
+which artifacts this code may load, which belong to other code (kept: valid for that code), keys
+where more than one matches (ambiguous: a sweep loads none of them), unreadable artifacts, files
+left without their pair, directories of an older format, and bytes per model structure. Exit 0 when
+everything can be trusted (or --fix removed what could not), 1 when something cannot.""",
+}
+
+
 _BENCH_DESCRIPTION = """\
 Measure both platforms on the same batch, horizon and cores: steps/s of MJX and
 of MuJoCo C for several batch sizes (MJX's best batch size is model-specific),
@@ -288,10 +348,7 @@ def _sweep_parser(sub) -> argparse.ArgumentParser:
 
 def _replay_parser(sub) -> argparse.ArgumentParser:
     rp = sub.add_parser("replay", help="re-run a saved reproducer of a failing scenario member",
-                        description="Re-run a reproducer file (written under DIR/reproducers/ by "
-                                    "'sweep --out DIR' for each failing scenario, or by 'grad --out DIR' for a "
-                                    "state whose Jacobians disagree) and print its diagnosis. "
-                                    "Exit 1 if it still diverges, 0 if it now passes, 2 if the file is bad.")
+                        description=_DESCRIPTIONS["replay"])
     rp.add_argument("file", metavar="FILE", help="reproducer .json")
     _shared(rp, "format", "cache_dir")
     return rp
@@ -299,12 +356,7 @@ def _replay_parser(sub) -> argparse.ArgumentParser:
 
 def _fuzz_parser(sub) -> argparse.ArgumentParser:
     fz = sub.add_parser("fuzz", help="hunt for divergences with generated models (Hypothesis), shrink what is found",
-                        description="Generate MJX-supported models, initial states and controls with Hypothesis, "
-                                    "compare MJX with MuJoCo C on each (as 'sweep' does), and shrink a divergence to "
-                                    "a minimal MJCF. The shrunk model is printed and, with --out, saved as a "
-                                    "reproducer for 'mjxdiff replay'. Found failures are kept in Hypothesis's "
-                                    "example database and tried first next time. Exit 0 none found, 1 found, 2 the "
-                                    "harness itself failed (traceback shown and, with --out, in DIR/fuzz-report.json).",
+                        description=_DESCRIPTIONS["fuzz"],
                         formatter_class=argparse.RawDescriptionHelpFormatter)
     fz.add_argument("--max-examples", type=_positive, default=300,
                     help="most generated models (structures) to try (default 300); each is judged on "
@@ -339,19 +391,7 @@ def _bench_parser(sub) -> argparse.ArgumentParser:
 
 def _policy_parser(sub) -> argparse.ArgumentParser:
     po = sub.add_parser("policy", help="run a policy in closed loop on MJX and on MuJoCo C and compare episodes",
-                        description="Drive the same environment with the same policy, initial states and policy "
-                                    "keys on MJX (vmapped episodes, the policy inside the scan), on MuJoCo C (a "
-                                    "mujoco.batch.Batch, the policy jitted over the batch of C observations each "
-                                    "control step) and on C again from initial states moved by a few units of "
-                                    "roundoff (C's own closed-loop floor; also with a converged solver where the model "
-                                    "has constraints), all in float64, streamed 50 control steps at a time. "
-                                    "Episodes are compared paired: return, length, termination and behaviour "
-                                    "statistics (mean |action|, |Δaction|, |qvel|, the environment's metrics); "
-                                    "FAIL when the 95%% bootstrap CI of a mean gap lies outside C's own band, "
-                                    "lengths differ more often than C against itself, or the states separate "
-                                    "beyond 10x C's own separation. Names the first such control step, the stage "
-                                    "that differs first there and its cause (one control step from C's state "
-                                    "under ablations). Exit 0 pass, 1 fail, 2 bad input.")
+                        description=_DESCRIPTIONS["policy"])
     po.add_argument("target", metavar="MODEL_OR_ENV", nargs="?",
                     help="a brax environment name (MJX backend, e.g. inverted_pendulum), a bundled scenario, "
                          "a scenario .toml or an MJCF .xml (observations qpos, qvel, sensordata; actions in "
@@ -374,38 +414,14 @@ def _policy_parser(sub) -> argparse.ArgumentParser:
 
 def _coverage_parser(sub) -> argparse.ArgumentParser:
     cv = sub.add_parser("coverage", help="measure which MJX code and which model parameters the scenarios exercise",
-                        description="Trace MJX (put_model, make_data, one mjx.step) for every scenario under "
-                                    "coverage.py and report line and branch coverage of mujoco/mjx/_src per module, "
-                                    "the functions never traced, which floating-point model fields and options "
-                                    "some member of some scenario moves away from MuJoCo's default, and which pairs "
-                                    "of the conditions MJX branches on (options and flags, actuator, sensor, tendon, "
-                                    "equality and limit attributes, controls outside their range, limits and "
-                                    "deadbands reached; mjxdiff.interactions.GROUPS) some member holds together, "
-                                    "with the pairs not covered and those no model can hold (and why). MuJoCo C steps "
-                                    "the members for the state-dependent conditions; MJX is traced, not compiled. "
-                                    "'mjxdiff fuzz' reports the same pairs for what it generated. "
-                                    "--out DIR writes DIR/coverage.json.")
+                        description=_DESCRIPTIONS["coverage"])
     _shared(cv, "scenarios", "seed", "out", "format", out="write DIR/coverage.json")
     return cv
 
 
 def _grad_parser(sub) -> argparse.ArgumentParser:
     gr = sub.add_parser("grad", help="compare MJX's one-step Jacobians (jax.jacfwd) with C's finite differences",
-                        description="At states sampled from each scenario (initial states and states along C "
-                                    "rollouts), compare the transition Jacobians of one step, A = dx'/dx and B = "
-                                    "dx'/du (x: qpos in the tangent space, qvel, act), and the sensors' C = ds/dx "
-                                    "and D = ds/du, from jax.jacfwd of mjx.step in float64 with "
-                                    "mujoco.mjd_transitionFD (centred, at 1e-6 and 1e-7). Each entry is judged "
-                                    "against the finite differences' own error floor (3x their change between the "
-                                    "two steps, at least their row's, plus roundoff) plus 1e-4 of its size. States "
-                                    "where the constraint set changes inside the stencil, or where MJX's own forward "
-                                    "jumps there, are reported as non-smooth, not judged (a scenario with no smooth "
-                                    "state is NONSM: nothing judged). Models with constraints use a converged solver "
-                                    "on both sides. A failure names the worst entry (d output / d input: joints, "
-                                    "actuators, sensors), whether it sits in the smooth dynamics or the constraint "
-                                    "part, and its kind from MJX's own finite differences: 'derivative only' (a "
-                                    "gradient bug: MJX's forward agrees with C) or 'forward dynamics' (MJX's forward "
-                                    "has another slope). Exit 0 pass, 1 fail, 2 bad input.")
+                        description=_DESCRIPTIONS["grad"])
     _shared(gr, "scenarios", scenarios=
             "bundled scenario name, scenario .toml or MJCF .xml (default: the smooth ones: pendulum, "
             "double_pendulum, cartpole, actuators, gravcomp_arm)")
@@ -421,11 +437,7 @@ def _grad_parser(sub) -> argparse.ArgumentParser:
 
 def _history_parser(sub) -> argparse.ArgumentParser:
     hi = sub.add_parser("history", help="query the run history sweeps append to (DuckDB over Parquet)",
-                        description="Trends per scenario and field over the runs the sweeps appended (runs, "
-                                    "passes, median/min/max error, the last status and ratio to bound), runs "
-                                    "compared by MuJoCo/MJX version and MJX code digest (--by-version), or the "
-                                    "runs themselves (--runs). The history is a directory of Parquet files, one "
-                                    "per run; any DuckDB or Parquet reader can read it too.")
+                        description=_DESCRIPTIONS["history"])
     hi.add_argument("--history", "--dir", dest="history", metavar="DIR", help=_SHARED["history"][1]["help"] +
                     "; --dir is the older name")
     hi.add_argument("--scenario", metavar="S", help="only this scenario")
@@ -442,13 +454,7 @@ def _history_parser(sub) -> argparse.ArgumentParser:
 
 def _cache_parser(sub) -> argparse.ArgumentParser:
     ca = sub.add_parser("cache", help="check the cache of traced MJX rollouts against the code loaded now",
-                        description="Verifies every saved MJX rollout (DIR/mjxdiff-exports) against the MJX and "
-                                    "mjxdiff code loaded now: which artifacts this code may load, which belong to "
-                                    "other code (kept: valid for that code), keys where more than one matches "
-                                    "(ambiguous: a sweep loads none of them), unreadable artifacts, files left "
-                                    "without their pair, directories of an older format, and bytes per model "
-                                    "structure. Exit 0 when everything can be trusted (or --fix removed what "
-                                    "could not), 1 when something cannot.",
+                        description=_DESCRIPTIONS["cache"],
                         formatter_class=argparse.RawDescriptionHelpFormatter,
                         epilog="examples:\n  python -m mjxdiff cache check\n"
                                "  python -m mjxdiff cache check --fix --cache-dir .jax_cache")
