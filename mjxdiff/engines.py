@@ -70,7 +70,7 @@ from mjxdiff import export_cache, joints, stages  # noqa: E402
 from mjxdiff.stages import Forward  # noqa: E402
 from mjxdiff.inputs import BatchedInputs  # noqa: E402
 # Trajectory and Engine live in mjxdiff.trajectory (no MJX there); kept importable from here
-from mjxdiff.trajectory import Engine, Streaming, Trajectory, concat, first_true, shifted  # noqa: E402
+from mjxdiff.trajectory import Engine, Streaming, Trajectory, concat, first_true, resync_blocks, shifted  # noqa: E402
 
 __all__ = [
     "CEngine",
@@ -224,16 +224,11 @@ class CEngine(Streaming):
         the S = ceil(T / every) blocks of every member step side by side, as B x S members of one
         rollout of ``every`` steps; ``time`` continues from the reference's."""
         B, T, k = inputs.batch, inputs.steps, every
-        S = -(-T // k)
-        starts = np.arange(S) * k
-
-        def state(field, initial):
-            full = np.concatenate([np.asarray(initial)[:, None], np.asarray(getattr(reference, field))], axis=1)
-            return full[:, starts].reshape(B * S, *full.shape[2:])
-        ctrl = np.zeros((B, S * k, inputs.ctrl.shape[2]))
-        ctrl[:, :T] = inputs.ctrl
-        blocks = dataclasses.replace(inputs, qpos=state("qpos", inputs.qpos), qvel=state("qvel", inputs.qvel),
-                                     act=state("act", inputs.act), ctrl=ctrl.reshape(B * S, k, -1), factors={},
+        states, ctrl, starts = resync_blocks(inputs, reference, every)
+        S = len(starts)
+        flat = {f: x.reshape(B * S, *x.shape[2:]) for f, x in states.items()}
+        blocks = dataclasses.replace(inputs, qpos=flat["qpos"], qvel=flat["qvel"], act=flat["act"],
+                                     ctrl=ctrl.reshape(B * S, k, -1), factors={},
                                      models=tuple(mi for mi in inputs.models for _ in range(S)), member_ids=None)
         traj = self.rollout(blocks)
 
@@ -244,7 +239,7 @@ class CEngine(Streaming):
         at = np.asarray(traj.diverged_at).reshape(B, S)
         at = np.where(at >= 0, at + starts, -1)
         first = np.where((at >= 0).any(axis=1), at[np.arange(B), (at >= 0).argmax(axis=1)], -1)
-        time = np.asarray(traj.time) + state("time", np.zeros(B))[:, None]
+        time = np.asarray(traj.time) + flat["time"][:, None]
         return Trajectory(**fields, time=back(time), diverged_at=np.where(first < T, first, -1))
 
     def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
@@ -801,16 +796,9 @@ class MJXEngine:
         at ``every=1`` the one-step error, which chaos cannot amplify.
         """
         B, T, k = inputs.batch, inputs.steps, every
-        S = -(-T // k)
-        starts = np.arange(S) * k
-
-        def state(field, initial):
-            full = np.concatenate([initial[:, None], np.asarray(getattr(reference, field))], axis=1)
-            return full[:, starts]
-        ctrl = np.zeros((B, S * k, inputs.ctrl.shape[2]))
-        ctrl[:, :T] = inputs.ctrl
-        batched = (state("qpos", inputs.qpos), state("qvel", inputs.qvel), state("act", inputs.act),
-                   state("time", np.zeros(B)), ctrl.reshape(B, S, k, -1))
+        states, ctrl, starts = resync_blocks(inputs, reference, every)
+        S = len(starts)
+        batched = (states["qpos"], states["qvel"], states["act"], states["time"], ctrl)
         with _unsupported():
             mx, varying, dx0, place, mesh = self._prepare(inputs)
             arrays = place(tuple(np.asarray(x, dx0.qpos.dtype) for x in batched))

@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from mjxdiff.stages import Forward
     from mjxdiff.precision import Precision
 
-__all__ = ["Engine", "Streaming", "Trajectory", "concat", "first_diverged", "first_true", "shifted"]
+__all__ = ["Engine", "Streaming", "Trajectory", "concat", "first_diverged", "first_true", "resync_blocks", "shifted"]
 
 
 @jax.tree_util.register_dataclass
@@ -159,3 +159,23 @@ def first_diverged(diverged_at: list[np.ndarray | jax.Array]) -> np.ndarray:
     return out
 
 
+
+
+def resync_blocks(inputs: BatchedInputs, reference: Trajectory, every: int
+                  ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """Where an engine restarts when re-synchronised to ``reference`` every ``every`` steps
+    (:meth:`Engine.resync`): S = ceil(T / every) blocks, block s starting from the reference's
+    state after step ``s * every - 1`` (the initial state for s = 0).
+
+    Returns ``(states, ctrl, starts)``: ``states`` maps qpos, qvel, act and time to (B, S, ...)
+    restart states (time 0 at the initial state); ``ctrl`` is (B, S, every, nu), the controls
+    of each block, zero past step T; ``starts`` is (S,), each block's first step."""
+    B, T = inputs.batch, inputs.steps
+    S = -(-T // every)
+    starts = np.arange(S) * every
+    initial = dict(qpos=inputs.qpos, qvel=inputs.qvel, act=inputs.act, time=np.zeros(B))
+    states = {field: np.concatenate([np.asarray(x)[:, None], np.asarray(getattr(reference, field))], axis=1)[:, starts]
+              for field, x in initial.items()}
+    ctrl = np.zeros((B, S * every, inputs.ctrl.shape[2]))
+    ctrl[:, :T] = inputs.ctrl
+    return states, ctrl.reshape(B, S, every, -1), starts
