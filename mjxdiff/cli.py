@@ -426,12 +426,9 @@ def _grad_parser(sub) -> argparse.ArgumentParser:
             "bundled scenario name, scenario .toml or MJCF .xml (default: the smooth ones: pendulum, "
             "double_pendulum, cartpole, actuators, gravcomp_arm)")
     gr.add_argument("--states", type=_positive, default=8, help="states sampled per scenario (default 8)")
-    _shared(gr, "seed")
-    _shared(gr, "out", out="write DIR/grad-report.json, DIR/grad-report.html (a heat map of "
-                                                 "each failing scenario's worst state) and, per failing scenario, its "
-                                                 "worst state as DIR/reproducers/NAME-grad-stateI.json for "
-                                                 "'mjxdiff replay'")
-    _shared(gr, "format")
+    _shared(gr, "seed", "out", "format", out="write DIR/grad-report.json, DIR/grad-report.html (a heat map of each "
+            "failing scenario's worst state) and, per failing scenario, its worst state as "
+            "DIR/reproducers/NAME-grad-stateI.json for 'mjxdiff replay'")
     return gr
 
 
