@@ -231,8 +231,35 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     for add, handler in _COMMANDS:
-        add(sub).set_defaults(func=handler)
+        command = add(sub)
+        command.set_defaults(func=handler)
+        if handler not in _UNGATED:
+            command.add_argument("--allow-untested-versions", action="store_true",
+                                 help="run with a MuJoCo, MJX or JAX outside the supported range "
+                                      f"({_supported_range()}; see 'mjxdiff versions')")
     return parser
+
+
+def _supported_range() -> str:
+    from mjxdiff.compat import SUPPORTED
+
+    return ", ".join(f"{dist} {lo} to {hi}" for dist, (lo, hi) in SUPPORTED.items())
+
+
+def _untested_versions(args: argparse.Namespace) -> str | None:
+    """Why the installed MuJoCo, MJX or JAX may not run this command (None: it may): outside
+    :data:`mjxdiff.compat.SUPPORTED` without ``--allow-untested-versions``
+    (or ``MJXDIFF_ALLOW_UNTESTED_VERSIONS=1``)."""
+    from mjxdiff.compat import UntestedVersions, check_versions
+
+    if args.func in _UNGATED or args.allow_untested_versions or os.environ.get("MJXDIFF_ALLOW_UNTESTED_VERSIONS"):
+        return None
+    try:
+        check_versions()
+    except UntestedVersions as e:
+        return (f"untested versions: {e}; install a supported set (pip install -c constraints.txt mjxdiff) or "
+                "pass --allow-untested-versions to run anyway")
+    return None
 
 
 def _sweep_parser(sub) -> argparse.ArgumentParser:
@@ -851,8 +878,16 @@ _COMMANDS = ((_sweep_parser, _cmd_sweep), (_replay_parser, _cmd_replay), (_fuzz_
              (_list_parser, _cmd_list))
 
 
+#: Commands that run neither MuJoCo nor MJX: no version check.
+_UNGATED = (_cmd_history, _cmd_list)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    why = _untested_versions(args)
+    if why:
+        print(f"mjxdiff {args.command}: error: {why}", file=sys.stderr)
+        return 2
     return args.func(args)
 
 

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco import mjx
-from mujoco.batch import Batch
+from mjxdiff.compat import Batch
 
 from mjxdiff import joints
 from mjxdiff.precision import Precision

@@ -63,7 +63,7 @@ import numpy as np  # noqa: E402
 with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import warp" to stdout
     from mujoco import mjx
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
-from mujoco.batch import Batch, SimulationError  # noqa: E402
+from mjxdiff.compat import Batch, SimulationError  # noqa: E402
 
 from mjxdiff.precision import Precision  # noqa: E402
 from mjxdiff import export_cache, joints, stages  # noqa: E402

@@ -129,7 +129,7 @@ def capacity(inputs: BatchedInputs) -> tuple[int, int]:
     of the same members needs it (most contacts of any member at any step, x 1.5, + 8; rows: that
     many contacts at the model's widest friction cone plus every other constraint row C had).
     MJWarp drops contacts and rows beyond its capacity, which would read as a divergence."""
-    from mujoco.batch import Batch
+    from mjxdiff.compat import Batch
     from mujoco_warp._src import io
 
     m, B = inputs.models[0], inputs.batch

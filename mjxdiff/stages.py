@@ -10,6 +10,8 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from mjxdiff.compat import full_inertia
+
 __all__ = ["Contacts", "Forward", "contacts_c", "contacts_mjx", "frame", "read"]
 
 
@@ -69,6 +71,4 @@ class Forward:
 def read(m: mujoco.MjModel, d: Any, fields: tuple[str, ...]) -> Forward:
     """The :class:`Forward` of an ``MjData`` ``d`` after ``mj_forward`` (or an engine's data read
     back into one)."""
-    qm = np.zeros((m.nv, m.nv))
-    mujoco.mj_fullM(m, d, qm)
-    return Forward({f: np.asarray(getattr(d, f)).ravel() for f in fields}, qm, contacts_c(m, d))
+    return Forward({f: np.asarray(getattr(d, f)).ravel() for f in fields}, full_inertia(m, d), contacts_c(m, d))

@@ -25,6 +25,7 @@ float64 come back exact; float32 rounds once).
 from __future__ import annotations
 
 import dataclasses
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -150,6 +151,12 @@ def _state(m: mujoco.MjModel, d: mujoco.MjData, mx: Any, dx: Any, blank: Any, rt
     knows at once (three calls: few small XLA programs), mismatches named by element."""
     from mujoco import mjx
 
+    from mjxdiff.compat import mjx_lacks
+
+    lacks = mjx_lacks("state_size", "get_state", "set_state")
+    if lacks:
+        unsupported.append(f"{', '.join(lacks)}: not in this MJX (mujoco-mjx {metadata.version('mujoco-mjx')})")
+        return 0
     elements, n = [], 0
     for i in range(mujoco.mjtState.mjNSTATE.value):
         element = mujoco.mjtState(1 << i)

@@ -1,0 +1,212 @@
+"""Every difference between the MuJoCo / MJX / JAX releases mjxdiff supports, in one place.
+
+mjxdiff runs on MuJoCo and MJX 3.3.0 through 4.0.0 (MJX always the release of its MuJoCo) and
+the JAX those releases accept (:data:`SUPPORTED`). Where a release lacks something mjxdiff
+uses, or names it differently, this module gives one name for it; nothing else in the package
+branches on versions:
+
+* :func:`mjx_lacks`: the public MJX functions of a list that this MJX does not have
+  (``get_state``, ``set_state`` and ``state_size`` arrived after 3.3).
+* :func:`full_inertia`: ``mj_fullM`` takes ``(m, d, dst)`` from MuJoCo 3.4 (or so), ``(m, dst,
+  d.qM)`` before.
+* ``Batch``, ``SimulationError``: :class:`mujoco.batch.Batch` (MuJoCo 4.0) or, before it,
+  :class:`LoopBatch`, the part of its interface mjxdiff uses as a loop over one ``MjData``
+  per simulation (the same arithmetic: ``Batch`` is documented bit-identical to that loop).
+
+:func:`check_versions` tells whether the installed set lies in the supported range.
+"""
+
+from __future__ import annotations
+
+import copy
+import re
+from importlib import metadata
+from typing import Any, Sequence
+
+import mujoco
+import numpy as np
+
+__all__ = ["full_inertia", "mjx_lacks", "Batch", "LoopBatch", "SimulationError", "SUPPORTED", "REFERENCE",
+           "installed", "check_versions", "UntestedVersions", "HAS_BATCH"]
+
+#: The supported range, inclusive: distribution -> (oldest, newest).
+SUPPORTED: dict[str, tuple[str, str]] = {
+    "mujoco": ("3.3.0", "4.0.0"),
+    "mujoco-mjx": ("3.3.0", "3.17.0"),
+    "jax": ("0.5.0", "0.10.2"),
+}
+#: The reference set mjxdiff is developed on (constraints.txt pins it).
+REFERENCE = {"mujoco": "4.0.0", "mujoco-mjx": "3.17.0", "jax": "0.10.2"}
+
+
+def _release(version: str) -> tuple[int, ...]:
+    """``3.3.5`` -> (3, 3, 5); pre-release and local parts dropped (``3.17.0.dev0`` -> (3, 17, 0))."""
+    return tuple(int(p) for p in re.findall(r"\d+", version.split("+")[0])[:3])
+
+
+def installed() -> dict[str, str]:
+    """The installed versions of the distributions in :data:`SUPPORTED` ("not installed" where absent)."""
+    out = {}
+    for dist in SUPPORTED:
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[dist] = "not installed"
+    return out
+
+
+class UntestedVersions(RuntimeError):
+    """The installed MuJoCo, MJX or JAX lies outside :data:`SUPPORTED`."""
+
+
+def check_versions(versions: dict[str, str] | None = None) -> None:
+    """Raises :class:`UntestedVersions` naming every installed version outside :data:`SUPPORTED`,
+    and an MJX that is not its MuJoCo's release (MJX 3.x.y goes with MuJoCo 3.x.y; MJX 3.17
+    with MuJoCo 4.0)."""
+    versions = versions or installed()
+    problems = []
+    for dist, (lo, hi) in SUPPORTED.items():
+        v = versions.get(dist, "not installed")
+        if v == "not installed" or not _release(lo) <= _release(v) <= _release(hi):
+            problems.append(f"{dist} {v} (supported {lo} to {hi})")
+    mj, mjx = versions.get("mujoco", ""), versions.get("mujoco-mjx", "")
+    if not problems and _matching_mjx(mj) != _release(mjx)[:2]:
+        problems.append(f"mujoco-mjx {mjx} is not the release of mujoco {mj}")
+    if problems:
+        raise UntestedVersions("; ".join(problems))
+
+
+def _matching_mjx(mujoco_version: str) -> tuple[int, ...]:
+    """The MJX (major, minor) released with a MuJoCo: the same up to 3.x; 3.17 for 4.0."""
+    r = _release(mujoco_version)[:2]
+    return (3, 17) if r == (4, 0) else r
+
+
+def full_inertia(m: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
+    """The (nv, nv) joint-space inertia matrix of ``d`` (after ``mj_forward``), dense."""
+    qm = np.zeros((m.nv, m.nv))
+    if _FULLM_TAKES_DATA:
+        mujoco.mj_fullM(m, d, qm)
+    else:
+        mujoco.mj_fullM(m, qm, d.qM)
+    return qm
+
+
+_FULLM_TAKES_DATA = "d: mujoco._structs.MjData" in (mujoco.mj_fullM.__doc__ or "")
+
+
+def mjx_lacks(*names: str) -> list[str]:
+    """Those of ``names`` (functions of ``mujoco.mjx``) this MJX does not have."""
+    from mujoco import mjx
+
+    return [n for n in names if not hasattr(mjx, n)]
+
+
+# ----------------------------------------------------------------------------
+# mujoco.batch (MuJoCo 4.0) or a loop
+
+
+class LoopSimulationError(RuntimeError):
+    """MuJoCo raised an error in some simulations of a call (as ``mujoco.batch.SimulationError``):
+    ``ids`` lists them; they kept the state they had before the call."""
+
+    def __init__(self, ids: Sequence[int], message: str, nsim: int):
+        super().__init__(f"{len(ids)} of {nsim} simulations failed; first: {message}")
+        self.ids = np.asarray(ids, int)
+
+
+#: State fields a caller may write before a call, as on ``Batch``.
+_STATE = ("qpos", "qvel", "act", "ctrl")
+
+
+class LoopBatch:
+    """``nsim`` simulations of ``model``, each its own ``MjData``, stepped one after another:
+    the part of :class:`mujoco.batch.Batch` mjxdiff uses (``set_models``, the state arrays
+    ``qpos``/``qvel``/``act``/``ctrl``, ``warning``, ``get_data``, ``rollout``), for MuJoCo
+    releases before 4.0. ``nthread`` and ``persistent`` are accepted and ignored (every
+    simulation keeps its ``MjData``)."""
+
+    def __init__(self, model: mujoco.MjModel, nsim: int, nthread: int = 0, persistent: bool = False):
+        self.model, self.nsim = model, nsim
+        self._models = [model] * nsim
+        self._datas = [mujoco.MjData(model) for _ in range(nsim)]
+        self._arrays = {f: np.stack([np.array(getattr(d, f)) for d in self._datas]) for f in _STATE}
+        self.warning = np.zeros((nsim, len(self._datas[0].warning), 2))  # [lastinfo, number] per warning
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        if name in _STATE:
+            return self.__dict__["_arrays"][name]
+        raise AttributeError(f"'LoopBatch' object has no attribute {name!r}")
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name in _STATE:
+            self._arrays[name][...] = value
+        else:
+            object.__setattr__(self, name, value)
+
+    def set_models(self, models: Sequence[mujoco.MjModel]) -> None:
+        self._models = list(models)
+
+    def _load(self, i: int) -> mujoco.MjData:
+        d = self._datas[i]
+        for f in _STATE:
+            getattr(d, f)[...] = self._arrays[f][i]
+        return d
+
+    def _save(self, i: int, d: mujoco.MjData) -> None:
+        for f in _STATE:
+            self._arrays[f][i] = getattr(d, f)
+        self.warning[i] = [(w.lastinfo, w.number) for w in d.warning]
+
+    def get_data(self, sim: int) -> mujoco.MjData:
+        """A copy of simulation ``sim``'s ``MjData`` with its state."""
+        return copy.copy(self._load(sim))
+
+    def rollout(self, nstep: int, control=None, record: Sequence[Any] = ("qpos",),
+                out: dict[Any, np.ndarray] | None = None) -> dict[Any, np.ndarray]:
+        """Each simulation advanced ``nstep`` ``mj_step`` calls, ``ctrl`` set from ``control``
+        (nsim, nstep, nu) before each, ``record`` items (MjData field names or mjtState specs)
+        recorded after each; a simulation whose warning counters rise stops and its remaining
+        records repeat its last ones."""
+        out = dict(out or {})
+        for item in record:
+            if item not in out:
+                template = (np.zeros(mujoco.mj_stateSize(self.model, int(item))) if not isinstance(item, str)
+                            else np.asarray(getattr(self._datas[0], item)))
+                out[item] = np.zeros((self.nsim, nstep, *template.shape), template.dtype)
+        failed, message = [], ""
+        for i in range(self.nsim):
+            m, d = self._models[i], self._load(i)
+            before = copy.copy(d)
+            warned = sum(w.number for w in d.warning)
+            try:
+                for k in range(nstep):
+                    if control is not None:
+                        d.ctrl[:] = control[i, k]
+                    mujoco.mj_step(m, d)
+                    for item, buf in out.items():
+                        if isinstance(item, str):
+                            buf[i, k] = getattr(d, item)
+                        else:
+                            mujoco.mj_getState(m, d, buf[i, k], int(item))
+                    if sum(w.number for w in d.warning) > warned:
+                        for buf in out.values():
+                            buf[i, k + 1:] = buf[i, k]
+                        break
+            except mujoco.FatalError as e:
+                failed.append(i)
+                message = message or str(e)
+                self._datas[i] = d = before
+            self._save(i, d)
+        if failed:
+            raise LoopSimulationError(failed, message, self.nsim)
+        return out
+
+
+try:
+    from mujoco.batch import Batch, SimulationError
+
+    HAS_BATCH = True
+except ImportError:  # MuJoCo before 4.0
+    Batch, SimulationError = LoopBatch, LoopSimulationError  # type: ignore[misc,assignment]
+    HAS_BATCH = False
