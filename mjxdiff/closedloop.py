@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco import mjx
-from mjxdiff.compat import Batch
+from mjxdiff.compat import Batch, data_impl, impl_fields, with_impl
 
 from mjxdiff import joints
 from mjxdiff.precision import Precision
@@ -385,9 +385,9 @@ def _data_fields(m: mujoco.MjModel) -> tuple[str, ...]:
 
     d, dx = mujoco.MjData(m), mjx.make_data(m)
     out = []
-    impl = dx._impl  # noqa: SLF001
+    impl = data_impl(dx)
     # each field from where it lives: a DataJAX field read through Data is deprecated (and warns)
-    fields = [(f.name, dx) for f in types.Data.fields()] + [(f.name, impl) for f in types.DataJAX.fields()]
+    fields = [(f.name, dx) for f in types.Data.fields()] + [(name, impl) for name in impl_fields()]
     for name, holder in fields:
         if name in ("_impl", "contact") or not hasattr(d, name):
             continue
@@ -405,9 +405,9 @@ def _pipeline_state(env: Any, template: Any, fields: dict[str, np.ndarray]) -> A
     B = next(iter(fields.values())).shape[0]
     data = jax.tree.map(lambda x: jnp.broadcast_to(x, (B, *jnp.shape(x))), template)
     public = {k: v for k, v in fields.items() if k in data.__dataclass_fields__}
-    impl = {k: v for k, v in fields.items() if k not in public and hasattr(data._impl, k)}  # noqa: SLF001
+    impl = {k: v for k, v in fields.items() if k not in public and hasattr(data_impl(data), k)}
     data = data.replace(**{k: jnp.asarray(v) for k, v in public.items()})
-    data = data.replace(_impl=data._impl.replace(**{k: jnp.asarray(v) for k, v in impl.items()}))  # noqa: SLF001
+    data = with_impl(data, **{k: jnp.asarray(v) for k, v in impl.items()})
     return jax.vmap(functools.partial(_brax_state, env.sys))(data)
 
 
@@ -423,7 +423,7 @@ def _brax_state(sys: Any, data: Any) -> Any:
 
     # contacts are member 0's at the start (not recorded per step): brax environments read
     # positions, velocities, sensors and forces, not the contact list
-    fields = dict(data.__dict__, contact=_reformat_contact(sys, data._impl.contact))  # noqa: SLF001
+    fields = dict(data.__dict__, contact=_reformat_contact(sys, data_impl(data).contact))
     return State(q=data.qpos, qd=data.qvel, x=x, xd=xd, **fields)
 
 

@@ -9,6 +9,15 @@ branches on versions:
   (``get_state``, ``set_state`` and ``state_size`` arrived after 3.3).
 * :func:`full_inertia`: ``mj_fullM`` takes ``(m, d, dst)`` from MuJoCo 3.4 (or so), ``(m, dst,
   d.qM)`` before.
+* :func:`disable_bit`: MuJoCo 3.3 disables springs and dampers together (``mjDSBL_PASSIVE``);
+  later releases apart (``mjDSBL_SPRING``, ``mjDSBL_DAMPER``).
+* :func:`sensor_types`: the sensor types of a list this MuJoCo has (``mjSENS_CONTACT``,
+  ``mjSENS_INSIDESITE`` arrived in 3.3.x).
+* :func:`enable_x64`: the thread-local ``jax_enable_x64`` context is ``jax.enable_x64`` from
+  JAX 0.8 (or so), ``jax.experimental.enable_x64`` before.
+* :func:`data_impl`, :func:`with_impl`, :func:`impl_fields`: from MJX 3.3.x (3.3.5 has it,
+  3.3.0 not) the JAX implementation's fields of ``Data`` (contacts, constraint rows, ``qM``)
+  live in ``Data._impl`` (``types.DataJAX``); before, on ``Data`` itself.
 * ``Batch``, ``SimulationError``: :class:`mujoco.batch.Batch` (MuJoCo 4.0) or, before it,
   :class:`LoopBatch`, the part of its interface mjxdiff uses as a loop over one ``MjData``
   per simulation (the same arithmetic: ``Batch`` is documented bit-identical to that loop).
@@ -26,14 +35,15 @@ from typing import Any, Sequence
 import mujoco
 import numpy as np
 
-__all__ = ["full_inertia", "mjx_lacks", "Batch", "LoopBatch", "SimulationError", "SUPPORTED", "REFERENCE",
-           "installed", "check_versions", "UntestedVersions", "HAS_BATCH"]
+__all__ = ["enable_x64", "disable_bit", "sensor_types", "full_inertia", "mjx_lacks", "data_impl", "with_impl",
+           "impl_fields", "Batch", "LoopBatch", "SimulationError", "SUPPORTED", "REFERENCE", "installed",
+           "check_versions", "UntestedVersions", "HAS_BATCH"]
 
 #: The supported range, inclusive: distribution -> (oldest, newest).
 SUPPORTED: dict[str, tuple[str, str]] = {
     "mujoco": ("3.3.0", "4.0.0"),
     "mujoco-mjx": ("3.3.0", "3.17.0"),
-    "jax": ("0.5.0", "0.10.2"),
+    "jax": ("0.6.0", "0.10.2"),
 }
 #: The reference set mjxdiff is developed on (constraints.txt pins it).
 REFERENCE = {"mujoco": "4.0.0", "mujoco-mjx": "3.17.0", "jax": "0.10.2"}
@@ -82,6 +92,33 @@ def _matching_mjx(mujoco_version: str) -> tuple[int, ...]:
     return (3, 17) if r == (4, 0) else r
 
 
+def enable_x64(on: bool = True):
+    """A context in which this thread computes in float64 (``on``) or float32."""
+    import jax
+
+    if hasattr(jax, "enable_x64"):
+        return jax.enable_x64(on)
+    from jax import experimental
+
+    return experimental.enable_x64() if on else experimental.disable_x64()
+
+
+def disable_bit(flag: str) -> int:
+    """The ``mjtDisableBit`` of ``flag`` (``spring``, ``gravity``: the name without ``mjDSBL_``,
+    lower case); ``spring`` and ``damper`` are ``mjDSBL_PASSIVE`` (both) where MuJoCo has no
+    separate bits."""
+    bits = mujoco.mjtDisableBit
+    name = f"mjDSBL_{flag.upper()}"
+    if not hasattr(bits, name) and flag in ("spring", "damper"):
+        name = "mjDSBL_PASSIVE"
+    return int(getattr(bits, name))
+
+
+def sensor_types(*names: str) -> tuple[int, ...]:
+    """The ``mjtSensor`` values of those of ``names`` (``mjSENS_TOUCH``) this MuJoCo has."""
+    return tuple(int(getattr(mujoco.mjtSensor, n)) for n in names if hasattr(mujoco.mjtSensor, n))
+
+
 def full_inertia(m: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
     """The (nv, nv) joint-space inertia matrix of ``d`` (after ``mj_forward``), dense."""
     qm = np.zeros((m.nv, m.nv))
@@ -93,6 +130,27 @@ def full_inertia(m: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
 
 
 _FULLM_TAKES_DATA = "d: mujoco._structs.MjData" in (mujoco.mj_fullM.__doc__ or "")
+
+
+def data_impl(dx: Any) -> Any:
+    """The part of an MJX ``Data`` that holds its JAX implementation's fields (``contact``,
+    ``efc_J``, ``qM``, ...): ``dx._impl``, or ``dx`` where MJX keeps them on ``Data``."""
+    return getattr(dx, "_impl", dx)
+
+
+def with_impl(dx: Any, **fields: Any) -> Any:
+    """``dx`` with implementation fields (:func:`data_impl`) replaced."""
+    if hasattr(dx, "_impl"):
+        return dx.replace(_impl=dx._impl.replace(**fields))  # noqa: SLF001
+    return dx.replace(**fields)
+
+
+def impl_fields() -> tuple[str, ...]:
+    """The names of the implementation fields kept apart from ``Data``'s (none where MJX keeps
+    them on ``Data``)."""
+    from mujoco.mjx._src import types
+
+    return tuple(f.name for f in types.DataJAX.fields()) if hasattr(types, "DataJAX") else ()
 
 
 def mjx_lacks(*names: str) -> list[str]:

@@ -22,6 +22,8 @@ import warnings
 
 import mujoco
 
+from mjxdiff.compat import data_impl
+
 __all__ = ["Estimate", "PairGroup", "estimate", "hlo_features"]
 
 @dataclasses.dataclass(frozen=True)
@@ -292,7 +294,7 @@ def data_sizes(m: mujoco.MjModel) -> tuple[int, int, int]:
     except Exception:  # noqa: BLE001 - an estimate; put_model names the problem properly
         return 0, 0, 0
     data = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(dx))
-    impl = dx._impl  # noqa: SLF001 - MJX's contact and constraint sizes
+    impl = data_impl(dx)  # MJX's contact and constraint sizes
     # the JAX implementation's Data, whose fields MJX's union of implementations does not show
     return data, int(impl.contact.dist.shape[0]), int(impl.efc_J.shape[0])  # pyright: ignore[reportAttributeAccessIssue]
 

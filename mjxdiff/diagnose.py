@@ -26,6 +26,7 @@ import numpy as np
 from mjxdiff.stages import Contacts, contacts_c as _contacts_c, contacts_mjx as _contacts_mjx  # noqa: F401
 from mjxdiff.precision import THRESHOLDS, Precision
 from mjxdiff.errors import one_line
+from mjxdiff.compat import sensor_types
 from mjxdiff import metrics
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory
 from mjxdiff.inputs import BatchedInputs
@@ -205,7 +206,7 @@ def local_error(inputs: BatchedInputs, traj_c: Trajectory, m: mujoco.MjModel, rf
 # cause attribution
 
 
-_CONTACT_SENSORS = (int(mujoco.mjtSensor.mjSENS_TOUCH), int(mujoco.mjtSensor.mjSENS_CONTACT))
+_CONTACT_SENSORS = sensor_types("mjSENS_TOUCH", "mjSENS_CONTACT")
 
 
 def _no_contacts(m: mujoco.MjModel) -> None:

@@ -63,7 +63,7 @@ import numpy as np  # noqa: E402
 with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import warp" to stdout
     from mujoco import mjx
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
-from mjxdiff.compat import Batch, SimulationError  # noqa: E402
+from mjxdiff.compat import Batch, SimulationError, data_impl, disable_bit  # noqa: E402
 
 from mjxdiff.precision import Precision  # noqa: E402
 from mjxdiff import export_cache, joints, stages  # noqa: E402
@@ -429,7 +429,7 @@ def clear_compiled() -> None:
 
 
 def _contact_count(dx: mjx.Data) -> jax.Array:
-    impl = dx._impl  # noqa: SLF001 - MJX's contacts
+    impl = data_impl(dx)  # MJX's contacts
     c = impl.contact  # pyright: ignore[reportAttributeAccessIssue] - the JAX implementation's Data
     if c.dist.shape[0] == 0:
         return jnp.zeros((), jnp.int32)
@@ -454,7 +454,7 @@ def energy(mx: mjx.Model, dx: mjx.Data, qpos: jax.Array, qvel: jax.Array) -> jax
     disabled = int(mx.opt.disableflags)
     if not disabled & int(mujoco.mjtDisableBit.mjDSBL_GRAVITY):
         pot -= jnp.sum(mx.body_mass * (dx.xipos @ mx.opt.gravity))
-    if not disabled & int(mujoco.mjtDisableBit.mjDSBL_SPRING):
+    if not disabled & disable_bit("spring"):
         for p in joints.parts(mx):
             if p.kind == "rotation":
                 dif = mjx_math.quat_sub(mjx_math.normalize(qpos[p.qpos]), mx.qpos_spring[p.qpos])

@@ -83,7 +83,7 @@ def tally():
 
 
 #: Modules whose code a rollout traces: MJX's, and mjxdiff's own traced functions.
-TRACED_MODULES = ("mujoco.mjx", "mjxdiff.engines", "mjxdiff.trajectory", "mjxdiff.joints")
+TRACED_MODULES = ("mujoco.mjx", "mjxdiff.engines", "mjxdiff.trajectory", "mjxdiff.joints", "mjxdiff.compat")
 #: JAX settings that change what a trace or XLA produces.
 _JAX_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion",
                  "jax_default_prng_impl", "jax_threefry_partitionable", "jax_use_shardy_partitioner")

@@ -37,6 +37,7 @@ from hypothesis import strategies as st
 from hypothesis.database import DirectoryBasedExampleDatabase
 from hypothesis.errors import Flaky, HypothesisException
 
+from mjxdiff.compat import data_impl, enable_x64, with_impl
 from mjxdiff.errors import one_line
 from mjxdiff import interactions, report, reproducer, segments, strategies
 from mjxdiff.support import KNOWN_DIVERGENCES
@@ -67,7 +68,7 @@ def known_divergence(m) -> str | None:
 
     types = {mujoco.mjtSensor(t).name for t in m.sensor_type}
     # MJX's constraint rows, in its JAX implementation's Data (MJX types _impl as a union of implementations)
-    if types & _ACC_SENSORS and mjx.make_data(m)._impl.efc_J.size == 0:  # noqa: SLF001  # pyright: ignore[reportAttributeAccessIssue]
+    if types & _ACC_SENSORS and data_impl(mjx.make_data(m)).efc_J.size == 0:
         return "acceleration sensors without constraints"
     if any(len(_tendon_trees(m, k)) > 1 for k in np.flatnonzero(m.tendon_armature > 0)):
         return "tendon armature across trees"
@@ -262,14 +263,13 @@ def known_contact_divergence(m, inputs: BatchedInputs, result: ScenarioResult) -
     (:func:`_c_contacts_explain`): then nothing else differs, a bias force or a constraint row.
 
     MJX runs in float64, as the fuzzer's verdict does, whatever the caller's JAX setting."""
-    import jax
 
     first = result.first_divergence or {}
     member: int = first.get("member", -1)
     step: int = first.get("step", -1)
     if member < 0 or step < 0:
         return None
-    with jax.enable_x64(True):  # the thresholds (1e-6, the drill-down's 1e-9) are float64's
+    with enable_x64(True):  # the thresholds (1e-6, the drill-down's 1e-9) are float64's
         return _signature(inputs, member, step)
 
 
@@ -341,7 +341,7 @@ def _tangent_turned(m, d, dx) -> bool:
     import mujoco
 
     pyramidal = m.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
-    c = dx._impl.contact  # noqa: SLF001 - MJX's contacts
+    c = data_impl(dx).contact  # MJX's contacts
     geom, pos, frame = np.asarray(c.geom), np.asarray(c.pos), np.asarray(c.frame).reshape(-1, 9)
     for con in d.contact[:d.ncon]:
         direction = (pyramidal or con.friction[0] != con.friction[1]
@@ -381,7 +381,7 @@ def _regularized_slots(m, d, dx) -> dict[int, Any]:
     """MJX's contact slots (index -> C's ``MjContact``) of sphere-capsule and capsule-capsule
     contacts that differ from C's by MJX's regularized segment solves alone
     (:func:`mjxdiff.segments.explains`), more than :data:`mjxdiff.segments.TOLERANCE`."""
-    c = dx._impl.contact  # noqa: SLF001 - MJX's contacts
+    c = data_impl(dx).contact  # MJX's contacts
     geom, dist, pos, frame = (np.asarray(x) for x in (c.geom, c.dist, c.pos, c.frame))
     slots = {}
     for con in d.contact[:d.ncon]:
@@ -421,7 +421,7 @@ def _c_contacts_explain(m, states: list[dict[str, np.ndarray]]) -> bool:
         mujoco.mj_forward(m, d)
         dx = _mjx_forward(mx, m, state)
         contact = _with_c_contacts(m, d, dx)
-        if contact is None or dx._impl.efc_J.size == 0:  # noqa: SLF001  # pyright: ignore[reportAttributeAccessIssue]
+        if contact is None or data_impl(dx).efc_J.size == 0:
             return False
         given = _forward_given_contacts()(mx, dx, contact)
         if not (_agree(given.qacc, d.qacc) and _agree(given.sensordata, d.sensordata)):
@@ -447,7 +447,7 @@ def _with_c_contacts(m, d, dx):
     (:func:`_regularized_slots`), C's distance, position and frame. None
     where C has a contact of an SDF pair MJX has no slot for (more contacts than slots, or its
     geoms in the other order)."""
-    c = dx._impl.contact  # noqa: SLF001 - MJX's contacts
+    c = data_impl(dx).contact  # MJX's contacts
     geom, margin = np.asarray(c.geom), np.asarray(c.includemargin)
     dist, pos, frame = (np.array(x) for x in (c.dist, c.pos, c.frame))
     rows = frame.reshape(-1, 9)
@@ -482,7 +482,7 @@ def _forward_given_contacts():
     from mujoco.mjx._src import constraint, sensor, solver
 
     def after_collision(mx, dx, contact):
-        dx = dx.tree_replace({"_impl.contact": contact})
+        dx = with_impl(dx, contact=contact)
         return sensor.sensor_acc(mx, solver.solve(mx, constraint.make_constraint(mx, dx)))
 
     return jax.jit(after_collision)

@@ -42,6 +42,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from mjxdiff.compat import enable_x64
 from mjxdiff.errors import one_line
 from mjxdiff import joints
 from mjxdiff.noise import converge_solver, has_constraints
@@ -456,7 +457,7 @@ def check_scenario(scenario, count: int = 8, seed: int = 0, reproducers=None) ->
     results: list[StateResult] = []
     judged_at: list[tuple[mujoco.MjModel, dict[str, np.ndarray]]] = []
     try:
-        with jax.enable_x64(True):
+        with enable_x64(True):
             for i, (mi, member, step, state) in enumerate(states):
                 if has_constraints(mi):
                     mi = copy.copy(mi)
@@ -492,7 +493,7 @@ def check_scenario(scenario, count: int = 8, seed: int = 0, reproducers=None) ->
         w = max(failed, key=lambda r: r.ratio)
         if reproducers is not None:
             path = _save_reproducer(reproducers, scenario, w, judged_at, dict(states=count, seed=seed))
-        with jax.enable_x64(True):
+        with enable_x64(True):
             heatmap = dict(state=w.index, log10_ratio=log10_ratios(*judged_at[w.index], code))
     return dict(name=scenario.name, status=status, message=message, states=len(results), smooth=len(judged),
                 non_smooth=non_smooth, worst_ratio=worst.ratio if worst else None,
@@ -525,7 +526,7 @@ def replay(rep) -> tuple[StateResult, bool]:
     from mjxdiff import export_cache
 
     export_cache.fresh_digest()
-    with jax.enable_x64(True):
+    with enable_x64(True):
         r = judge_state(rep.model, rep.state, rep.index, rep.verdict.get("member", 0), rep.verdict.get("step", 0),
                         export_cache.code_digest())
     then = rep.verdict.get("worst") or {}

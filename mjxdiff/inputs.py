@@ -18,6 +18,7 @@ import mujoco
 import numpy as np
 
 from mjxdiff import joints
+from mjxdiff.compat import disable_bit
 from mjxdiff.joints import quat_mul, rotvec_quat  # here too: their first home
 from mjxdiff.scenario import Randomization, Scenario, ScenarioError
 
@@ -261,7 +262,7 @@ def _with_flags(m: mujoco.MjModel, candidates: tuple[str, ...], rng: np.random.G
         return m
     m = copy.copy(m)
     for f in drawn:
-        m.opt.disableflags |= int(getattr(mujoco.mjtDisableBit, f"mjDSBL_{f.upper()}"))
+        m.opt.disableflags |= disable_bit(f)
     return m
 
 

@@ -10,7 +10,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from mjxdiff.compat import full_inertia
+from mjxdiff.compat import data_impl, full_inertia
 
 __all__ = ["Contacts", "Forward", "contacts_c", "contacts_mjx", "frame", "read"]
 
@@ -47,7 +47,7 @@ def contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> Contacts:
 
 
 def contacts_mjx(m: mujoco.MjModel, dx: Any) -> Contacts:
-    c = dx._impl.contact  # noqa: SLF001 - MJX's contacts
+    c = data_impl(dx).contact  # MJX's contacts
     dist, margin, geom, pos, friction, frames = map(np.asarray, (c.dist, c.includemargin, c.geom, c.pos, c.friction,
                                                                  c.frame))
     out: Contacts = {}

@@ -24,6 +24,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from mjxdiff.compat import enable_x64
 from mjxdiff.config import IMPLS, NOISE_FLOOR_MODES, SweepConfig  # noqa: F401 - public here
 from mjxdiff.precision import Precision
 from mjxdiff.errors import one_line
@@ -425,7 +426,7 @@ def _ahead(items: Iterable, depth: int = 1) -> Generator:
     x64 = jax.config.jax_enable_x64  # pyright: ignore[reportAttributeAccessIssue]
 
     def produce_here() -> None:
-        with jax.enable_x64(x64):
+        with enable_x64(x64):
             produce()
 
     worker = threading.Thread(target=produce_here, name="mjxdiff-c", daemon=True)
@@ -989,7 +990,7 @@ def _precision(precision: Precision):
     """``jax_enable_x64`` as ``precision`` says, for the calling thread only (JAX's thread-local
     setting): scenarios a sweep runs at once on its workers never see each other's (a float32
     sweep's float64 ablation), and the process-wide setting is left as it was."""
-    return jax.enable_x64(precision == "float64")
+    return enable_x64(precision == "float64")
 
 
 class _Progress:

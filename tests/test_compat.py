@@ -29,7 +29,7 @@ def test_versions_outside_the_range_are_named(versions, words):
 
 
 @pytest.mark.parametrize("versions", [
-    {"mujoco": "3.3.0", "mujoco-mjx": "3.3.0", "jax": "0.5.3"},
+    {"mujoco": "3.3.0", "mujoco-mjx": "3.3.0", "jax": "0.6.2"},
     {"mujoco": "3.9.0", "mujoco-mjx": "3.9.0", "jax": "0.7.2"},
     {"mujoco": "4.0.0", "mujoco-mjx": "3.17.0.dev0", "jax": "0.10.2"},
 ])
