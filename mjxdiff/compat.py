@@ -18,6 +18,9 @@ branches on versions:
 * :func:`data_impl`, :func:`with_impl`, :func:`impl_fields`: from MJX 3.3.x (3.3.5 has it,
   3.3.0 not) the JAX implementation's fields of ``Data`` (contacts, constraint rows, ``qM``)
   live in ``Data._impl`` (``types.DataJAX``); before, on ``Data`` itself.
+* :func:`later_feature`: a model that an older MuJoCo cannot compile because its XML uses
+  something a later release added (``<flag spring=...>`` before 3.4) is ``unsupported`` there,
+  not bad input.
 * ``Batch``, ``SimulationError``: :class:`mujoco.batch.Batch` (MuJoCo 4.0) or, before it,
   :class:`LoopBatch`, the part of its interface mjxdiff uses as a loop over one ``MjData``
   per simulation (the same arithmetic: ``Batch`` is documented bit-identical to that loop).
@@ -35,8 +38,8 @@ from typing import Any, Sequence
 import mujoco
 import numpy as np
 
-__all__ = ["enable_x64", "disable_bit", "sensor_types", "full_inertia", "mjx_lacks", "data_impl", "with_impl",
-           "impl_fields", "Batch", "LoopBatch", "SimulationError", "SUPPORTED", "REFERENCE", "installed",
+__all__ = ["later_feature", "enable_x64", "disable_bit", "sensor_types", "full_inertia", "mjx_lacks", "data_impl",
+           "with_impl", "impl_fields", "Batch", "LoopBatch", "SimulationError", "SUPPORTED", "REFERENCE", "installed",
            "check_versions", "UntestedVersions", "HAS_BATCH"]
 
 #: The supported range, inclusive: distribution -> (oldest, newest).
@@ -90,6 +93,20 @@ def _matching_mjx(mujoco_version: str) -> tuple[int, ...]:
     """The MJX (major, minor) released with a MuJoCo: the same up to 3.x; 3.17 for 4.0."""
     r = _release(mujoco_version)[:2]
     return (3, 17) if r == (4, 0) else r
+
+
+_SCHEMA = re.compile(r"Schema violation: unrecognized (attribute|element)|unrecognized (sensor|geom) type|"
+                     r"invalid keyword|unknown (attribute|element)", re.IGNORECASE)
+
+
+def later_feature(message: str, versions: dict[str, str] | None = None) -> str | None:
+    """Why a compile error ``message`` of MuJoCo C is this MuJoCo being older than the reference
+    (:data:`REFERENCE`), or None (the model is malformed): an XML schema violation (an
+    unrecognized attribute, element or type) on a MuJoCo before the reference's."""
+    v = (versions or installed())["mujoco"]
+    if v == "not installed" or _release(v) >= _release(REFERENCE["mujoco"]) or not _SCHEMA.search(message):
+        return None
+    return f"MuJoCo {v} cannot compile this model, which uses something a later MuJoCo added: {message}"
 
 
 def enable_x64(on: bool = True):

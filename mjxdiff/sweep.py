@@ -24,7 +24,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from mjxdiff.compat import enable_x64
+from mjxdiff.compat import enable_x64, later_feature
 from mjxdiff.config import IMPLS, NOISE_FLOOR_MODES, SweepConfig  # noqa: F401 - public here
 from mjxdiff.precision import Precision
 from mjxdiff.errors import one_line
@@ -126,7 +126,9 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
     try:
         m = load_model(scenario)
     except ScenarioError as e:
-        prepared.early = ScenarioResult(name=scenario.name, status="error", error_kind="input", message=str(e),
+        later = later_feature(str(e))
+        prepared.early = ScenarioResult(name=scenario.name, status="unsupported" if later else "error",
+                                        error_kind="" if later else "input", message=later or str(e),
                                         info=info, tolerances=tol.as_dict())
         return prepared
     try:

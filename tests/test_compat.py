@@ -95,3 +95,16 @@ def test_a_member_whose_warnings_rise_stops_and_repeats_its_last_record():
     for k in ("qpos", "qvel"):
         np.testing.assert_array_equal(out["LoopBatch"][k], out["Batch"][k], err_msg=k)
     assert (out["Batch"]["qvel"][1, -1] == out["Batch"]["qvel"][1, -2]).all()
+
+
+@pytest.mark.parametrize("mujoco_version, message, later", [
+    ("3.3.5", "XML Error: Schema violation: unrecognized attribute: 'spring' Element 'flag', line 4", True),
+    ("3.3.0", "XML Error: Schema violation: unrecognized element 'contact' Element 'sensor'", True),
+    ("3.3.5", "XML Error: unknown joint 'j9' in actuator", False),  # malformed anywhere
+    ("4.0.0", "XML Error: Schema violation: unrecognized attribute: 'sprng'", False),  # a typo on the reference
+])
+def test_a_model_an_older_mujoco_cannot_compile_is_a_later_feature(mujoco_version, message, later):
+    why = compat.later_feature(message, {"mujoco": mujoco_version})
+    assert (why is not None) == later
+    if later:
+        assert f"MuJoCo {mujoco_version} cannot compile this model" in why and message in why
