@@ -69,6 +69,16 @@ accepted = true) and, with --baseline, failures the baseline already had, exit 0
 _BENCH_DEFAULT = ("pendulum", "cartpole", "ant")
 #: The long descriptions of the subcommands (``--help``; argparse refills the lines).
 _DESCRIPTIONS = {
+    "versions": """\
+Answer "is it safe to upgrade MJX?" and "since which release does this divergence exist?": for
+each MJX release given, make (or reuse) an isolated environment, a venv with that MJX, its MuJoCo
+and a JAX, installed by pip from the package index, with this mjxdiff linked in; run the same
+sweep in each; print one table, scenario x version, with status, worst ratio to the bound, first
+step out and known-divergence label, each cell marked where it changed since the previous
+version. Each version's report.json, and its run in one history (see 'mjxdiff history
+--by-version'), stay under --out. A version that cannot be installed or swept is one error line;
+the others still run. Exit 0 when every version ran and no scenario failed outside the known
+divergences, else 1; 2 bad input.""",
     "replay": """\
 Re-run a reproducer file (written under DIR/reproducers/ by 'sweep --out DIR' for each failing
 scenario, or by 'grad --out DIR' for a state whose Jacobians disagree) and print its diagnosis. Exit
@@ -127,6 +137,14 @@ everything can be trusted (or --fix removed what could not), 1 when something ca
 }
 
 
+_VERSIONS_EPILOG = """\
+examples:
+  python -m mjxdiff versions 3.9.0/0.7.2 3.17.0 --quick           # a playground pin against the newest
+  python -m mjxdiff versions 3.3.5/0.7.0 3.9.0/0.7.2 3.17.0 --scenarios pendulum humanoid
+  python -m mjxdiff versions 3.12.0 3.17.0 --scenarios my_robot.toml --out upgrade-check
+
+The first run of a version installs it (a minute or two, about 1 GB per environment); later runs
+reuse it while mjxdiff's requirements are unchanged."""
 _BENCH_DESCRIPTION = """\
 Measure both platforms on the same batch, horizon and cores: steps/s of MJX and
 of MuJoCo C for several batch sizes (MJX's best batch size is model-specific),
@@ -494,6 +512,53 @@ def _cache_parser(sub) -> argparse.ArgumentParser:
 def _list_parser(sub) -> argparse.ArgumentParser:
     return sub.add_parser("list", help="list bundled scenarios and what each exercises",
                    description="List bundled scenarios with their model, size and what they exercise.")
+
+
+def _versions_parser(sub) -> argparse.ArgumentParser:
+    ve = sub.add_parser("versions", help="run the same sweep on several MJX releases and tabulate the verdicts",
+                        description=_DESCRIPTIONS["versions"], epilog=_VERSIONS_EPILOG,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    ve.add_argument("targets", nargs="+", metavar="MJX[/JAX]", type=_target,
+                    help="an MJX release (3.9.0; its MuJoCo is installed with it, 4.0 for MJX 3.17), optionally with "
+                         "the JAX to pair it with (3.9.0/0.7.2; default: the newest pip finds within mjxdiff's range)")
+    ve.add_argument("--scenarios", nargs="+", default=[], metavar="SCENARIO",
+                    help="bundled scenario names, scenario .toml or MJCF .xml files to sweep on every version "
+                         "(default: every bundled scenario)")
+    ve.add_argument("--quick", action="store_true", help="sweep --quick on every version")
+    _shared(ve, "seed", "out", out="write OUT/versions.json, each version's report under OUT/<version>/ and their runs "
+                            "to the history OUT/history (default mjxdiff-versions)")
+    ve.add_argument("--envs", metavar="DIR", help="where the environments are kept and reused (default "
+                                                  "$XDG_CACHE_HOME/mjxdiff/versions or ~/.cache/mjxdiff/versions)")
+    ve.add_argument("--extras", nargs="*", default=[], metavar="EXTRA",
+                    help="mjxdiff extras installed in every environment too (test: to run the suite there)")
+    _shared(ve, "format")
+    return ve
+
+
+def _target(text: str):
+    from mjxdiff.versions import parse_target
+
+    try:
+        return parse_target(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _cmd_versions(args: argparse.Namespace) -> int:
+    from mjxdiff import versions
+
+    scenarios = [str(Path(x).resolve()) if Path(x).suffix else x for x in args.scenarios]  # files: for the child
+    sweep_args = [*scenarios, "--seed", str(args.seed), *(["--quick"] if args.quick else [])]
+    cache = Path(args.envs) if args.envs else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / \
+        "mjxdiff" / "versions"
+    say = (lambda line: print(line, file=sys.stderr)) if args.format == "json" else print
+    doc = versions.run(args.targets, sweep_args, Path(args.out or "mjxdiff-versions"), cache, args.extras, say)
+    if args.format == "json":
+        print(json.dumps(doc, indent=2))
+    else:
+        print(versions.format_table(doc["table"]))
+    cells = [c for row in doc["table"]["rows"].values() for c in row.values()]
+    return 1 if doc["table"]["errors"] or any(c["status"] in ("fail", "error") and not c["known"] for c in cells) else 0
 
 
 def _selected(refs: Sequence[str]) -> list | None:
@@ -875,11 +940,11 @@ def _cmd_cache(args: argparse.Namespace) -> int:
 _COMMANDS = ((_sweep_parser, _cmd_sweep), (_replay_parser, _cmd_replay), (_fuzz_parser, _cmd_fuzz),
              (_bench_parser, _cmd_bench), (_policy_parser, _cmd_policy), (_coverage_parser, _cmd_coverage),
              (_grad_parser, _cmd_grad), (_history_parser, _cmd_history), (_cache_parser, _cmd_cache),
-             (_list_parser, _cmd_list))
+             (_versions_parser, _cmd_versions), (_list_parser, _cmd_list))
 
 
 #: Commands that run neither MuJoCo nor MJX: no version check.
-_UNGATED = (_cmd_history, _cmd_list)
+_UNGATED = (_cmd_history, _cmd_list, _cmd_versions)  # versions: each environment is gated by its own range
 
 
 def main(argv: Sequence[str] | None = None) -> int:

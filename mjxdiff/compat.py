@@ -39,8 +39,8 @@ import mujoco
 import numpy as np
 
 __all__ = ["later_feature", "enable_x64", "disable_bit", "sensor_types", "full_inertia", "mjx_lacks", "data_impl",
-           "with_impl", "impl_fields", "Batch", "LoopBatch", "SimulationError", "SUPPORTED", "REFERENCE", "installed",
-           "check_versions", "UntestedVersions", "HAS_BATCH"]
+           "with_impl", "impl_fields", "Batch", "LoopBatch", "SimulationError", "SUPPORTED", "JAX_CEILING", "REFERENCE",
+           "installed", "check_versions", "UntestedVersions", "HAS_BATCH"]
 
 #: The supported range, inclusive: distribution -> (oldest, newest).
 SUPPORTED: dict[str, tuple[str, str]] = {
@@ -48,6 +48,10 @@ SUPPORTED: dict[str, tuple[str, str]] = {
     "mujoco-mjx": ("3.3.0", "3.17.0"),
     "jax": ("0.6.0", "0.10.2"),
 }
+#: The newest JAX an MJX release runs on, where it is older than the range's: MJX 3.3 calls
+#: ``jnp.clip(a_min=...)``, which later JAX removed ("clip() got an unexpected keyword argument
+#: 'a_min'" under JAX 0.10.2; its sweep passes under 0.7.0).
+JAX_CEILING: dict[tuple[int, int], str] = {(3, 3): "0.7.2"}
 #: The reference set mjxdiff is developed on (constraints.txt pins it).
 REFERENCE = {"mujoco": "4.0.0", "mujoco-mjx": "3.17.0", "jax": "0.10.2"}
 
@@ -85,6 +89,9 @@ def check_versions(versions: dict[str, str] | None = None) -> None:
     mj, mjx = versions.get("mujoco", ""), versions.get("mujoco-mjx", "")
     if not problems and _matching_mjx(mj) != _release(mjx)[:2]:
         problems.append(f"mujoco-mjx {mjx} is not the release of mujoco {mj}")
+    ceiling = JAX_CEILING.get(_release(mjx)[:2]) if not problems else None
+    if ceiling and _release(versions["jax"]) > _release(ceiling):
+        problems.append(f"jax {versions['jax']} is newer than mujoco-mjx {mjx} runs on (at most {ceiling})")
     if problems:
         raise UntestedVersions("; ".join(problems))
 

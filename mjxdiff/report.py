@@ -32,7 +32,7 @@ ENVELOPE = ("kind", "schema_version", "versions", "code", "machine", "config", "
 KINDS = {"sweep": "report.json", "grad": "grad-report.json", "policy": "policy-report.json",
          "policy-reproducer": "policy-reproducer.json", "bench": "bench.json", "coverage": "coverage.json",
          "fuzz": "fuzz-report.json", "reproducer": "reproducers/NAME-memberI.json",
-         "grad-reproducer": "reproducers/NAME-grad-stateI.json"}
+         "grad-reproducer": "reproducers/NAME-grad-stateI.json", "versions": "versions.json"}
 _SYMBOL = {"pass": "PASS", "fail": "FAIL", "unsupported": "UNSUP", "error": "ERROR"}
 
 

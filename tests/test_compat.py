@@ -20,6 +20,7 @@ def test_the_reference_set_is_supported():
     ({"mujoco": "4.1.0", "mujoco-mjx": "3.18.0", "jax": "0.10.2"}, ["mujoco 4.1.0", "supported 3.3.0 to 4.0.0"]),
     ({"mujoco": "3.9.0", "mujoco-mjx": "3.8.0", "jax": "0.7.2"}, ["mjx 3.8.0 is not the release of mujoco 3.9.0"]),
     ({"mujoco": "4.0.0", "mujoco-mjx": "not installed", "jax": "0.10.2"}, ["mujoco-mjx not installed"]),
+    ({"mujoco": "3.3.5", "mujoco-mjx": "3.3.5", "jax": "0.10.2"}, ["jax 0.10.2 is newer than mujoco-mjx 3.3.5"]),
 ])
 def test_versions_outside_the_range_are_named(versions, words):
     with pytest.raises(compat.UntestedVersions) as e:
@@ -29,7 +30,8 @@ def test_versions_outside_the_range_are_named(versions, words):
 
 
 @pytest.mark.parametrize("versions", [
-    {"mujoco": "3.3.0", "mujoco-mjx": "3.3.0", "jax": "0.6.2"},
+    {"mujoco": "3.3.0", "mujoco-mjx": "3.3.0", "jax": "0.6.0"},
+    {"mujoco": "3.3.5", "mujoco-mjx": "3.3.5", "jax": "0.7.0"},
     {"mujoco": "3.9.0", "mujoco-mjx": "3.9.0", "jax": "0.7.2"},
     {"mujoco": "4.0.0", "mujoco-mjx": "3.17.0.dev0", "jax": "0.10.2"},
 ])
