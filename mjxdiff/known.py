@@ -49,6 +49,8 @@ def load_entries(path: str | Path) -> tuple[Entry, ...]:
         for t in data.get("known", []):
             t = dict(t)
             t["integrator"] = tuple(t.get("integrator", ()))
+            if "versions" in t:
+                t["versions"] = tuple(t["versions"])
             entries.append(Entry(**t))
         for e in entries:
             if e.pattern:

@@ -179,8 +179,18 @@ KNOWN_DIVERGENCES = {
 
 # -- the known-divergence catalogue (mjxdiff.known) -------------------------------------------------
 
+#: The MJX release the catalogue was first measured on (with MuJoCo 4.0.0).
+MEASURED_ON = "3.17.0"
+
+
 @dataclasses.dataclass(frozen=True)
 class Entry:
+    """One known divergence: what it is, the evidence, what a failing scenario must show to
+    match it (stage, field, pattern, cause, integrator, scenario: all given must hold), whether
+    it is accepted (``--fail-on new`` lets it pass), and ``versions``, the MJX releases it was
+    seen in (``mjxdiff versions`` sweeps; a match on another release is labelled all the same,
+    and the report says where it was seen)."""
+
     id: str
     title: str
     evidence: str
@@ -191,6 +201,7 @@ class Entry:
     integrator: tuple[str, ...] = ()
     scenario: str | None = None
     accepted: bool = False
+    versions: tuple[str, ...] = (MEASURED_ON,)
 
     def matches(self, s: dict[str, Any]) -> bool:
         """Whether a failing scenario (a report's scenario dict) fits this entry."""
@@ -217,10 +228,11 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("solver-truncation", "solver settings capped short of convergence: MJX and C part where each stops",
           "tests/test_solver_floor.py: a 1-iteration quadruped parts by radians over 200 steps; with a converged "
           "solver (the twin) and one step from C's states the engines agree to rounding", cause="solver truncation",
-          accepted=True),
+          accepted=True, versions=(MEASURED_ON, "3.3.5")),
     Entry("plane-box-corners", "plane-box/mesh: MJX keeps only corners within 1 mm of the deepest",
           "primitives_on_plane notes: a box that lands on a corner or rocks (> 1 mm depth spread) diverges ~1e-3; "
-          "a tipped cube in sensing: C 4 corners, MJX 3", stage="collision", pattern=r"\(plane-(box|mesh):"),
+          "a tipped cube in sensing: C 4 corners, MJX 3", stage="collision", pattern=r"\(plane-(box|mesh):",
+          versions=(MEASURED_ON, "3.3.5")),
     Entry("plane-cylinder-rim", "plane-cylinder: MJX adds the second rim point only near parallel",
           "primitives_on_plane notes: the second rim point only when the axis is within ~1e-3 of parallel; a "
           "cylinder sunk into a plane: C 4 contacts, MJX 3", stage="collision", pattern=r"\(plane-cylinder:"),
@@ -232,7 +244,7 @@ CATALOGUE: tuple[Entry, ...] = (
           stage="collision", pattern=r"tangent frame differs"),
     Entry("box-box-manifold", "box-box: MJX pads the manifold and places points on a surface",
           "primitive_pairs / box_stack notes: edge-first landings C 2, MJX 4 contacts; contact points on a surface "
-          "(C halfway): friction arms differ by dist/2", pattern=r"\(box-box:"),
+          "(C halfway): friction arms differ by dist/2", pattern=r"\(box-box:", versions=(MEASURED_ON, "3.3.5")),
     Entry("ellipsoid-cylinder-pairs", "sphere/capsule/ellipsoid/cylinder against ellipsoid/cylinder: MJX's "
           "10-step SDF descent vs C's exact collision",
           "tests/data/fuzz_ellipsoid_cylinder_contact.json: at its first contact an ellipsoid-cylinder pair is "
@@ -242,7 +254,8 @@ CATALOGUE: tuple[Entry, ...] = (
           pattern=r"\(((sphere|capsule|ellipsoid)-(ellipsoid|cylinder)|cylinder-cylinder):"),
     Entry("capsule-regularisation", "capsule pairs: MJX's +1e-6 segment regularisation tilts normals",
           "primitive_pairs notes: closest_segment_point divides by |ab|^2 + 1e-6; a sphere rolling along a 1 m "
-          "capsule rail drifts 2e-3 qvel in 300 steps", pattern=r"\((sphere-capsule|capsule-capsule|capsule-\w+):"),
+          "capsule rail drifts 2e-3 qvel in 300 steps", pattern=r"\((sphere-capsule|capsule-capsule|capsule-\w+):",
+          versions=(MEASURED_ON, "3.3.5")),
     Entry("heightfield-pairs", "heightfield pairs: MJX keeps other contacts than C",
           "tests/test_known_divergences.py: a sphere across a valley C 2, MJX 1 contact (qacc 16.4 apart); a box "
           "on a slope C 3, MJX 4", pattern=r"\(hfield-\w+:"),

@@ -1,7 +1,7 @@
 """``mjxdiff versions``: the same sweep on several MJX releases, one table.
 
 Each target (``3.9.0``, or ``3.9.0/0.7.2`` for MJX 3.9.0 with JAX 0.7.2) gets an environment
-of its own, a venv under ``<cache>/versions/`` made with the standard library's ``venv`` and
+of its own, a venv under ``~/.cache/mjxdiff/versions/`` (``--envs``) made with the standard library's ``venv`` and
 filled by pip from the package index: MuJoCo and MJX of that release (MJX 3.17 is MuJoCo 4.0's),
 JAX as pinned or as pip resolves within mjxdiff's range, and mjxdiff's other dependencies. The
 mjxdiff running the command is linked in (a ``.pth`` file), so every environment tests the
@@ -65,8 +65,8 @@ class Target:
 
 def parse_target(text: str) -> Target:
     """``3.9.0`` or ``3.9.0/0.7.2`` (MJX, then JAX); ValueError naming the form otherwise."""
-    mjx, _, jax = text.partition("/")
-    if not _VERSION.fullmatch(mjx) or (jax and not _VERSION.fullmatch(jax)):
+    mjx, slash, jax = text.partition("/")
+    if not _VERSION.fullmatch(mjx) or (slash and not _VERSION.fullmatch(jax)):
         raise ValueError(f"{text!r} is not MJX[/JAX], e.g. 3.9.0 or 3.9.0/0.7.2")
     return Target(mjx, jax or None)
 
@@ -103,9 +103,9 @@ def _pip(env: Path, args: list[str], log: Path) -> None:
 
 
 def prepare(target: Target, cache: Path, extras: Sequence[str] = (), say: Callable[[str], None] = print) -> Path:
-    """The venv of ``target`` under ``cache/versions``, made or reused; its directory.
+    """The venv of ``target`` under ``cache``, made or reused; its directory.
     VersionsError in one line (with the log) when it cannot be made."""
-    env = cache / "versions" / re.sub(r"[^A-Za-z0-9._-]", "_", f"mjx-{target.label}")
+    env = cache / re.sub(r"[^A-Za-z0-9._-]", "_", f"mjx-{target.label}")
     reqs = requirements(target, extras)
     stamp = env / "mjxdiff-requirements.json"
     if stamp.is_file() and json.loads(stamp.read_text()) == reqs and _python(env).exists():
@@ -256,7 +256,10 @@ def run(targets: Sequence[Target], sweep_args: Sequence[str], out: Path, cache: 
         try:
             env = prepare(target, cache, extras, say)
             results.append((target, sweep(env, target, sweep_args, out, say)))
-        except (VersionsError, OSError, subprocess.SubprocessError, json.JSONDecodeError) as e:
+        except VersionsError as e:
+            say(f"versions: {target.label}: {e}")
+            results.append((target, str(e)))
+        except (OSError, subprocess.SubprocessError, json.JSONDecodeError) as e:
             say(f"versions: {target.label}: {one_line(e)}")
             results.append((target, one_line(e)))
     t = table(results)

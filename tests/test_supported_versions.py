@@ -1,0 +1,58 @@
+"""What must hold on every supported MuJoCo / MJX / JAX set, not only the reference one: CI runs
+this module in an environment of the oldest and of a middle supported set too (.ci/run), as
+well as here. The installed set is in range; MuJoCo C streams its rollout bit for bit (through
+mujoco.batch or the loop that stands in for it); the unmodified MJX passes; a 0.1% damping bug
+injected into this MJX's passive forces is caught, naming the field, the stage and the step."""
+
+import dataclasses
+
+import numpy as np
+from mujoco.mjx._src import passive as mjx_passive
+
+from mjxdiff import compat
+from mjxdiff.engines import CEngine
+from mjxdiff.inputs import make_inputs
+from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.sweep import SweepConfig, sweep
+from mjxdiff.trajectory import Trajectory, concat
+
+_CONFIG = SweepConfig(seed=0, batch=4, steps=100, diagnose="basic", transfer=False)
+
+
+def test_the_installed_set_is_supported():
+    compat.check_versions()
+
+
+def test_c_streams_its_rollout_bit_for_bit():
+    scenario = load_scenario("primitives_on_plane")
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, seed=0, batch=3, steps=40)
+    whole, pieces = CEngine().rollout(inputs), concat(list(CEngine().stream(inputs, 13)))
+    assert whole.ncon.max() > 0
+    for f in dataclasses.fields(Trajectory):
+        np.testing.assert_array_equal(getattr(pieces, f.name), getattr(whole, f.name), err_msg=f.name)
+
+
+def test_unmodified_mjx_passes_and_an_injected_damping_bug_is_caught(fresh_mjx, monkeypatch):
+    clean = sweep([load_scenario("pendulum"), load_scenario("cartpole")], _CONFIG)
+    assert [r.status for r in clean] == ["pass", "pass"], [r.message for r in clean]
+
+    orig = mjx_passive._spring_damper
+    monkeypatch.setattr(mjx_passive, "_spring_damper", lambda m, d: orig(m, d) - 1e-3 * m.dof_damping * d.qvel)
+    from mjxdiff import engines
+
+    engines.clear_compiled()
+    [bad] = sweep([load_scenario("pendulum")], _CONFIG)
+    assert bad.status == "fail", bad.message
+    first = bad.first_divergence
+    assert first is not None and first["field"] in ("qpos", "qvel") and first["step"] >= 0
+    assert "joint 'hinge'" in bad.message
+    drill = bad.diagnosis["drill_down"]
+    assert drill["first_field"] == "qfrc_passive" and drill["first_stage"] == "passive", drill
+
+
+def test_the_report_names_the_versions_it_ran_on():
+    from mjxdiff import report
+
+    versions = report.versions()
+    assert {k: versions[k] for k in compat.SUPPORTED} == compat.installed()
