@@ -49,8 +49,9 @@ def load_entries(path: str | Path) -> tuple[Entry, ...]:
         for t in data.get("known", []):
             t = dict(t)
             t["integrator"] = tuple(t.get("integrator", ()))
-            if "versions" in t:
-                t["versions"] = tuple(t["versions"])
+            for key in ("versions", "only_on"):
+                if key in t:
+                    t[key] = tuple(t[key])
             entries.append(Entry(**t))
         for e in entries:
             if e.pattern:

@@ -56,3 +56,24 @@ def test_the_report_names_the_versions_it_ran_on():
 
     versions = report.versions()
     assert {k: versions[k] for k in compat.SUPPORTED} == compat.installed()
+
+
+def test_the_fast_compile_is_used_only_where_it_was_validated():
+    import jax
+
+    from mjxdiff.engines import xla_options
+
+    _, choice = xla_options("fast", 10)(jax.jit(lambda x: x + 1.0).lower(1.0))
+    assert (choice["level"] == "fast") == compat.fast_compile_validated()
+
+
+def test_a_version_specific_entry_matches_only_on_its_release(monkeypatch):
+    from mjxdiff import support
+
+    entry = support.Entry("x", "t", "e", pattern=r"\(mesh-mesh:", only_on=("3.3.",))
+    failing = dict(status="fail", message="first field to differ: contact (geoms a / b (mesh-mesh: C 1, MJX 4))")
+    monkeypatch.setattr(support, "_mjx_version", lambda: "3.3.5")
+    assert entry.matches(failing)
+    monkeypatch.setattr(support, "_mjx_version", lambda: "3.17.0")
+    assert not entry.matches(failing)
+    assert dataclasses.replace(entry, only_on=()).matches(failing)
