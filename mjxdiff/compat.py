@@ -21,10 +21,12 @@ branches on versions:
 * :func:`later_feature`: a model that an older MuJoCo cannot compile because its XML uses
   something a later release added (``<flag spring=...>`` before 3.4) is ``unsupported`` there,
   not bad input.
-* :func:`fast_compile_validated`: XLA's LLVM level 0 with classic emitters (the sweep's fast
-  compile, ``mjxdiff.engines.FAST_COMPILE``) miscompiles MJX on jaxlib 0.7.2: results that
-  depend on which members share the batch. It is used only on the jaxlib releases it was
-  validated on; elsewhere the sweep compiles at level 1.
+* :func:`jaxlib_validated`: two things mjxdiff does for speed are used only on the jaxlib
+  releases they were validated on (:data:`VALIDATED_JAXLIB`); elsewhere it compiles at XLA's
+  level 1 and keeps no persistent caches. XLA's LLVM level 0 with classic emitters (the
+  sweep's fast compile, ``mjxdiff.engines.FAST_COMPILE``) miscompiles MJX on jaxlib 0.7.2
+  (results that depend on which members share the batch), and a rollout loaded from the
+  persistent caches there crashes the process (SIGSEGV in ``aot_cache_miss``).
 * ``Batch``, ``SimulationError``: :class:`mujoco.batch.Batch` (MuJoCo 4.0) or, before it,
   :class:`LoopBatch`, the part of its interface mjxdiff uses as a loop over one ``MjData``
   per simulation (the same arithmetic: ``Batch`` is documented bit-identical to that loop).
@@ -42,9 +44,9 @@ from typing import Any, Sequence
 import mujoco
 import numpy as np
 
-__all__ = ["fast_compile_validated", "later_feature", "enable_x64", "disable_bit", "sensor_types", "full_inertia",
+__all__ = ["jaxlib_validated", "later_feature", "enable_x64", "disable_bit", "sensor_types", "full_inertia",
            "mjx_lacks", "data_impl", "with_impl", "impl_fields", "Batch", "LoopBatch", "SimulationError", "SUPPORTED",
-           "JAX_CEILING", "REFERENCE", "FAST_COMPILE_VALIDATED", "installed", "check_versions", "UntestedVersions",
+           "JAX_CEILING", "REFERENCE", "VALIDATED_JAXLIB", "installed", "check_versions", "UntestedVersions",
            "HAS_BATCH"]
 
 #: The supported range, inclusive: distribution -> (oldest, newest).
@@ -122,16 +124,18 @@ def later_feature(message: str, versions: dict[str, str] | None = None) -> str |
 
 
 #: jaxlib releases (major, minor) on which the fast compile was checked against XLA's defaults
-#: (tests/test_compile_options.py and the suite on the reference set). Measured on jaxlib 0.7.2
-#: with MJX 3.9.0: joint_parameters (seed 0) member 3 comes out 7.5e-3 from C in qpos after one
-#: step when vmapped with members 0-7 or 2-3, 3e-17 alone, with 0-3 or 3-7, or at level 1.
-FAST_COMPILE_VALIDATED = ((0, 10),)
+#: and the persistent caches round-trip (tests/test_compile_options.py, tests/test_export_cache.py
+#: and the suite on the reference set). Measured on jaxlib 0.7.2 with MJX 3.9.0: joint_parameters
+#: (seed 0) member 3 comes out 7.5e-3 from C in qpos after one step when vmapped with members 0-7
+#: or 2-3, 3e-17 alone, with 0-3 or 3-7, or at level 1; the second run of a sweep, loading the
+#: first's rollout, dies of SIGSEGV (the first, and any run with --cache-dir "", pass).
+VALIDATED_JAXLIB = ((0, 10),)
 
 
-def fast_compile_validated() -> bool:
-    """Whether the installed jaxlib is one the fast compile was validated on."""
+def jaxlib_validated() -> bool:
+    """Whether the installed jaxlib is one mjxdiff's fast compile and caches were validated on."""
     try:
-        return _release(metadata.version("jaxlib"))[:2] in FAST_COMPILE_VALIDATED
+        return _release(metadata.version("jaxlib"))[:2] in VALIDATED_JAXLIB
     except metadata.PackageNotFoundError:
         return False
 

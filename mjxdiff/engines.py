@@ -63,7 +63,7 @@ import numpy as np  # noqa: E402
 with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import warp" to stdout
     from mujoco import mjx
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
-from mjxdiff.compat import Batch, SimulationError, data_impl, disable_bit, fast_compile_validated  # noqa: E402
+from mjxdiff.compat import Batch, SimulationError, data_impl, disable_bit, jaxlib_validated  # noqa: E402
 
 from mjxdiff.precision import Precision  # noqa: E402
 from mjxdiff import export_cache, joints, stages  # noqa: E402
@@ -168,6 +168,8 @@ def configure_jax(precision: Precision = "float64", cache_dir: str | os.PathLike
     jax.config.update("jax_enable_x64", precision == "float64")
     if cache_dir is None:
         cache_dir = os.environ.get("MJXDIFF_CACHE", Path.home() / ".cache" / "mjxdiff" / "jax")
+    if not jaxlib_validated():
+        cache_dir = ""  # a loaded rollout crashes some jaxlib releases (mjxdiff.compat.VALIDATED_JAXLIB)
     if cache_dir:
         jax.config.update("jax_compilation_cache_dir", str(cache_dir))
         # every compile, however small: a sweep's many small eager ops (stacking leaves,
@@ -611,7 +613,7 @@ def xla_options(mode: str, steps: int) -> export_cache.Options:
             extra = FAST_SECONDS_PER_FLOP * flops * steps
             choice.update(flops_per_step=flops, fast_extra_seconds=round(extra, 3))
             level = "fast" if extra < FAST_BUDGET_SECONDS else "balanced"
-        if level == "fast" and not fast_compile_validated():
+        if level == "fast" and not jaxlib_validated():
             level = "balanced"  # LLVM level 0 miscompiles MJX on some jaxlib releases (mjxdiff.compat)
         choice["level"] = level
         options = {"fast": FAST_COMPILE, "balanced": BALANCED_COMPILE}.get(level, {})

@@ -64,7 +64,7 @@ def test_the_fast_compile_is_used_only_where_it_was_validated():
     from mjxdiff.engines import xla_options
 
     _, choice = xla_options("fast", 10)(jax.jit(lambda x: x + 1.0).lower(1.0))
-    assert (choice["level"] == "fast") == compat.fast_compile_validated()
+    assert (choice["level"] == "fast") == compat.jaxlib_validated()
 
 
 def test_a_version_specific_entry_matches_only_on_its_release(monkeypatch):
