@@ -1,11 +1,11 @@
 """Walks over qpos by joint type: parts, quaternions, integrate and difference."""
 
-import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
 from mjxdiff import joints
+from mjxdiff.compat import enable_x64
 
 MODEL = """<mujoco><worldbody>
   <body><freejoint/><geom size=".1"/>
@@ -27,7 +27,7 @@ def test_parts_split_each_joint_as_it_moves():
 def test_the_quaternion_product_is_the_same_in_numpy_and_jax():
     rng = np.random.default_rng(0)
     a, b = rng.normal(size=(5, 4)), rng.normal(size=(5, 4))
-    with jax.enable_x64(True):
+    with enable_x64(True):
         assert np.allclose(joints.quat_mul(a, b), np.asarray(joints.quat_mul(jnp.asarray(a), jnp.asarray(b))),
                            rtol=0, atol=1e-15)
     q = joints.rotvec_quat(np.array([0.0, 0.0, np.pi]))  # half a turn about z
@@ -39,7 +39,7 @@ def test_difference_undoes_integrate_to_first_order():
     m = mujoco.MjModel.from_xml_string(MODEL)
     parts = joints.parts(m)
     rng = np.random.default_rng(1)
-    with jax.enable_x64(True):
+    with enable_x64(True):
         q0 = jnp.asarray(m.qpos0).at[3:7].set(joints.rotvec_quat(rng.normal(size=3)))
         for size in (1e-3, 1e-5):
             dq = jnp.asarray(rng.normal(size=m.nv) * size)
