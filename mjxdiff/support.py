@@ -245,7 +245,7 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("plane-box-corners", "plane-box/mesh: MJX keeps only corners within 1 mm of the deepest",
           "primitives_on_plane notes: a box that lands on a corner or rocks (> 1 mm depth spread) diverges ~1e-3; "
           "a tipped cube in sensing: C 4 corners, MJX 3", stage="collision", pattern=r"\(plane-(box|mesh):",
-          versions=(MEASURED_ON, "3.3.5")),
+          versions=(MEASURED_ON, "3.3.5", "3.3.0")),
     Entry("plane-cylinder-rim", "plane-cylinder: MJX adds the second rim point only near parallel",
           "primitives_on_plane notes: the second rim point only when the axis is within ~1e-3 of parallel; a "
           "cylinder sunk into a plane: C 4 contacts, MJX 3", stage="collision", pattern=r"\(plane-cylinder:"),
@@ -257,7 +257,8 @@ CATALOGUE: tuple[Entry, ...] = (
           stage="collision", pattern=r"tangent frame differs"),
     Entry("box-box-manifold", "box-box: MJX pads the manifold and places points on a surface",
           "primitive_pairs / box_stack notes: edge-first landings C 2, MJX 4 contacts; contact points on a surface "
-          "(C halfway): friction arms differ by dist/2", pattern=r"\(box-box:", versions=(MEASURED_ON, "3.3.5")),
+          "(C halfway): friction arms differ by dist/2", pattern=r"\(box-box:",
+          versions=(MEASURED_ON, "3.3.5", "3.3.0")),
     Entry("ellipsoid-cylinder-pairs", "sphere/capsule/ellipsoid/cylinder against ellipsoid/cylinder: MJX's "
           "10-step SDF descent vs C's exact collision",
           "tests/data/fuzz_ellipsoid_cylinder_contact.json: at its first contact an ellipsoid-cylinder pair is "

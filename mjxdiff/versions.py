@@ -5,7 +5,7 @@ of its own, a venv under ``~/.cache/mjxdiff/versions/`` (``--envs``) made with t
 filled by pip from the package index: MuJoCo and MJX of that release (MJX 3.17 is MuJoCo 4.0's),
 JAX as pinned or as pip resolves within mjxdiff's range, and mjxdiff's other dependencies. The
 mjxdiff running the command is linked in (a ``.pth`` file), so every environment tests the
-same mjxdiff code. A venv is reused while its requirements are unchanged.
+same mjxdiff code. A venv is reused while it holds every requirement (extras included).
 
 The sweep of each is ``mjxdiff sweep`` itself, in a subprocess of that venv, writing its own
 ``report.json`` under ``OUT/<target>/`` and appending to one history (``OUT/history``), so the
@@ -108,7 +108,7 @@ def prepare(target: Target, cache: Path, extras: Sequence[str] = (), say: Callab
     env = cache / re.sub(r"[^A-Za-z0-9._-]", "_", f"mjx-{target.label}")
     reqs = requirements(target, extras)
     stamp = env / "mjxdiff-requirements.json"
-    if stamp.is_file() and json.loads(stamp.read_text()) == reqs and _python(env).exists():
+    if stamp.is_file() and set(reqs) <= set(json.loads(stamp.read_text())) and _python(env).exists():
         say(f"versions: {target.label}: reusing {env}")
     else:
         say(f"versions: {target.label}: installing MuJoCo {target.mujoco}, MJX {target.mjx}"
