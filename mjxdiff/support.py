@@ -241,11 +241,11 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("solver-truncation", "solver settings capped short of convergence: MJX and C part where each stops",
           "tests/test_solver_floor.py: a 1-iteration quadruped parts by radians over 200 steps; with a converged "
           "solver (the twin) and one step from C's states the engines agree to rounding", cause="solver truncation",
-          accepted=True, versions=(MEASURED_ON, "3.3.5")),
+          accepted=True, versions=(MEASURED_ON, "3.3.5", "3.9.0")),
     Entry("plane-box-corners", "plane-box/mesh: MJX keeps only corners within 1 mm of the deepest",
           "primitives_on_plane notes: a box that lands on a corner or rocks (> 1 mm depth spread) diverges ~1e-3; "
           "a tipped cube in sensing: C 4 corners, MJX 3", stage="collision", pattern=r"\(plane-(box|mesh):",
-          versions=(MEASURED_ON, "3.3.5", "3.3.0")),
+          versions=(MEASURED_ON, "3.3.5", "3.3.0", "3.9.0")),
     Entry("plane-cylinder-rim", "plane-cylinder: MJX adds the second rim point only near parallel",
           "primitives_on_plane notes: the second rim point only when the axis is within ~1e-3 of parallel; a "
           "cylinder sunk into a plane: C 4 contacts, MJX 3", stage="collision", pattern=r"\(plane-cylinder:"),
@@ -269,7 +269,7 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("capsule-regularisation", "capsule pairs: MJX's +1e-6 segment regularisation tilts normals",
           "primitive_pairs notes: closest_segment_point divides by |ab|^2 + 1e-6; a sphere rolling along a 1 m "
           "capsule rail drifts 2e-3 qvel in 300 steps", pattern=r"\((sphere-capsule|capsule-capsule|capsule-\w+):",
-          versions=(MEASURED_ON, "3.3.5")),
+          versions=(MEASURED_ON, "3.3.5", "3.9.0")),
     Entry("heightfield-pairs", "heightfield pairs: MJX keeps other contacts than C",
           "tests/test_known_divergences.py: a sphere across a valley C 2, MJX 1 contact (qacc 16.4 apart); a box "
           "on a slope C 3, MJX 4", pattern=r"\(hfield-\w+:"),
