@@ -58,7 +58,7 @@ SUPPORTED: dict[str, tuple[str, str]] = {
 #: The newest JAX an MJX release runs on, where it is older than the range's: MJX 3.3 calls
 #: ``jnp.clip(a_min=...)``, which later JAX removed ("clip() got an unexpected keyword argument
 #: 'a_min'" under JAX 0.10.2; its sweep passes under 0.7.0).
-JAX_CEILING: dict[tuple[int, int], str] = {(3, 3): "0.7.2"}
+JAX_CEILING: dict[tuple[int, ...], str] = {(3, 3): "0.7.2"}
 #: The reference set mjxdiff is developed on (constraints.txt pins it).
 REFERENCE = {"mujoco": "4.0.0", "mujoco-mjx": "3.17.0", "jax": "0.10.2"}
 
@@ -148,7 +148,8 @@ def enable_x64(on: bool = True):
         return jax.enable_x64(on)
     from jax import experimental
 
-    return experimental.enable_x64() if on else experimental.disable_x64()
+    # jax.experimental's x64 contexts, before JAX 0.8 (gone from the reference JAX's stubs)
+    return experimental.enable_x64() if on else experimental.disable_x64()  # pyright: ignore[reportAttributeAccessIssue]
 
 
 def disable_bit(flag: str) -> int:

@@ -118,7 +118,7 @@ def prepare(target: Target, cache: Path, extras: Sequence[str] = (), say: Callab
         log.write_text("")
         made = subprocess.run([sys.executable, "-m", "venv", "--clear", str(env)], capture_output=True, text=True)
         if made.returncode:
-            raise VersionsError(f"venv failed: {one_line(made.stderr or made.stdout)}")
+            raise VersionsError(f"venv failed: {' '.join((made.stderr or made.stdout).split())}")
         log.write_text("")
         _pip(env, ["install", "--disable-pip-version-check", "--quiet", *reqs], log)
         _link(env)
