@@ -7,7 +7,8 @@ Code map, by stage (data flows down):
   initial states, controls, per-member models), ``joints`` (qpos walks, quaternions),
   ``adjust`` (what is changed so MJX can run a model), ``cost`` (compile and memory estimate).
 - Engines: ``trajectory`` (Trajectory, the Engine protocol), ``engines`` (MuJoCo C, MJX),
-  ``mjwarp`` (MuJoCo Warp), ``export_cache`` (compiled MJX rollouts across processes).
+  ``mjwarp`` (MuJoCo Warp), ``export_cache`` (compiled MJX rollouts across processes),
+  ``compat`` (every difference between the supported MuJoCo/MJX/JAX releases).
 - Comparison: ``metrics`` (errors and behaviour statistics in jax.numpy), ``noise`` (C's own
   rounding envelope), ``verdict`` (trajectories -> a verdict per scenario), ``onestep`` (one
   step from C's states), ``transfer`` (MJX's host interface), ``diagnose`` (drill-down, causes),
@@ -18,10 +19,10 @@ Code map, by stage (data flows down):
   (failing members, replay), ``history`` (Parquet run history), ``baseline`` (what changed),
   ``known`` (the known-divergence catalogue), ``files`` (atomic writes), ``errors`` (one-line
   exceptions).
-- Other uses: ``fuzz`` and ``strategies`` (Hypothesis), ``interactions`` and ``coverage`` (what
-  the scenarios reach), ``grad`` (Jacobians), ``closedloop`` (policies), ``bench``
-  (performance), ``testing`` and ``pytest_plugin`` (users' own tests), ``cli`` (``python -m
-  mjxdiff``).
+- Other uses: ``versions`` (the same sweep on several MJX releases), ``fuzz`` and ``strategies``
+  (Hypothesis), ``interactions`` and ``coverage`` (what the scenarios reach), ``grad``
+  (Jacobians), ``closedloop`` (policies), ``bench`` (performance), ``testing`` and
+  ``pytest_plugin`` (users' own tests), ``cli`` (``python -m mjxdiff``).
 
 The public surface, one name per line; everything else is an implementation
 detail of its module. Names are imported on first use (PEP 562), so that
