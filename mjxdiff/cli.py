@@ -268,16 +268,9 @@ def _untested_versions(args: argparse.Namespace) -> str | None:
     """Why the installed MuJoCo, MJX or JAX may not run this command (None: it may): outside
     :data:`mjxdiff.compat.SUPPORTED` without ``--allow-untested-versions``
     (or ``MJXDIFF_ALLOW_UNTESTED_VERSIONS=1``)."""
-    from mjxdiff.compat import UntestedVersions, check_versions
+    from mjxdiff.compat import gate
 
-    if args.func in _UNGATED or args.allow_untested_versions or os.environ.get("MJXDIFF_ALLOW_UNTESTED_VERSIONS"):
-        return None
-    try:
-        check_versions()
-    except UntestedVersions as e:
-        return (f"untested versions: {e}; install a supported set (pip install -c constraints.txt mjxdiff) or "
-                "pass --allow-untested-versions to run anyway")
-    return None
+    return None if args.func in _UNGATED else gate(args.allow_untested_versions)
 
 
 def _sweep_parser(sub) -> argparse.ArgumentParser:

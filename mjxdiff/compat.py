@@ -46,7 +46,7 @@ import numpy as np
 
 __all__ = ["jaxlib_validated", "later_feature", "enable_x64", "disable_bit", "sensor_types", "full_inertia",
            "mjx_lacks", "data_impl", "with_impl", "impl_fields", "Batch", "LoopBatch", "SimulationError", "SUPPORTED",
-           "JAX_CEILING", "REFERENCE", "VALIDATED_JAXLIB", "installed", "check_versions", "UntestedVersions",
+           "JAX_CEILING", "REFERENCE", "VALIDATED_JAXLIB", "installed", "check_versions", "gate", "UntestedVersions",
            "HAS_BATCH"]
 
 #: The supported range, inclusive: distribution -> (oldest, newest).
@@ -101,6 +101,22 @@ def check_versions(versions: dict[str, str] | None = None) -> None:
         problems.append(f"jax {versions['jax']} is newer than mujoco-mjx {mjx} runs on (at most {ceiling})")
     if problems:
         raise UntestedVersions("; ".join(problems))
+
+
+def gate(allowed: bool = False) -> str | None:
+    """Why the installed set may not run (None: it may): outside :data:`SUPPORTED` unless
+    ``allowed`` (``--allow-untested-versions``) or ``$MJXDIFF_ALLOW_UNTESTED_VERSIONS`` is set;
+    one line saying what to do."""
+    import os
+
+    if allowed or os.environ.get("MJXDIFF_ALLOW_UNTESTED_VERSIONS"):
+        return None
+    try:
+        check_versions()
+    except UntestedVersions as e:
+        return (f"untested versions: {e}; install a supported set (pip install -c constraints.txt mjxdiff) or "
+                "pass --allow-untested-versions to run anyway")
+    return None
 
 
 def _matching_mjx(mujoco_version: str) -> tuple[int, ...]:

@@ -80,6 +80,7 @@ class SweepOptions:
     quick: bool = False
     cache_dir: str | None = None
     progress: bool | None = None
+    allow_untested_versions: bool = False
 
     def as_config(self) -> dict[str, Any]:
         """The options as ``report.json``'s ``config`` records them."""
@@ -169,8 +170,12 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
 
     ``on_result(result, known_entry)`` is called as each scenario's verdict arrives (the
     results of ``impl="both"``'s other pairs renamed ``NAME@warp``, ``NAME@mjx-warp``)."""
-    from mjxdiff import engines, guard
+    from mjxdiff import compat, engines, guard
     from mjxdiff.sweep import exit_code, sweep
+
+    why = compat.gate(options.allow_untested_versions)
+    if why:
+        raise OptionsError(why)
 
     try:
         entries = _entries(options)

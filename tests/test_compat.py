@@ -110,3 +110,13 @@ def test_a_model_an_older_mujoco_cannot_compile_is_a_later_feature(mujoco_versio
     assert (why is not None) == later
     if later:
         assert f"MuJoCo {mujoco_version} cannot compile this model" in why and message in why
+
+
+def test_the_python_api_is_gated_as_the_cli_is(monkeypatch):
+    from mjxdiff import pipeline
+
+    monkeypatch.setattr(compat, "installed", lambda: {"mujoco": "3.2.7", "mujoco-mjx": "3.2.7", "jax": "0.4.38"})
+    monkeypatch.delenv("MJXDIFF_ALLOW_UNTESTED_VERSIONS", raising=False)
+    with pytest.raises(pipeline.OptionsError, match="untested versions: mujoco 3.2.7"):
+        pipeline.compute(pipeline.SweepOptions(scenarios=("pendulum",)))
+    assert compat.gate(allowed=True) is None
