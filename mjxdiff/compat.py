@@ -37,6 +37,7 @@ branches on versions:
 from __future__ import annotations
 
 import copy
+import functools
 import re
 from importlib import metadata
 from typing import Any, Sequence
@@ -68,15 +69,19 @@ def _release(version: str) -> tuple[int, ...]:
     return tuple(int(p) for p in re.findall(r"\d+", version.split("+")[0])[:3])
 
 
+@functools.cache
+def _version(dist: str) -> str:
+    """The installed version of ``dist``, or "not installed" (read once per process: the
+    catalogue asks for MJX's at every match)."""
+    try:
+        return metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        return "not installed"
+
+
 def installed() -> dict[str, str]:
     """The installed versions of the distributions in :data:`SUPPORTED` ("not installed" where absent)."""
-    out = {}
-    for dist in SUPPORTED:
-        try:
-            out[dist] = metadata.version(dist)
-        except metadata.PackageNotFoundError:
-            out[dist] = "not installed"
-    return out
+    return {dist: _version(dist) for dist in SUPPORTED}
 
 
 class UntestedVersions(RuntimeError):
@@ -150,10 +155,8 @@ VALIDATED_JAXLIB = ((0, 10),)
 
 def jaxlib_validated() -> bool:
     """Whether the installed jaxlib is one mjxdiff's fast compile and caches were validated on."""
-    try:
-        return _release(metadata.version("jaxlib"))[:2] in VALIDATED_JAXLIB
-    except metadata.PackageNotFoundError:
-        return False
+    v = _version("jaxlib")
+    return v != "not installed" and _release(v)[:2] in VALIDATED_JAXLIB
 
 
 def enable_x64(on: bool = True):

@@ -180,12 +180,9 @@ KNOWN_DIVERGENCES = {
 # -- the known-divergence catalogue (mjxdiff.known) -------------------------------------------------
 
 def _mjx_version() -> str:
-    from importlib import metadata
+    from mjxdiff.compat import installed
 
-    try:
-        return metadata.version("mujoco-mjx")
-    except metadata.PackageNotFoundError:
-        return ""
+    return installed()["mujoco-mjx"]
 
 
 #: The MJX release the catalogue was first measured on (with MuJoCo 4.0.0).

@@ -25,7 +25,6 @@ float64 come back exact; float32 rounds once).
 from __future__ import annotations
 
 import dataclasses
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -151,11 +150,11 @@ def _state(m: mujoco.MjModel, d: mujoco.MjData, mx: Any, dx: Any, blank: Any, rt
     knows at once (three calls: few small XLA programs), mismatches named by element."""
     from mujoco import mjx
 
-    from mjxdiff.compat import mjx_lacks
+    from mjxdiff.compat import installed, mjx_lacks
 
     lacks = mjx_lacks("state_size", "get_state", "set_state")
     if lacks:
-        unsupported.append(f"{', '.join(lacks)}: not in this MJX (mujoco-mjx {metadata.version('mujoco-mjx')})")
+        unsupported.append(f"{', '.join(lacks)}: not in this MJX (mujoco-mjx {installed()['mujoco-mjx']})")
         return 0
     elements, n = [], 0
     for i in range(mujoco.mjtState.mjNSTATE.value):

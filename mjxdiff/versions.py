@@ -115,13 +115,11 @@ def prepare(target: Target, cache: Path, extras: Sequence[str] = (), say: Callab
             f"{', JAX ' + target.jax if target.jax else ''} into {env}")
         env.mkdir(parents=True, exist_ok=True)
         log = env / "install.log"
-        log.write_text("")
         made = subprocess.run([sys.executable, "-m", "venv", "--clear", str(env)], capture_output=True, text=True)
         if made.returncode:
             raise VersionsError(f"venv failed: {' '.join((made.stderr or made.stdout).split())}")
         log.write_text("")
         _pip(env, ["install", "--disable-pip-version-check", "--quiet", *reqs], log)
-        _link(env)
         atomic_write(stamp, json.dumps(reqs))
     _link(env)  # the mjxdiff running now, wherever it lives
     return env
@@ -266,7 +264,8 @@ def run(targets: Sequence[Target], sweep_args: Sequence[str], out: Path, cache: 
     supported = {}
     for target, _ in results:
         try:
-            compat.check_versions({"mujoco": target.mujoco, "mujoco-mjx": target.mjx, "jax": target.jax or "0.10.2"})
+            jax = target.jax or compat.REFERENCE["jax"]
+            compat.check_versions({"mujoco": target.mujoco, "mujoco-mjx": target.mjx, "jax": jax})
             supported[target.label] = True
         except compat.UntestedVersions:
             supported[target.label] = False
