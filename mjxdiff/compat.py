@@ -20,7 +20,8 @@ branches on versions:
   live in ``Data._impl`` (``types.DataJAX``); before, on ``Data`` itself.
 * :func:`later_feature`: a model that an older MuJoCo cannot compile because its XML uses
   something a later release added (``<flag spring=...>`` before 3.4) is ``unsupported`` there,
-  not bad input.
+  not bad input: ``scenario.load_model`` raises ``LaterFeatureError`` with this text, so every
+  command says so, and a sweep reports the scenario ``unsupported``.
 * :func:`jaxlib_validated`: two things mjxdiff does for speed are used only on the jaxlib
   releases they were validated on (:data:`VALIDATED_JAXLIB`); elsewhere it compiles at XLA's
   level 1 and keeps no persistent caches. XLA's LLVM level 0 with classic emitters (the
@@ -48,7 +49,7 @@ import numpy as np
 __all__ = ["jaxlib_validated", "later_feature", "enable_x64", "disable_bit", "sensor_types", "full_inertia",
            "mjx_lacks", "data_impl", "with_impl", "impl_fields", "Batch", "LoopBatch", "SimulationError", "SUPPORTED",
            "JAX_CEILING", "REFERENCE", "VALIDATED_JAXLIB", "installed", "check_versions", "gate", "UntestedVersions",
-           "HAS_BATCH"]
+           "HAS_BATCH", "matching_mujoco"]
 
 #: The supported range, inclusive: distribution -> (oldest, newest).
 SUPPORTED: dict[str, tuple[str, str]] = {
@@ -122,6 +123,11 @@ def gate(allowed: bool = False) -> str | None:
         return (f"untested versions: {e}; install a supported set (pip install -c constraints.txt mjxdiff) or "
                 "pass --allow-untested-versions to run anyway")
     return None
+
+
+def matching_mujoco(mjx_release: tuple[int, ...]) -> tuple[int, ...]:
+    """The MuJoCo release an MJX release ships with: the same up to 3.16; 4.0.x for 3.17.x."""
+    return (4, 0, *mjx_release[2:]) if mjx_release[:2] == (3, 17) else mjx_release
 
 
 def _matching_mjx(mujoco_version: str) -> tuple[int, ...]:

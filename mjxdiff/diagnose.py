@@ -122,8 +122,11 @@ def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float,
         diff = np.abs(np.subtract(a, b)).max(axis=0) if len(a) == len(b) and a else np.zeros(0)
         err = np.inf if len(a) != len(b) else float(diff.max(initial=0.0))
         if err > worst:
-            names = " / ".join(_name(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in pair)
-            kinds = "-".join(mujoco.mjtGeom(t).name[len("mjGEOM_"):].lower() for t in sorted(m.geom_type[list(pair)]))
+            names = " / ".join(_name(m, mujoco.mjtObj.mjOBJ_GEOM, g) if g >= 0 else
+                               f"flex '{_name(m, mujoco.mjtObj.mjOBJ_FLEX, -1 - g)}'" for g in pair)
+            geoms = [g for g in pair if g >= 0]
+            kinds = "-".join(["flex"] * (len(pair) - len(geoms)) + [
+                mujoco.mjtGeom(t).name[len("mjGEOM_"):].lower() for t in sorted(m.geom_type[geoms])])
             part = f"; {_CONTACT_PARTS[int(diff.argmax())]} differs by {err:.2g}" if diff.size else ""
             worst, obj = err, f"geoms {names} ({kinds}: C {len(a)}, MJX {len(b)} contacts{part})"
     return worst, obj

@@ -21,6 +21,7 @@ from typing import Any, Mapping
 
 import mujoco
 
+from mjxdiff.compat import later_feature
 from mjxdiff.precision import THRESHOLDS, Precision
 
 __all__ = [
@@ -59,6 +60,11 @@ _WHEEL_MODEL_DIRS = {
 
 class ScenarioError(ValueError):
     """A scenario or model cannot be used; the message says what to fix, in one line."""
+
+
+class LaterFeatureError(ScenarioError):
+    """The installed MuJoCo is older than the reference and cannot express something the model
+    uses (:func:`mjxdiff.compat.later_feature`): not a malformed model, an unsupported one here."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -404,7 +410,9 @@ def load_model(scenario: Scenario) -> mujoco.MjModel:
         m = mujoco.MjModel.from_xml_path(str(path))
     except ValueError as e:
         first = " ".join(str(e).split())
-        raise ScenarioError(f"{scenario.name}: MuJoCo cannot compile {path.name}: {first}") from None
+        message = f"{scenario.name}: MuJoCo cannot compile {path.name}: {first}"
+        later = later_feature(message)
+        raise (LaterFeatureError(later) if later else ScenarioError(message)) from None
     if scenario.keyframe is not None and mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, scenario.keyframe) < 0:
         raise ScenarioError(f"{scenario.name}: keyframe {scenario.keyframe!r} not in {path.name}")
     return m

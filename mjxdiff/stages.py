@@ -37,10 +37,11 @@ def frame(m: mujoco.MjModel, nine: np.ndarray, friction: np.ndarray, geom: np.nd
 
 def contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> Contacts:
     """Active contacts by geom pair: (dist, pos x, y, z, friction[0], friction[1], frame (9,),
-    :func:`frame`) each."""
+    :func:`frame`) each. A flex side of a contact (geom -1) is keyed ``-1 - flex id``."""
     out: Contacts = {}
     for c in d.contact[:d.ncon]:
-        key = tuple(sorted(int(g) for g in c.geom))  # geom1/geom2 are not filled by mujoco_warp.get_data_into
+        # geom1/geom2 are not filled by mujoco_warp.get_data_into
+        key = tuple(sorted(int(g) if g >= 0 else -1 - int(f) for g, f in zip(c.geom, c.flex)))
         out.setdefault(key, []).append((float(c.dist), *map(float, c.pos), float(c.friction[0]), float(c.friction[1]),
                                         *frame(m, c.frame, c.friction, c.geom)))
     return out

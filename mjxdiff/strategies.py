@@ -41,7 +41,7 @@ from hypothesis.extra import numpy as hnp
 
 # what MJX supports lives in mjxdiff.support; public here too, as before
 from mjxdiff.support import (SUPPORTED_PAIRS, UNSUPPORTED_FEATURES, UNSUPPORTED_PAIRS, UnsupportedFeature,  # noqa: F401
-                             _TYPE_ORDER, pair_supported)
+                             _TYPE_ORDER, pair_supported, refused_features)
 from mjxdiff import joints
 from mjxdiff.inputs import FACTOR_SHAPES, knot_every, knot_levels, sine_levels
 from mjxdiff.joints import quat_mul, rotvec_quat
@@ -902,12 +902,17 @@ assert set(_INJECTORS) == set(_UNSUPPORTED_BY_NAME)
 
 
 def _unsupported_names(unsupported: Any) -> tuple[str, ...]:
+    refused = tuple(f.name for f in refused_features())  # the installed MJX's, which its MuJoCo can express
     if unsupported is True:
-        return tuple(f.name for f in UNSUPPORTED_FEATURES)
+        return refused
     names = (unsupported,) if isinstance(unsupported, str) else tuple(unsupported)
     unknown = [n for n in names if n not in _UNSUPPORTED_BY_NAME]
     if unknown or not names:
         raise InvalidArgument(f"unsupported={unsupported!r}: expected a bool or names from UNSUPPORTED_FEATURES")
+    if set(names) - set(refused):
+        raise InvalidArgument(f"unsupported={unsupported!r}: the installed MuJoCo/MJX "
+                              f"cannot express or does not refuse {sorted(set(names) - set(refused))} "
+                              "(support.refused_features)")
     return names
 
 
@@ -954,9 +959,10 @@ def mjcf_models(draw: Callable, *, max_bodies: Any = 4, max_geoms_per_body: Any 
         :data:`SUPPORTED_PAIRS` through contype/conaffinity masks, no margin
         when there are meshes, no condim 1 under an elliptic cone, no PGS
         solver or implicit integrator. False also draws those.
-      unsupported: False; True to add one feature drawn from
-        :data:`UNSUPPORTED_FEATURES` to an otherwise MJX-only model; or a name
-        (or names) from it to add that one. Requires ``mjx_only=True``.
+      unsupported: False; True to add one feature drawn from those of
+        :data:`UNSUPPORTED_FEATURES` the installed MJX refuses
+        (:func:`~mjxdiff.support.refused_features`) to an otherwise MJX-only model;
+        or a name (or names) from them to add that one. Requires ``mjx_only=True``.
       options: True to draw ``<option>`` values, False for
         :data:`DEFAULT_OPTIONS`, or a mapping of ``<option>`` attributes
         overriding them (not checked against ``mjx_only``).

@@ -15,7 +15,7 @@ from typing import Any, NamedTuple
 import mujoco
 
 __all__ = ["CATALOGUE", "HARMLESS_ENABLE_FLAGS", "KNOWN_DIVERGENCES", "SUPPORTED_PAIRS", "UNSUPPORTED_FEATURES",
-           "UNSUPPORTED_PAIRS", "Entry", "UnsupportedFeature", "pair_supported"]
+           "UNSUPPORTED_PAIRS", "Entry", "UnsupportedFeature", "pair_supported", "refused_features"]
 
 
 # -- geom pairs -----------------------------------------------------------------------------------
@@ -72,52 +72,88 @@ def pair_supported(a: str, b: str) -> bool:
 # -- refused features -----------------------------------------------------------------------------
 
 class UnsupportedFeature(NamedTuple):
-    """An MJCF feature MJX 3.17 rejects, measured on mujoco 4.0.0.
+    """An MJCF feature MJX rejects, measured on mujoco 4.0.0 and mujoco-mjx 3.17.0, and on every
+    MuJoCo/MJX release from 3.3.0 (see :func:`refused_features`).
 
     Attributes:
       name: the feature, as recorded in :attr:`MjcfModel.unsupported_feature`.
-      stage: where MJX raises NotImplementedError: ``"put_model"``,
+      stage: where MJX 3.17 raises NotImplementedError: ``"put_model"``,
         ``"make_data"`` or ``"step"`` (when tracing ``mjx.step``).
-      message: a substring of the NotImplementedError message.
+      message: a substring of MJX 3.17's NotImplementedError message.
+      since: the first MuJoCo release whose MJCF has the feature (before it, C refuses the model:
+        a schema violation, which a sweep reports as unsupported, see
+        :func:`mjxdiff.compat.later_feature`).
+      refused_since: the first MJX release that refuses it; earlier releases accept the model
+        and ignore the feature (a known divergence where that changes the physics).
     """
 
     name: str
     stage: str
     message: str
+    since: str = "3.3.0"
+    refused_since: str = "3.3.0"
 
 
 UNSUPPORTED_FEATURES: tuple[UnsupportedFeature, ...] = (
     UnsupportedFeature("energy flag", "put_model", "mjENBL_ENERGY"),
     UnsupportedFeature("override flag", "put_model", "mjENBL_OVERRIDE"),
     UnsupportedFeature("fwdinv flag", "put_model", "mjENBL_FWDINV"),
-    UnsupportedFeature("diagexact flag", "put_model", "mjENBL_DIAGEXACT"),
-    UnsupportedFeature("speculative flag", "put_model", "mjENBL_SPECULATIVE"),
+    UnsupportedFeature("diagexact flag", "put_model", "mjENBL_DIAGEXACT", since="3.9.0", refused_since="3.9.0"),
+    UnsupportedFeature("speculative flag", "put_model", "mjENBL_SPECULATIVE", since="4.0.0", refused_since="3.17.0"),
     UnsupportedFeature("PGS solver", "put_model", "mjSOL_PGS"),
     UnsupportedFeature("implicit integrator", "put_model", "mjINT_IMPLICIT"),
-    UnsupportedFeature("discrete integrator", "step", "integrator"),
+    UnsupportedFeature("discrete integrator", "step", "integrator", since="3.13.0", refused_since="3.13.0"),
     UnsupportedFeature("fluid drag with implicitfast", "put_model", "fluid drag"),
     UnsupportedFeature("unsupported geom pair", "put_model", "collisions not implemented"),
     UnsupportedFeature("mesh margin", "put_model", "margin/gap not implemented"),
     UnsupportedFeature("condim 1 with elliptic cone", "make_data", "condim=1"),
-    UnsupportedFeature("flex", "put_model", "Flex not implemented"),
+    UnsupportedFeature("flex", "put_model", "Flex not implemented", refused_since="3.3.5"),
     UnsupportedFeature("adhesion actuator", "put_model", "mjTRN_BODY"),
     UnsupportedFeature("slider-crank actuator", "put_model", "mjTRN_SLIDERCRANK"),
-    UnsupportedFeature("dcmotor actuator", "put_model", "DCMOTOR"),
-    UnsupportedFeature("pid actuator", "put_model", "PID"),
+    UnsupportedFeature("dcmotor actuator", "put_model", "DCMOTOR", since="3.7.0", refused_since="3.7.0"),
+    UnsupportedFeature("pid actuator", "put_model", "PID", since="3.12.0", refused_since="3.12.0"),
     UnsupportedFeature("geom distance sensor", "put_model", "mjSENS_GEOMDIST"),
     UnsupportedFeature("potential energy sensor", "put_model", "mjSENS_E_POTENTIAL"),
     UnsupportedFeature("kinetic energy sensor", "put_model", "mjSENS_E_KINETIC"),
-    UnsupportedFeature("insidesite sensor", "put_model", "mjSENS_INSIDESITE"),
+    UnsupportedFeature("insidesite sensor", "put_model", "mjSENS_INSIDESITE", since="3.3.5",
+                        refused_since="3.3.5"),
     UnsupportedFeature("joint limit sensor", "put_model", "mjSENS_JOINTLIMITPOS"),
-    UnsupportedFeature("contact sensor with body matching", "put_model", "body matching"),
-    UnsupportedFeature("contact sensor with site matching", "put_model", "site matching"),
+    UnsupportedFeature("contact sensor with body matching", "put_model", "body matching", since="3.3.5",
+                        refused_since="3.3.5"),
+    UnsupportedFeature("contact sensor with site matching", "put_model", "site matching", since="3.3.5",
+                        refused_since="3.3.5"),
 )
 """Features ``mjcf_models(unsupported=True)`` injects, one per model. Each was
 measured as :data:`SUPPORTED_PAIRS` was: the model compiles and steps in C, and
 MJX raises NotImplementedError at ``stage`` with ``message`` in its text.
 (Found but left out: a rangefinder sensor in a model without any ``<material>``
 fails to trace in MJX with a TypeError, not NotImplementedError, so generated
-models with a rangefinder carry a dummy material.)"""
+models with a rangefinder carry a dummy material.)
+
+``since`` and ``refused_since`` were measured on all 23 releases from 3.3.0 to 4.0.0 (MuJoCo
+with its MJX; 2026-11-26): each feature's minimal generated model compiled in C or not, then
+``put_model``, ``make_data`` and a traced ``mjx.step``. What changed: MJX 3.3.0-3.3.4 accept a
+flex and make no flex contacts (catalogue entry ``flex-ignored-3.3``); the insidesite and
+contact sensors arrive in 3.3.5, dcmotor in 3.7.0, diagexact in 3.9.0, pid in 3.12.0, the
+discrete integrator in 3.13.0 (where MJX 3.13 refuses it in put_model, "mjINT_DISCRETE"),
+speculative in 4.0.0. Every other feature is refused by every release in the range."""
+
+
+def refused_features(mjx_version: str | None = None) -> tuple[UnsupportedFeature, ...]:
+    """The :data:`UNSUPPORTED_FEATURES` an MJX release refuses and its MuJoCo can express.
+
+    Args:
+      mjx_version: an MJX release, e.g. ``"3.9.0"`` (default: the installed one). Its MuJoCo
+        is the same release, except MJX 3.17 with MuJoCo 4.0.
+
+    Returns:
+      The features with ``refused_since`` <= the release and ``since`` <= its MuJoCo, in table order.
+    """
+    from mjxdiff.compat import _release, installed, matching_mujoco
+
+    release = _release(mjx_version or installed()["mujoco-mjx"])
+    return tuple(f for f in UNSUPPORTED_FEATURES
+                 if _release(f.refused_since) <= release and _release(f.since) <= matching_mujoco(release))
 
 
 # -- set aside for MJX (mjxdiff.adjust) -----------------------------------------------------------
@@ -298,6 +334,13 @@ CATALOGUE: tuple[Entry, ...] = (
           "mjxdiff versions 3.3.5/0.7.0 (2026-11-26): convex_mesh at step 0, geoms slab / frustum_slab: C 1, MJX 4 "
           "contacts (passes contacts disabled); the same scenario passes on MJX 3.9.0 and 3.17.0", stage="collision",
           pattern=r"\(mesh-mesh:", versions=("3.3.5",), only_on=("3.3.",)),
+    Entry("flex-ignored-3.3", "MJX 3.3.0-3.3.4 accept a flex and make none of its contacts",
+          "tests/data/flex_cloth.xml (a 4x4 cloth falling onto a plane), swept on MJX 3.3.0 (2026-11-26): FAIL at "
+          "step 0, first field contact, flex 'cloth' / flex 'cloth' C 2, MJX 0 contacts (C 9 at the one-step "
+          "check); likely cause contact generation. MJX 3.3.5 and later refuse the model (put_model: 'Flex not "
+          "implemented for JAX backend.', unsupported); support.UNSUPPORTED_FEATURES 'flex' refused_since 3.3.5 "
+          "(tests/test_supported_versions.py)", stage="collision", pattern=r"flex '",
+          versions=("3.3.0",), only_on=("3.3.0", "3.3.1", "3.3.2", "3.3.3", "3.3.4")),
     Entry("get-data-margin-contacts", "get_data drops contacts inside the margin (dist > 0)",
           "tests/test_known_divergences.py: a sphere 2 mm above the floor, margin 5 mm: C 1 contact, get_data 0",
           field="transfer", pattern=r"contact"),

@@ -24,7 +24,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from mjxdiff.compat import enable_x64, later_feature
+from mjxdiff.compat import enable_x64
 from mjxdiff.config import IMPLS, NOISE_FLOOR_MODES, SweepConfig  # noqa: F401 - public here
 from mjxdiff.precision import Precision
 from mjxdiff.errors import one_line
@@ -32,7 +32,7 @@ from mjxdiff import adjust, cost, diagnose, engines, export_cache, onestep, repo
 from mjxdiff.engines import CEngine, MJXEngine, UnsupportedError
 from mjxdiff.trajectory import Engine, Trajectory
 from mjxdiff.inputs import BatchedInputs, make_inputs
-from mjxdiff.scenario import Scenario, ScenarioError, Tolerances, load_model
+from mjxdiff.scenario import LaterFeatureError, Scenario, ScenarioError, Tolerances, load_model
 from mjxdiff.noise import SOLVER_MARGIN, NoiseFloor, combine, converged, has_constraints, perturb
 from mjxdiff.verdict import TRUNCATION, FieldResult, Judge, ScenarioResult, rangefinder_mask
 
@@ -126,9 +126,9 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
     try:
         m = load_model(scenario)
     except ScenarioError as e:
-        later = later_feature(str(e))
+        later = isinstance(e, LaterFeatureError)
         prepared.early = ScenarioResult(name=scenario.name, status="unsupported" if later else "error",
-                                        error_kind="" if later else "input", message=later or str(e),
+                                        error_kind="" if later else "input", message=str(e),
                                         info=info, tolerances=tol.as_dict())
         return prepared
     try:

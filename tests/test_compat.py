@@ -120,3 +120,21 @@ def test_the_python_api_is_gated_as_the_cli_is(monkeypatch):
     with pytest.raises(pipeline.OptionsError, match="untested versions: mujoco 3.2.7"):
         pipeline.compute(pipeline.SweepOptions(scenarios=("pendulum",)))
     assert compat.gate(allowed=True) is None
+
+
+def test_a_later_feature_is_unsupported_in_a_sweep_and_says_so_everywhere(tmp_path, monkeypatch):
+    from mjxdiff.scenario import LaterFeatureError, ScenarioError, load_model, load_scenario
+    from mjxdiff.sweep import SweepConfig, sweep
+
+    xml = tmp_path / "later.xml"
+    xml.write_text('<mujoco><option><flag sprng="disable"/></option><worldbody><body><joint/><geom size=".1"/>'
+                   "</body></worldbody></mujoco>")
+    scenario = load_scenario(xml)
+    with pytest.raises(ScenarioError) as e:  # on the reference: a malformed model
+        load_model(scenario)
+    assert not isinstance(e.value, LaterFeatureError)
+    monkeypatch.setattr(compat, "installed", lambda: {**compat.REFERENCE, "mujoco": "3.3.5"})
+    with pytest.raises(LaterFeatureError, match="MuJoCo 3.3.5 cannot compile this model"):
+        load_model(scenario)
+    [r] = sweep([scenario], SweepConfig(seed=0, batch=2, steps=10))
+    assert r.status == "unsupported" and "a later MuJoCo added" in r.message, r.message

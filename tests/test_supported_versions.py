@@ -77,3 +77,23 @@ def test_a_version_specific_entry_matches_only_on_its_release(monkeypatch):
     monkeypatch.setattr(support, "_mjx_version", lambda: "3.17.0")
     assert not entry.matches(failing)
     assert dataclasses.replace(entry, only_on=()).matches(failing)
+
+
+def test_a_flex_is_a_catalogued_divergence_before_3_3_5_and_unsupported_since(fresh_mjx):
+    """A bug MJX fixed (by refusing flex models) is a known divergence of the releases before the
+    fix: MJX 3.3.0-3.3.4 accept a cloth and make none of its contacts; later releases say so."""
+    from pathlib import Path
+
+    from mjxdiff import known, report, support
+
+    [r] = sweep([load_scenario(Path(__file__).parent / "data" / "flex_cloth.xml")],
+                dataclasses.replace(_CONFIG, steps=40))
+    flex = next(f for f in support.UNSUPPORTED_FEATURES if f.name == "flex")
+    release = compat._release(compat.installed()["mujoco-mjx"])
+    if release >= compat._release(flex.refused_since):
+        assert r.status == "unsupported" and "Flex" in r.message, r.message
+        return
+    assert r.status == "fail", r.message
+    assert "flex 'cloth'" in r.diagnosis["drill_down"]["object"], r.diagnosis
+    entry = known.match(report.result_dict(r))
+    assert entry is not None and entry.id == "flex-ignored-3.3", r.message
