@@ -69,6 +69,13 @@ accepted = true) and, with --baseline, failures the baseline already had, exit 0
 _BENCH_DEFAULT = ("pendulum", "cartpole", "ant")
 #: The long descriptions of the subcommands (``--help``; argparse refills the lines).
 _DESCRIPTIONS = {
+    "merge": """\
+Join the --out directories of a sweep's shards ('mjxdiff sweep --shard I/N --out DIR'), or of
+resumed runs, into one report: every unit's verdict from the directories' journal.jsonl, in the
+sweep's order, then the known labels, history and exit code as one sweep decides them. The
+result does not depend on the directories' order, and merging twice changes nothing. Exit 1 on
+a divergence, on a unit no directory holds (missing), or on one whose records disagree
+(nondeterministic: itself a finding); 2 when the directories are shards of different sweeps.""",
     "versions": """\
 Answer "is it safe to upgrade MJX?" and "since which release does this divergence exist?": for
 each MJX release given, make (or reuse) an isolated environment, a venv with that MJX, its MuJoCo
@@ -347,7 +354,21 @@ def _sweep_parser(sub) -> argparse.ArgumentParser:
                     help="scenarios run side by side, each on its own thread from compile to verdict; results "
                          "are reported in order (default: one per core, at most 4; 0: one after another)")
     _shared(sw, "out", out="write DIR/report.json (versions, config, per-scenario metrics) "
-                                                  "and DIR/report.html (one self-contained page with plots)")
+                                                  "and DIR/report.html (one self-contained page with plots); "
+                                                  "each scenario's verdict is also appended to DIR/journal.jsonl "
+                                                  "as it arrives, so an interrupted sweep loses nothing (--resume)")
+    sw.add_argument("--resume", metavar="DIR",
+                    help="finish an interrupted sweep: reuse the verdicts DIR/journal.jsonl holds for the same "
+                         "scenario, model, seed, settings, MJX and mjxdiff code and versions, run the rest "
+                         "(and units whose worker or engine failed), and write the report to DIR (or --out); "
+                         "records of other code or settings are listed as stale, never reused")
+    sw.add_argument("--rerun", choices=("errors", "failed"), default="errors",
+                    help="with --resume: rerun only units that did not settle (errors, the default: a worker "
+                         "or engine failed, a limit ran out), or also the failures (failed, as pytest's --lf)")
+    sw.add_argument("--shard", metavar="I/N",
+                    help="run only the I-th of N deterministic slices of the sweep's units (scenario x judged "
+                         "pair, every N-th from the I-th); 'mjxdiff merge' joins the shards' --out directories "
+                         "into one report (a CI matrix: one job per shard)")
     sw.add_argument("--impl", choices=("mjx", "warp", "both"), default="mjx",
                     help="what is judged against MuJoCo C: MJX (default), MuJoCo Warp on Warp's CPU device "
                          "(float32, so float32 tolerance floors; needs pip install 'mjxdiff[warp]'; kernels "
@@ -614,6 +635,41 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         print(report.format_text(run.results, args.threshold, run.seconds).splitlines()[-1])
     else:
         print(json.dumps(run.doc, indent=2))
+    return run.exit_code
+
+
+def _merge_parser(sub) -> argparse.ArgumentParser:
+    mg = sub.add_parser("merge", help="join the --out directories of a sweep's shards (or resumed runs) into "
+                                      "one report", description=_DESCRIPTIONS["merge"])
+    mg.add_argument("out", metavar="OUT", help="directory of the merged report.json, report.html and journal")
+    mg.add_argument("dirs", nargs="+", metavar="DIR", help="--out directories of 'mjxdiff sweep --shard I/N' runs")
+    _shared(mg, "format")
+    return mg
+
+
+def _cmd_merge(args: argparse.Namespace) -> int:
+    from mjxdiff import pipeline, report
+
+    try:
+        run = pipeline.merge(args.out, args.dirs)
+    except pipeline.OptionsError as e:
+        print(f"mjxdiff: error: {e}", file=sys.stderr)
+        return 2
+    pipeline.write(run)
+    book = run.doc["journal"]
+    for name in book["nondeterministic"]:
+        print(f"NONDETERMINISTIC {name}: its records disagree (status or worst errors)", flush=True)
+    if book["missing"]:
+        print(f"MISSING {len(book['missing'])} of {book['units']} units: no directory holds them "
+              f"(canonical indices {book['missing'][:10]})", flush=True)
+    for warning in run.warnings:
+        print(f"mjxdiff: warning: {warning}", file=sys.stderr)
+    if args.format == "json":
+        print(json.dumps(run.doc, indent=2))
+    else:
+        for r in run.results:
+            print(report.format_line(r))
+        print(report.format_text(run.results, run.options.threshold, run.seconds).splitlines()[-1])
     return run.exit_code
 
 
@@ -933,7 +989,7 @@ def _cmd_cache(args: argparse.Namespace) -> int:
 _COMMANDS = ((_sweep_parser, _cmd_sweep), (_replay_parser, _cmd_replay), (_fuzz_parser, _cmd_fuzz),
              (_bench_parser, _cmd_bench), (_policy_parser, _cmd_policy), (_coverage_parser, _cmd_coverage),
              (_grad_parser, _cmd_grad), (_history_parser, _cmd_history), (_cache_parser, _cmd_cache),
-             (_versions_parser, _cmd_versions), (_list_parser, _cmd_list))
+             (_versions_parser, _cmd_versions), (_merge_parser, _cmd_merge), (_list_parser, _cmd_list))
 
 
 #: Commands that run neither MuJoCo nor MJX: no version check.

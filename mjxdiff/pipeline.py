@@ -28,10 +28,10 @@ from pathlib import Path
 from typing import Any, Callable, Literal
 
 from mjxdiff.errors import one_line
-from mjxdiff import baseline, export_cache, known, report
+from mjxdiff import baseline, export_cache, journal, known, report
 from mjxdiff.verdict import ScenarioResult
 
-__all__ = ["OptionsError", "SweepOptions", "SweepRun", "compute", "run", "write"]
+__all__ = ["OptionsError", "SweepOptions", "SweepRun", "Unit", "compute", "merge", "run", "write"]
 
 
 class OptionsError(ValueError):
@@ -81,6 +81,9 @@ class SweepOptions:
     cache_dir: str | None = None
     progress: bool | None = None
     allow_untested_versions: bool = False
+    resume: str | None = None
+    rerun: Literal["errors", "failed"] = "errors"
+    shard: str | None = None
 
     def as_config(self) -> dict[str, Any]:
         """The options as ``report.json``'s ``config`` records them."""
@@ -160,6 +163,98 @@ _PAIRS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
 }
 
 
+def _pair_configs(config, impl: str) -> list[tuple[str, Any]]:
+    """(name suffix, SweepConfig) of each judged pair of ``impl``."""
+    out = []
+    for suffix, change in _PAIRS[impl]:
+        if change.get("impl") == "warp" and "reproducers" not in change and config.reproducers:
+            change = dict(change, reproducers=str(Path(config.reproducers) / "warp"))
+        out.append((suffix, dataclasses.replace(config, **change)))
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Unit:
+    """One scenario judged by one pair: its ``index`` in the whole sweep's canonical order
+    (pairs, then scenarios as given), and its journal ``key`` and ``parts``
+    (:func:`mjxdiff.journal.unit_key`; empty when nothing is journaled)."""
+
+    index: int
+    suffix: str
+    scenario: Any
+    key: str = ""
+    parts: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+
+def _units(config, scenarios: list, impl: str, journaled: bool) -> list[Unit]:
+    """The canonical unit list, keyed where a journal is written or read."""
+    units = []
+    if journaled:
+        from mjxdiff import compat
+
+        mjx, own, versions = export_cache.code_digest(), journal.mjxdiff_digest(), compat.installed()
+        digests = [journal.scenario_digest(s) for s in scenarios]
+    for p, (suffix, pair_config) in enumerate(_pair_configs(config, impl)):
+        for i, s in enumerate(scenarios):
+            key, parts = (journal.unit_key(digests[i], suffix, pair_config, mjx, own, versions) if journaled
+                          else ("", {}))
+            units.append(Unit(p * len(scenarios) + i, suffix, s, key, parts))
+    return units
+
+
+def _shard(text: str | None) -> tuple[int, int] | None:
+    """``"I/N"`` -> (I, N), 1 <= I <= N; OptionsError otherwise."""
+    if text is None:
+        return None
+    try:
+        i, n = (int(x) for x in str(text).split("/"))
+    except ValueError:
+        i = n = 0
+    if not 1 <= i <= n:
+        raise OptionsError(f"--shard {text}: expected I/N with 1 <= I <= N, e.g. 2/3")
+    return i, n
+
+
+def _resumed(options: SweepOptions, units: list[Unit]) -> tuple[dict[int, ScenarioResult], dict[str, Any] | None]:
+    """The verdicts a resumed sweep keeps (by unit index) and what the journal said: ``reused``
+    units, ``stale`` records (a key no current unit has: other code, seed, settings or model),
+    ``torn`` (an interrupted last line) and ``bad`` lines. (None, None) without ``resume``."""
+    if not options.resume:
+        return {}, ({"file": str(Path(options.out) / journal.FILE)} if options.out else None)
+    records = journal.read(Path(options.resume) / journal.FILE)
+    latest = {r["key"]: r for r in records.units}  # a key recorded twice (a rerun): the later record
+    current = {u.key for u in units}
+    done = {}
+    for u in units:
+        record = latest.get(u.key)
+        if record is not None and journal.reusable(record, options.rerun):
+            r = report.result_from_dict(record["result"])
+            done[u.index] = dataclasses.replace(r, pending=tuple(tuple(p) for p in record.get("pending", ())))
+    stale = sorted({r["unit"] for r in records.units if r["key"] not in current})
+    out_dir = options.out or options.resume
+    return done, dict(file=str(Path(out_dir) / journal.FILE), resumed_from=str(options.resume), reused=len(done),
+                      stale=stale, torn=records.torn, bad_lines=records.bad)
+
+
+def _open_journal(options: SweepOptions, total: int, done: dict[int, ScenarioResult]) -> journal.Journal | None:
+    """The journal this sweep appends to (under ``out``, or the resumed directory): a resumed
+    one in place keeps its records; a fresh one begins with a header (and, resumed elsewhere,
+    the reused records, so that it stands alone)."""
+    out_dir = options.out or options.resume
+    if not out_dir:
+        return None
+    in_place = bool(options.resume) and Path(options.resume).resolve() == Path(out_dir).resolve()
+    writer = journal.Journal(Path(out_dir) / journal.FILE, append=in_place)
+    writer.write(dict(type="header", format=journal.FORMAT, config=options.as_config(), units=total,
+                      shard=options.shard))
+    if options.resume and not in_place:
+        records = {r["key"]: r for r in journal.read(Path(options.resume) / journal.FILE).units}
+        for r in records.values():
+            if r["index"] in done and report.result_dict(done[r["index"]]) == r["result"]:
+                writer.write(r)
+    return writer
+
+
 def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.Entry | None], None] | None = None,
             ) -> SweepRun:
     """Sweeps, then labels known divergences, reads the history's anomalies and the baseline's
@@ -171,11 +266,13 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
     ``on_result(result, known_entry)`` is called as each scenario's verdict arrives (the
     results of ``impl="both"``'s other pairs renamed ``NAME@warp``, ``NAME@mjx-warp``)."""
     from mjxdiff import compat, engines, guard
-    from mjxdiff.sweep import exit_code, sweep
+    from mjxdiff.sweep import sweep
 
     why = compat.gate(options.allow_untested_versions)
     if why:
         raise OptionsError(why)
+    if options.resume and not options.out:  # resumed in place
+        options = dataclasses.replace(options, out=options.resume)
 
     try:
         entries = _entries(options)
@@ -189,33 +286,61 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
         why = mjwarp.available()
         if why:
             raise OptionsError(f"--impl {options.impl}: {why}")
+    shard = _shard(options.shard)
+    if options.resume and not (Path(options.resume) / journal.FILE).is_file():
+        raise OptionsError(f"--resume {options.resume}: no {journal.FILE} there (a sweep run with --out "
+                           f"{options.resume} writes one)")
     engines.configure_jax(options.precision, options.cache_dir)
     config = sweep_config(options)
     limits = guard.Limits(options.max_memory or guard.default_memory(), options.budget, options.sweep_budget)
     scenarios, bad = _scenarios(options)
+    units = [u for u in _units(config, scenarios, options.impl, journaled=bool(options.out or options.resume))
+             if shard is None or u.index % shard[1] == shard[0] - 1]
 
     t0 = time.perf_counter()
     cache_before = export_cache.events()
-    results = list(bad)
-    for suffix, change in _PAIRS[options.impl]:
-        if change.get("impl") == "warp" and "reproducers" not in change and config.reproducers:
-            change = dict(change, reproducers=str(Path(config.reproducers) / "warp"))
-        pair_config = dataclasses.replace(config, **change)
+    done, book = _resumed(options, units)
+    writer = _open_journal(options, len(scenarios) * len(_PAIRS[options.impl]), done)
+    try:
+        for suffix, pair_config in _pair_configs(config, options.impl):
+            todo = [u for u in units if u.suffix == suffix and u.index not in done]
+            arriving = iter(todo)
 
-        def arrived(r: ScenarioResult, suffix: str = suffix) -> None:
-            if on_result is not None:
+            def arrived(r: ScenarioResult, suffix: str = suffix) -> None:
+                u = next(arriving)
                 r = dataclasses.replace(r, name=r.name + suffix)
-                on_result(r, known.match(report.result_dict(r), entries))
-        if options.isolate:
-            swept = guard.sweep(scenarios, pair_config, limits, options.progress, arrived, options.cache_dir)
-        else:
-            swept = sweep(scenarios, pair_config, options.progress, arrived)
-        # a scenario's name seeds its inputs: the pair's results are renamed after the sweep
-        results += [dataclasses.replace(r, name=r.name + suffix) for r in swept]
+                if writer is not None:
+                    writer.unit(u.key, u.parts, u.index, report.result_dict(r), r.pending)
+                if on_result is not None:
+                    on_result(r, known.match(report.result_dict(r), entries))
+            picked = [u.scenario for u in todo]
+            if not picked:
+                continue
+            if options.isolate:
+                swept = guard.sweep(picked, pair_config, limits, options.progress, arrived, options.cache_dir)
+            else:
+                swept = sweep(picked, pair_config, options.progress, arrived)
+            # a scenario's name seeds its inputs: the pair's results are renamed after the sweep
+            done.update({u.index: dataclasses.replace(r, name=r.name + suffix) for u, r in zip(todo, swept)})
+    finally:
+        if writer is not None:
+            writer.close()
+    results = list(bad) + [done[i] for i in sorted(done)]
     seconds = time.perf_counter() - t0
 
     doc = report.to_json(results, dict(options.as_config(), seconds=seconds, mjx_compiles=engines.compile_count()))
     doc["code"]["cache"] = export_cache.events_since(cache_before)
+    if book is not None:
+        doc["journal"] = book
+    return _finish(options, results, bad, seconds, doc, entries, base)
+
+
+def _finish(options: SweepOptions, results: list[ScenarioResult], bad: list[ScenarioResult], seconds: float,
+            doc: dict[str, Any], entries: tuple[known.Entry, ...], base: Any) -> SweepRun:
+    """Labels known divergences, reads the history's anomalies and the baseline's changes, and
+    decides the exit code (:func:`compute`)."""
+    from mjxdiff.sweep import exit_code
+
     accepted = set()
     for sc in doc["scenarios"]:
         entry = known.match(sc, entries)
@@ -305,3 +430,68 @@ def run(options: SweepOptions | None = None, /, on_result=None, **changes: Any) 
     out = compute(options, on_result)
     write(out)
     return out
+
+
+#: Options that may differ between shards of one sweep (where each ran, what it printed).
+_PER_SHARD = ("shard", "out", "resume", "rerun", "progress", "format", "cache_dir", "compile_workers", "budget",
+              "sweep_budget", "max_memory", "isolate", "history", "no_history", "seconds", "mjx_compiles", "command")
+
+
+def _verdict(result: dict[str, Any]) -> tuple:
+    """What two runs of one unit must agree on: the status and each field's worst error, first
+    step out and member (timings, compile counts and file paths aside)."""
+    fields = result.get("fields") or {}
+    return (result["status"], result.get("error_kind", ""),
+            tuple(sorted((k, str(f["max_error"]), f["first_step"], f["member"]) for k, f in fields.items())))
+
+
+def merge(out: str | None, dirs: list[str], **changes: Any) -> SweepRun:
+    """One report from the journals of shard outputs (``mjxdiff merge OUT DIR...``): the units
+    of every directory, in the sweep's canonical order, then the known labels, history and exit
+    code as one sweep decides them. Order-independent and idempotent: a unit recorded twice
+    (two shards, a resumed run) counts once. Records of one unit with other verdicts are
+    ``nondeterministic`` (a finding: exit 1); units no directory has are ``missing`` (exit 1).
+
+    Raises:
+      OptionsError: a directory without a journal, or shards of different sweeps (other
+        scenarios, seed or settings).
+    """
+    headers, records = [], []
+    for d in dirs:
+        found = journal.read(Path(d) / journal.FILE)
+        if found.header is None:
+            raise OptionsError(f"{d}: no {journal.FILE} with a header (a sweep run with --out {d} writes one)")
+        headers.append(found.header)
+        records += found.units
+    configs = [{k: v for k, v in h["config"].items() if k not in _PER_SHARD} for h in headers]
+    if any(c != configs[0] for c in configs[1:]):
+        differ = sorted({k for c in configs[1:] for k in c if c[k] != configs[0].get(k)})
+        raise OptionsError(f"the directories hold shards of different sweeps: {', '.join(differ)} differ")
+    fields = {f.name for f in dataclasses.fields(SweepOptions)}
+    config = {k: v for k, v in headers[0]["config"].items() if k in fields}
+    options = SweepOptions(**{**config, "scenarios": tuple(config.get("scenarios") or ()), "out": out, "shard": None,
+                              "resume": None, **changes})
+    entries = _entries(options)
+    base = (baseline.load(options.baseline, None if options.no_history else options.history)
+            if options.baseline else None)
+    _, bad = _scenarios(options)
+    by_index: dict[int, list[dict[str, Any]]] = {}
+    for r in records:
+        by_index.setdefault(r["index"], []).append(r)
+    total = max(h["units"] for h in headers)
+    nondeterministic = sorted(group[0]["unit"] for group in by_index.values()
+                              if len({_verdict(r["result"]) for r in group}) > 1)
+    missing = [i for i in range(total) if i not in by_index]
+    results = list(bad)
+    for i in sorted(by_index):
+        first = by_index[i][0]
+        r = report.result_from_dict(first["result"])
+        results.append(dataclasses.replace(r, pending=tuple(tuple(p) for p in first.get("pending", ()))))
+    seconds = sum(float(r.get("seconds") or 0.0) for r in records)
+    doc = report.to_json(results, dict(options.as_config(), seconds=seconds))
+    doc["journal"] = dict(merged=[str(d) for d in dirs], units=total, records=len(records), missing=missing,
+                          nondeterministic=nondeterministic)
+    run = _finish(options, results, bad, seconds, doc, entries, base)
+    if missing or nondeterministic:
+        run.exit_code = 1
+    return run

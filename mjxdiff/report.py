@@ -19,7 +19,7 @@ from typing import Any, Sequence
 
 from mjxdiff.errors import one_line
 from mjxdiff.files import atomic_write
-from mjxdiff.verdict import TRUNCATION, WEAK_BOUND, ScenarioResult
+from mjxdiff.verdict import TRUNCATION, WEAK_BOUND, FieldResult, ScenarioResult
 
 __all__ = ["ENVELOPE", "KINDS", "SCHEMA_VERSION", "code", "envelope", "summary", "to_json", "format_text",
            "validate", "write_report", "write_pending", "versions", "safe_filename", "path_under"]
@@ -108,6 +108,22 @@ def result_dict(r: ScenarioResult) -> dict[str, Any]:
     del d["pending"]
     d["fields"] = {f.pop("field"): f for f in d["fields"]}
     return _clean(d)
+
+
+_FLOATS = ("max_error", "tolerance", "growth_rate", "envelope", "ratio", "scale")
+
+
+def result_from_dict(d: dict[str, Any]) -> ScenarioResult:
+    """The verdict :func:`result_dict` wrote (a journal's record, a merged shard's), with its
+    fields' numbers floats again ("inf" and "nan" included): ``result_dict(result_from_dict(d))
+    == d`` (keys a report adds, such as ``known``, aside)."""
+    fields = tuple(FieldResult(field=name, **{**f, **{k: float(f[k]) for k in _FLOATS if k in f},
+                                              "series": tuple((int(k), float(e), float(b)) for k, e, b in f["series"]),
+                                              "bound_scale": tuple(float(x) for x in f["bound_scale"])})
+                   for name, f in d["fields"].items())
+    own = {f.name for f in dataclasses.fields(ScenarioResult)}  # a report's labels ("known") aside
+    return ScenarioResult(**{**{k: v for k, v in d.items() if k in own}, "fields": fields,
+                             "diverged_members": tuple(d["diverged_members"]), "weak": tuple(d["weak"])})
 
 
 def write_pending(r: ScenarioResult) -> ScenarioResult:
