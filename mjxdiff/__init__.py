@@ -14,7 +14,8 @@ Code map, by stage (data flows down):
   step from C's states), ``transfer`` (MJX's host interface), ``diagnose`` (drill-down, causes),
   ``segments`` (MJX's regularized capsule contacts, in NumPy).
 - Running: ``sweep`` (scenarios end to end), ``guard`` (a sweep in a watched child process),
-  ``pipeline`` (a whole sweep with known labels, history, baseline, files: :func:`run`).
+  ``pipeline`` (a whole sweep with known labels, history, baseline, files: :func:`run`;
+  shards, resume, :func:`merge`), ``journal`` (each finished unit on disk at once).
 - Output: ``report`` (text, report.json), ``html_report`` (report.html), ``reproducer``
   (failing members, replay), ``history`` (Parquet run history), ``baseline`` (what changed),
   ``known`` (the known-divergence catalogue), ``files`` (atomic writes), ``errors`` (one-line
@@ -63,6 +64,7 @@ _PUBLIC = {
     "judge": "mjxdiff.verdict",
     "load_scenario": "mjxdiff.scenario",
     "make_inputs": "mjxdiff.inputs",
+    "merge": "mjxdiff.pipeline",  # one report from the journals of a sweep's shards or resumed runs
     "metrics": None,  # the module itself
     "run": "mjxdiff.pipeline",  # a whole sweep as the CLI runs it: verdicts, known, history, baseline, files
     "run_scenario": "mjxdiff.sweep",

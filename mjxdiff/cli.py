@@ -365,6 +365,17 @@ def _sweep_parser(sub) -> argparse.ArgumentParser:
     sw.add_argument("--rerun", choices=("errors", "failed"), default="errors",
                     help="with --resume: rerun only units that did not settle (errors, the default: a worker "
                          "or engine failed, a limit ran out), or also the failures (failed, as pytest's --lf)")
+    sw.add_argument("--executor", choices=("local", "ray"), default="local",
+                    help="where the units run: on this machine (local, the default) or as one Ray task per "
+                         "unit on a Ray cluster (ray; pip install 'mjxdiff[ray]'): self-contained tasks (the "
+                         "model's files shipped), retried when a worker or node is lost, results journaled as "
+                         "they arrive and reported in the sweep's order")
+    sw.add_argument("--address", metavar="ADDR",
+                    help="with --executor ray: the cluster to join (ray.init's address, e.g. 'auto' or "
+                         "'ray://head:10001'; default: start a Ray instance on this machine)")
+    sw.add_argument("--cpus-per-scenario", type=_positive, metavar="K",
+                    help="with --executor ray: CPUs each unit's task asks for, and all it uses (XLA host "
+                         "devices, C threads; default 1)")
     sw.add_argument("--shard", metavar="I/N",
                     help="run only the I-th of N deterministic slices of the sweep's units (scenario x judged "
                          "pair, every N-th from the I-th); 'mjxdiff merge' joins the shards' --out directories "

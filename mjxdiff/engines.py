@@ -50,7 +50,9 @@ from typing import Any, Iterator
 # one per core. A single XLA CPU device runs a vmapped MJX rollout on about one core; split
 # over devices, each runs its share on its own thread. MJXEngine splits only batches big
 # enough to gain from it.
-CORES = os.cpu_count() or 1
+#: CPUs this process may use: ``MJXDIFF_CORES`` (what a cluster task was given, see
+#: :mod:`mjxdiff.executors`), else the machine's. Host devices, C threads and compile workers follow it.
+CORES = int(os.environ.get("MJXDIFF_CORES") or 0) or os.cpu_count() or 1
 #: XLA flags that keep a blocking LAPACK kernel from starving the pool (see above).
 SAFETY_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false", "--xla_cpu_multi_thread_eigen=false")
 _DEVICE_FLAG = "--xla_force_host_platform_device_count"
@@ -212,8 +214,9 @@ class CEngine(Streaming):
     precision: Precision = "float64"
     capabilities: frozenset[str] = frozenset()
 
-    def __init__(self, nthread: int = 0):
-        self.nthread = nthread
+    def __init__(self, nthread: int | None = None):
+        #: C threads (0: all CPUs); default :data:`CORES`, all of them unless ``MJXDIFF_CORES`` says otherwise
+        self.nthread = (0 if CORES == (os.cpu_count() or 1) else CORES) if nthread is None else nthread
 
     def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]) -> Forward:
         """``mj_forward`` of a copy of ``d``, read back (:func:`mjxdiff.stages.read`)."""

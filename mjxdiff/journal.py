@@ -17,7 +17,8 @@ Record types (``type``): ``header`` (``format``, the options as ``report.json``'
 ``units``: how many units the whole sweep has, ``shard``) and ``unit`` (``key``, ``parts``,
 ``index`` in the whole sweep's canonical order, ``unit`` name, ``result``:
 :func:`mjxdiff.report.result_dict`, ``pending``: files the driver has still to write,
-``seconds``: the unit's engine, compile and verdict seconds summed, ``host``, ``pid``, ``time``).
+``attempts`` and ``lost``: why earlier attempts' workers were lost, ``seconds``: the unit's
+engine, compile and verdict seconds summed, ``host``, ``pid``, ``time``).
 """
 
 from __future__ import annotations
@@ -109,11 +110,13 @@ class Journal:
         os.fsync(self._fd)
 
     def unit(self, key: str, parts: dict[str, Any], index: int, result: dict[str, Any],
-             pending: Iterable[tuple[str, str, dict[str, Any]]] = ()) -> None:
-        """Records a finished unit (``result``: :func:`mjxdiff.report.result_dict`)."""
+             pending: Iterable[tuple[str, str, dict[str, Any]]] = (), lost: Iterable[str] = ()) -> None:
+        """Records a finished unit (``result``: :func:`mjxdiff.report.result_dict`; ``lost``:
+        why earlier attempts' workers were lost, each retried)."""
         spent = ((result.get("info") or {}).get("seconds") or {}).values()
+        lost = list(lost)
         self.write(dict(type="unit", key=key, parts=parts, index=index, unit=result["name"], result=result,
-                        pending=[list(p) for p in pending],
+                        pending=[list(p) for p in pending], attempts=len(lost) + 1, lost=lost,
                         seconds=sum(v for v in spent if isinstance(v, (int, float))),
                         host=socket.gethostname(), pid=os.getpid(), time=time.time()))
 

@@ -84,6 +84,9 @@ class SweepOptions:
     resume: str | None = None
     rerun: Literal["errors", "failed"] = "errors"
     shard: str | None = None
+    executor: Literal["local", "ray"] = "local"
+    address: str | None = None
+    cpus_per_scenario: int | None = None
 
     def as_config(self) -> dict[str, Any]:
         """The options as ``report.json``'s ``config`` records them."""
@@ -202,6 +205,30 @@ def _units(config, scenarios: list, impl: str, journaled: bool) -> list[Unit]:
     return units
 
 
+def _ray(options: SweepOptions, config, units: list[Unit], done: dict[int, ScenarioResult],
+         writer: journal.Journal | None, on_result, entries) -> None:
+    """The units not ``done`` as Ray tasks (:func:`mjxdiff.executors.ray_sweep`), each result
+    journaled and passed on as it arrives; ``done`` gains them."""
+    import sys
+
+    from mjxdiff import executors
+
+    configs = dict(_pair_configs(config, options.impl))
+    jobs = [(u, u.scenario, configs[u.suffix]) for u in units if u.index not in done]
+
+    def arrived(u: Unit, r: ScenarioResult, lost: list[str]) -> None:
+        r = dataclasses.replace(r, name=r.name + u.suffix)
+        done[u.index] = r
+        if writer is not None:
+            writer.unit(u.key, u.parts, u.index, report.result_dict(r), r.pending, lost)
+        if on_result is not None:
+            on_result(r, known.match(report.result_dict(r), entries))
+
+    progress = sys.stderr.isatty() if options.progress is None else options.progress
+    say = (lambda text: print(f"... {text}", file=sys.stderr, flush=True)) if progress else None
+    executors.ray_sweep(jobs, arrived, options.address, options.cpus_per_scenario or 1, options.cache_dir, say)
+
+
 def _shard(text: str | None) -> tuple[int, int] | None:
     """``"I/N"`` -> (I, N), 1 <= I <= N; OptionsError otherwise."""
     if text is None:
@@ -287,6 +314,14 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
         if why:
             raise OptionsError(f"--impl {options.impl}: {why}")
     shard = _shard(options.shard)
+    if options.executor == "ray":
+        from mjxdiff import executors
+
+        why = executors.ray_missing()
+        if why:
+            raise OptionsError(f"--executor ray: {why}")
+    elif options.address or options.cpus_per_scenario:
+        raise OptionsError("--address and --cpus-per-scenario are for --executor ray")
     if options.resume and not (Path(options.resume) / journal.FILE).is_file():
         raise OptionsError(f"--resume {options.resume}: no {journal.FILE} there (a sweep run with --out "
                            f"{options.resume} writes one)")
@@ -302,7 +337,9 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
     done, book = _resumed(options, units)
     writer = _open_journal(options, len(scenarios) * len(_PAIRS[options.impl]), done)
     try:
-        for suffix, pair_config in _pair_configs(config, options.impl):
+        if options.executor == "ray":
+            _ray(options, config, units, done, writer, on_result, entries)
+        for suffix, pair_config in _pair_configs(config, options.impl) if options.executor == "local" else ():
             todo = [u for u in units if u.suffix == suffix and u.index not in done]
             arriving = iter(todo)
 
@@ -434,7 +471,8 @@ def run(options: SweepOptions | None = None, /, on_result=None, **changes: Any) 
 
 #: Options that may differ between shards of one sweep (where each ran, what it printed).
 _PER_SHARD = ("shard", "out", "resume", "rerun", "progress", "format", "cache_dir", "compile_workers", "budget",
-              "sweep_budget", "max_memory", "isolate", "history", "no_history", "seconds", "mjx_compiles", "command")
+              "sweep_budget", "max_memory", "isolate", "history", "no_history", "seconds", "mjx_compiles", "command",
+              "executor", "address", "cpus_per_scenario")
 
 
 def _verdict(result: dict[str, Any]) -> tuple:

@@ -97,3 +97,19 @@ def test_a_flex_is_a_catalogued_divergence_before_3_3_5_and_unsupported_since(fr
     assert "flex 'cloth'" in r.diagnosis["drill_down"]["object"], r.diagnosis
     entry = known.match(report.result_dict(r))
     assert entry is not None and entry.id == "flex-ignored-3.3", r.message
+
+
+def test_mesh_contacts_mjx_fixed_in_3_16_are_known_only_before(monkeypatch):
+    """plane-mesh and capsule-mesh contacts differed from C's on every release swept before
+    3.16 (mjxdiff versions, support.CATALOGUE's evidence): labelled there, not on 3.16 and later."""
+    from mjxdiff import known, support
+
+    def failing(pair):
+        return dict(status="fail", message="", diagnosis=dict(drill_down=dict(
+            first_stage="collision", object=f"geoms a / b ({pair}: C 3, MJX 4 contacts)")))
+    for release, expect in (("3.3.7", True), ("3.9.0", True), ("3.14.0", True), ("3.16.0", False),
+                            ("3.17.0", False)):
+        monkeypatch.setattr(support, "_mjx_version", lambda release=release: release)
+        for pair in ("plane-mesh", "capsule-mesh"):
+            entry = known.match(failing(pair))
+            assert (entry is not None and entry.id == f"{pair}-before-3.16") == expect, (release, pair, entry)
