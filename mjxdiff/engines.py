@@ -173,7 +173,9 @@ def configure_jax(precision: Precision = "float64", cache_dir: str | os.PathLike
     if not jaxlib_validated():
         cache_dir = ""  # a loaded rollout crashes some jaxlib releases (mjxdiff.compat.VALIDATED_JAXLIB)
     if cache_dir:
-        jax.config.update("jax_compilation_cache_dir", str(cache_dir))
+        # XLA's executables per CPU type (export_cache.cpu_type), mjxdiff's portable artifacts beside them
+        xla_dir = Path(cache_dir).expanduser() / f"{export_cache.XLA_PREFIX}{export_cache.cpu_type()}"
+        jax.config.update("jax_compilation_cache_dir", str(xla_dir))
         # every compile, however small: a sweep's many small eager ops (stacking leaves,
         # casts, metrics of each shape) otherwise recompile in every new process
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

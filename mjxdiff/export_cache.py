@@ -325,12 +325,41 @@ def rollout_digest() -> str:
     return hashlib.sha256((code_digest(TRACED_MODULES) + settings_digest()).encode()).hexdigest()
 
 
-def export_dir() -> Path | None:
-    """Where artifacts live: ``mjxdiff-exports`` in JAX's compilation cache dir; None when that is off."""
+#: Prefix of the per-CPU-type directory of XLA's executables under the cache root (:func:`cpu_type`).
+XLA_PREFIX = "xla-"
+
+
+def cpu_type() -> str:
+    """A tag of this CPU's instruction set: the machine and a digest of the features
+    ``/proc/cpuinfo`` lists (``x86_64-3f9a0c12d4e5``). XLA's CPU executables depend on them and
+    its cache key does not carry them, so each CPU type keeps its own executables."""
+    import platform
+
+    flags = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line.split(":", 1)[1] for line in f if line.startswith(("flags", "Features"))), "")
+    except OSError:
+        flags = platform.processor()
+    return f"{platform.machine()}-{hashlib.sha256(' '.join(sorted(flags.split())).encode()).hexdigest()[:12]}"
+
+
+def cache_root() -> Path | None:
+    """The cache directory the user gave (``--cache-dir``, ``$MJXDIFF_CACHE``): JAX's
+    compilation cache dir, or its parent when that is the per-CPU-type ``xla-<cpu type>``
+    directory; None when the cache is off."""
     cache = jax.config.jax_compilation_cache_dir  # pyright: ignore[reportAttributeAccessIssue] - jax's Config
     if not cache or "://" in str(cache):
         return None
-    return Path(cache) / "mjxdiff-exports"
+    cache = Path(cache)
+    return cache.parent if cache.name.startswith(XLA_PREFIX) else cache
+
+
+def export_dir() -> Path | None:
+    """Where artifacts live: ``mjxdiff-exports`` in the cache root (:func:`cache_root`), shared by
+    every CPU type (a ``jax.export`` artifact is portable); None when the cache is off."""
+    root = cache_root()
+    return None if root is None else root / "mjxdiff-exports"
 
 
 def loaded_count() -> int:

@@ -62,10 +62,9 @@ def available() -> str | None:
 def kernel_cache_dir() -> Path:
     """``<JAX cache>/warp``: the JAX compilation cache directory mjxdiff uses (``--cache-dir``,
     ``$MJXDIFF_CACHE`` or ``~/.cache/mjxdiff/jax``), else ``~/.cache/mjxdiff/jax/warp``."""
-    import jax
+    from mjxdiff.export_cache import cache_root
 
-    base = (jax.config.jax_compilation_cache_dir  # pyright: ignore[reportAttributeAccessIssue] - jax's Config
-            or os.environ.get("MJXDIFF_CACHE") or str(Path.home() / ".cache" / "mjxdiff" / "jax"))
+    base = cache_root() or os.environ.get("MJXDIFF_CACHE") or str(Path.home() / ".cache" / "mjxdiff" / "jax")
     return Path(base).expanduser() / "warp"
 
 

@@ -315,3 +315,20 @@ def test_scanning_for_live_functions_leaves_tuples_other_threads_build_alone():
         stop.set()
         builder.join()
     assert errors == []
+
+
+def test_xla_executables_are_kept_per_cpu_type_and_artifacts_shared(tmp_path):
+    """configure_jax puts XLA's executables under ``xla-<cpu type>`` (its cache key does not name
+    the instruction set) and mjxdiff's portable artifacts, and MuJoCo Warp's kernels, beside them."""
+    from mjxdiff import engines, mjwarp
+
+    before = jax.config.jax_compilation_cache_dir
+    try:
+        engines.configure_jax("float64", str(tmp_path))
+        tag = export_cache.cpu_type()
+        assert jax.config.jax_compilation_cache_dir == str(tmp_path / f"xla-{tag}")
+        assert export_cache.cache_root() == tmp_path and export_cache.export_dir() == tmp_path / "mjxdiff-exports"
+        assert mjwarp.kernel_cache_dir() == tmp_path / "warp"
+        assert tag.split("-")[0] and len(tag.split("-")[-1]) == 12 and export_cache.cpu_type() == tag
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
