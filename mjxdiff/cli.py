@@ -69,6 +69,12 @@ accepted = true) and, with --baseline, failures the baseline already had, exit 0
 _BENCH_DEFAULT = ("pendulum", "cartpole", "ant")
 #: The long descriptions of the subcommands (``--help``; argparse refills the lines).
 _DESCRIPTIONS = {
+    "scale": """\
+Predict how a sweep would scale over more nodes, from the per-unit seconds its journal measured
+(DIR/journal.jsonl of 'mjxdiff sweep --out DIR'; a Ray run measures each task on its worker):
+units start longest first, each on the worker that frees first, node count x (CPUs per node //
+CPUs per scenario) workers, plus --per-task seconds per unit and --fixed seconds once. No
+schedule beats the longest unit: the table says which it is and where the speed-up levels off.""",
     "merge": """\
 Join the --out directories of a sweep's shards ('mjxdiff sweep --shard I/N --out DIR'), or of
 resumed runs, into one report: every unit's verdict from the directories' journal.jsonl, in the
@@ -684,6 +690,43 @@ def _cmd_merge(args: argparse.Namespace) -> int:
     return run.exit_code
 
 
+def _scale_parser(sub) -> argparse.ArgumentParser:
+    sc = sub.add_parser("scale", help="predict a sweep's wall time on 1-64 nodes from its journal",
+                        description=_DESCRIPTIONS["scale"])
+    sc.add_argument("dirs", nargs="+", metavar="DIR", help="--out directories whose journal.jsonl measured the units")
+    sc.add_argument("--nodes", type=_positive, nargs="+", metavar="N", help="node counts (default 1 2 4 ... 64)")
+    sc.add_argument("--cpus-per-node", type=_positive, default=2, metavar="C", help="CPUs of a node (default 2)")
+    sc.add_argument("--cpus-per-scenario", type=_positive, default=1, metavar="K",
+                    help="CPUs each unit's task asks for (default 1)")
+    sc.add_argument("--fixed", type=float, default=0.0, metavar="SECONDS",
+                    help="seconds the run costs once: starting or joining Ray, the workers' imports (default 0)")
+    sc.add_argument("--per-task", type=float, default=0.0, metavar="SECONDS",
+                    help="seconds each unit costs on top of its own (default 0)")
+    _shared(sc, "format")
+    return sc
+
+
+def _cmd_scale(args: argparse.Namespace) -> int:
+    from mjxdiff import journal, scaling
+
+    units = {}
+    for d in args.dirs:
+        for r in journal.read(Path(d) / journal.FILE).units:
+            units[r["key"]] = (r["unit"], float(r.get("seconds") or 0.0))  # a unit recorded twice: the later
+    if not units:
+        print(f"mjxdiff: error: no finished unit in {', '.join(args.dirs)} (a sweep run with --out DIR journals "
+              "them)", file=sys.stderr)
+        return 2
+    predictions = scaling.predict(list(units.values()), args.nodes or scaling.NODES,
+                                  max(1, args.cpus_per_node // args.cpus_per_scenario), args.fixed, args.per_task)
+    if args.format == "json":
+        print(json.dumps([dataclasses.asdict(p) for p in predictions], indent=2))
+    else:
+        print(f"{len(units)} units, {sum(s for _, s in units.values()):.1f} s of work")
+        print(scaling.format_table(predictions))
+    return 0
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     from mjxdiff import engines, report, reproducer
     from mjxdiff.scenario import ScenarioError
@@ -1000,11 +1043,12 @@ def _cmd_cache(args: argparse.Namespace) -> int:
 _COMMANDS = ((_sweep_parser, _cmd_sweep), (_replay_parser, _cmd_replay), (_fuzz_parser, _cmd_fuzz),
              (_bench_parser, _cmd_bench), (_policy_parser, _cmd_policy), (_coverage_parser, _cmd_coverage),
              (_grad_parser, _cmd_grad), (_history_parser, _cmd_history), (_cache_parser, _cmd_cache),
-             (_versions_parser, _cmd_versions), (_merge_parser, _cmd_merge), (_list_parser, _cmd_list))
+             (_versions_parser, _cmd_versions), (_merge_parser, _cmd_merge), (_scale_parser, _cmd_scale),
+             (_list_parser, _cmd_list))
 
 
 #: Commands that run neither MuJoCo nor MJX: no version check.
-_UNGATED = (_cmd_history, _cmd_list, _cmd_versions)  # versions: each environment is gated by its own range
+_UNGATED = (_cmd_history, _cmd_list, _cmd_versions, _cmd_scale)  # versions: each environment is gated by its own range
 
 
 def main(argv: Sequence[str] | None = None) -> int:

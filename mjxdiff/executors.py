@@ -98,6 +98,7 @@ def run_payload(p: Payload) -> dict[str, Any]:
     """Sweeps one :class:`Payload` in this (worker) process; returns the verdict
     (:func:`mjxdiff.report.result_dict`), the files still to write, the worker's MJX digest,
     host and pid."""
+    t0 = time.perf_counter()
     delay = float(os.environ.get(_DELAY_ENV) or 0)
     if delay:
         time.sleep(delay)
@@ -113,7 +114,8 @@ def run_payload(p: Payload) -> dict[str, Any]:
         scenario = dataclasses.replace(p.scenario, model=str(Path(tmp, p.scenario.model)))
         [r] = sweep([scenario], p.config)
     return dict(result=report.result_dict(r), pending=[list(x) for x in r.pending],
-                mjx=export_cache.code_digest(names=list(p.names)), host=socket.gethostname(), pid=os.getpid())
+                mjx=export_cache.code_digest(names=list(p.names)), host=socket.gethostname(), pid=os.getpid(),
+                wall=time.perf_counter() - t0 - delay)
 
 
 def _lost(e: BaseException) -> bool:
@@ -127,14 +129,15 @@ def _lost(e: BaseException) -> bool:
     return isinstance(e, lost)
 
 
-def ray_sweep(jobs: list[tuple[Any, Any, Any]], arrived: Callable[[Any, ScenarioResult, list[str]], None],
+def ray_sweep(jobs: list[tuple[Any, Any, Any]], arrived: Callable[[Any, ScenarioResult, list[str], float | None], None],
               address: str | None, cpus: int, cache_dir: str | None,
               say: Callable[[str], None] | None = None) -> dict[int, ScenarioResult]:
     """Runs ``jobs`` (unit, its scenario, its pair's SweepConfig) as Ray tasks of ``cpus`` CPUs
     each on the cluster at ``address`` (None: a Ray instance started here), at most twice the
-    cluster's CPUs / ``cpus`` in flight. ``arrived(unit, result, failures)`` is called in
-    completion order (``failures``: why earlier attempts were lost); returns the results by
-    unit index (the caller orders them)."""
+    cluster's CPUs / ``cpus`` in flight. ``arrived(unit, result, failures, seconds)`` is called
+    in completion order (``failures``: why earlier attempts were lost; ``seconds``: the task's
+    wall time on its worker, None where it never ran); returns the results by unit index (the
+    caller orders them)."""
     import ray
 
     from mjxdiff import export_cache
@@ -164,9 +167,9 @@ def ray_sweep(jobs: list[tuple[Any, Any, Any]], arrived: Callable[[Any, Scenario
         failures: dict[int, list[str]] = {}
         flying: dict[Any, tuple[Any, Any, Any, Payload]] = {}
 
-        def finish(unit, result: ScenarioResult) -> None:
+        def finish(unit, result: ScenarioResult, seconds: float | None = None) -> None:
             results[unit.index] = result
-            arrived(unit, result, failures.get(unit.index, []))
+            arrived(unit, result, failures.get(unit.index, []), seconds)
 
         def submit(unit, scenario, config, p: Payload | None = None) -> None:
             if p is None:
@@ -212,7 +215,7 @@ def ray_sweep(jobs: list[tuple[Any, Any, Any]], arrived: Callable[[Any, Scenario
                                    message=f"the worker on {got['host']} runs other MJX code (digest "
                                            f"{got['mjx'][:12]}, the driver's {digest[:12]}): not a verdict on "
                                            "the tested code; install the same MJX on every node")
-            finish(unit, r)
+            finish(unit, r, got["wall"])
     finally:
         if started_here:
             ray.shutdown()

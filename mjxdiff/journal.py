@@ -18,7 +18,7 @@ Record types (``type``): ``header`` (``format``, the options as ``report.json``'
 ``index`` in the whole sweep's canonical order, ``unit`` name, ``result``:
 :func:`mjxdiff.report.result_dict`, ``pending``: files the driver has still to write,
 ``attempts`` and ``lost``: why earlier attempts' workers were lost, ``seconds``: the unit's
-engine, compile and verdict seconds summed, ``host``, ``pid``, ``time``).
+wall time on a Ray worker, else :func:`unit_seconds`, ``host``, ``pid``, ``time``).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 __all__ = ["FILE", "FORMAT", "Journal", "Records", "config_digest", "mjxdiff_digest", "read", "reusable",
-           "scenario_digest", "unit_key"]
+           "scenario_digest", "unit_key", "unit_seconds"]
 
 FILE = "journal.jsonl"
 FORMAT = "mjxdiff-journal/1"
@@ -92,6 +92,13 @@ def unit_key(scenario_hash: str, suffix: str, config: Any, mjx: str, own: str,
     return _sha(parts), parts
 
 
+def unit_seconds(result: dict[str, Any]) -> float:
+    """A unit's seconds from its verdict: inputs, compile, both engines, verdict, diagnosis and
+    the checks summed (``compiled_ahead`` overlaps the rest and is left out)."""
+    spent = ((result.get("info") or {}).get("seconds") or {}).items()
+    return float(sum(v for k, v in spent if isinstance(v, (int, float)) and k != "compiled_ahead"))
+
+
 class Journal:
     """Appends records to ``path`` (created; emptied first unless ``append``). Each
     :meth:`write` is one ``os.write`` of one whole line, then ``fsync``."""
@@ -110,14 +117,15 @@ class Journal:
         os.fsync(self._fd)
 
     def unit(self, key: str, parts: dict[str, Any], index: int, result: dict[str, Any],
-             pending: Iterable[tuple[str, str, dict[str, Any]]] = (), lost: Iterable[str] = ()) -> None:
+             pending: Iterable[tuple[str, str, dict[str, Any]]] = (), lost: Iterable[str] = (),
+             seconds: float | None = None) -> None:
         """Records a finished unit (``result``: :func:`mjxdiff.report.result_dict`; ``lost``:
-        why earlier attempts' workers were lost, each retried)."""
-        spent = ((result.get("info") or {}).get("seconds") or {}).values()
+        why earlier attempts' workers were lost, each retried; ``seconds``: its wall time where
+        the executor measured it, else :func:`unit_seconds`)."""
         lost = list(lost)
         self.write(dict(type="unit", key=key, parts=parts, index=index, unit=result["name"], result=result,
                         pending=[list(p) for p in pending], attempts=len(lost) + 1, lost=lost,
-                        seconds=sum(v for v in spent if isinstance(v, (int, float))),
+                        seconds=unit_seconds(result) if seconds is None else seconds,
                         host=socket.gethostname(), pid=os.getpid(), time=time.time()))
 
     def close(self) -> None:

@@ -216,11 +216,11 @@ def _ray(options: SweepOptions, config, units: list[Unit], done: dict[int, Scena
     configs = dict(_pair_configs(config, options.impl))
     jobs = [(u, u.scenario, configs[u.suffix]) for u in units if u.index not in done]
 
-    def arrived(u: Unit, r: ScenarioResult, lost: list[str]) -> None:
+    def arrived(u: Unit, r: ScenarioResult, lost: list[str], seconds: float | None) -> None:
         r = dataclasses.replace(r, name=r.name + u.suffix)
         done[u.index] = r
         if writer is not None:
-            writer.unit(u.key, u.parts, u.index, report.result_dict(r), r.pending, lost)
+            writer.unit(u.key, u.parts, u.index, report.result_dict(r), r.pending, lost, seconds)
         if on_result is not None:
             on_result(r, known.match(report.result_dict(r), entries))
 
