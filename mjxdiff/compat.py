@@ -22,12 +22,15 @@ branches on versions:
   something a later release added (``<flag spring=...>`` before 3.4) is ``unsupported`` there,
   not bad input: ``scenario.load_model`` raises ``LaterFeatureError`` with this text, so every
   command says so, and a sweep reports the scenario ``unsupported``.
-* :func:`jaxlib_validated`: two things mjxdiff does for speed are used only on the jaxlib
-  releases they were validated on (:data:`VALIDATED_JAXLIB`); elsewhere it compiles at XLA's
-  level 1 and keeps no persistent caches. XLA's LLVM level 0 with classic emitters (the
-  sweep's fast compile, ``mjxdiff.engines.FAST_COMPILE``) miscompiles MJX on jaxlib 0.7.2
-  (results that depend on which members share the batch), and a rollout loaded from the
-  persistent caches there crashes the process (SIGSEGV in ``aot_cache_miss``).
+* :func:`jaxlib_validated`, :func:`fast_compile_validated`: two things mjxdiff does for speed
+  are used only where they were validated: the persistent caches on the jaxlib releases of
+  :data:`VALIDATED_JAXLIB`, the fast compile only there and with the MJX releases of
+  :data:`VALIDATED_FAST_MJX`; elsewhere it compiles at XLA's level 1 and (other jaxlib) keeps
+  no persistent caches. XLA's LLVM level 0 with classic emitters (the sweep's fast compile,
+  ``mjxdiff.engines.FAST_COMPILE``) miscompiles MJX on jaxlib 0.7.2 (results that depend on
+  which members share the batch) and MJX 3.10-3.15 on jaxlib 0.10.2 (contact rollouts leave
+  their envelope with every forward stage agreeing), and a rollout loaded from the persistent
+  caches on jaxlib 0.7.2 crashes the process (SIGSEGV in ``aot_cache_miss``).
 * ``Batch``, ``SimulationError``: :class:`mujoco.batch.Batch` (MuJoCo 4.0) or, before it,
   :class:`LoopBatch`, the part of its interface mjxdiff uses as a loop over one ``MjData``
   per simulation (the same arithmetic: ``Batch`` is documented bit-identical to that loop).
@@ -46,10 +49,10 @@ from typing import Any, Sequence
 import mujoco
 import numpy as np
 
-__all__ = ["jaxlib_validated", "later_feature", "enable_x64", "disable_bit", "sensor_types", "full_inertia",
-           "mjx_lacks", "data_impl", "with_impl", "impl_fields", "Batch", "LoopBatch", "SimulationError", "SUPPORTED",
-           "JAX_CEILING", "REFERENCE", "VALIDATED_JAXLIB", "installed", "check_versions", "gate", "UntestedVersions",
-           "HAS_BATCH", "matching_mujoco"]
+__all__ = ["jaxlib_validated", "fast_compile_validated", "later_feature", "enable_x64", "disable_bit", "sensor_types",
+           "full_inertia", "mjx_lacks", "data_impl", "with_impl", "impl_fields", "Batch", "LoopBatch",
+           "SimulationError", "SUPPORTED", "JAX_CEILING", "REFERENCE", "VALIDATED_JAXLIB", "VALIDATED_FAST_MJX",
+           "installed", "check_versions", "gate", "UntestedVersions", "HAS_BATCH", "matching_mujoco"]
 
 #: The supported range, inclusive: distribution -> (oldest, newest).
 SUPPORTED: dict[str, tuple[str, str]] = {
@@ -159,12 +162,25 @@ def later_feature(message: str, versions: dict[str, str] | None = None) -> str |
 #: or 2-3, 3e-17 alone, with 0-3 or 3-7, or at level 1; the second run of a sweep, loading the
 #: first's rollout, dies of SIGSEGV (the first, and any run with --cache-dir "", pass).
 VALIDATED_JAXLIB = ((0, 10),)
+#: MJX releases (major, minor) the fast compile was validated with, on a :data:`VALIDATED_JAXLIB`
+#: (the whole suite and the default sweep). Measured on jaxlib 0.10.2 with MJX 3.15.0: box_stack
+#: (quick, seed 0) leaves its envelope at step 12 with "every forward stage agrees, the one-step
+#: error does not: integration", primitives_on_plane at step 18 the same way; at XLA's default
+#: level both pass (3.2e-8 and 2.5e-14 of their tolerances). MJX 3.10.0 to 3.14.0 showed the same
+#: box_stack failure under the fast compile. Fail closed: any other MJX compiles at level 1.
+VALIDATED_FAST_MJX = ((3, 17),)
 
 
 def jaxlib_validated() -> bool:
     """Whether the installed jaxlib is one mjxdiff's fast compile and caches were validated on."""
     v = _version("jaxlib")
     return v != "not installed" and _release(v)[:2] in VALIDATED_JAXLIB
+
+
+def fast_compile_validated() -> bool:
+    """Whether the fast compile was validated with the installed jaxlib *and* MJX
+    (:data:`VALIDATED_JAXLIB`, :data:`VALIDATED_FAST_MJX`)."""
+    return jaxlib_validated() and _release(_version("mujoco-mjx"))[:2] in VALIDATED_FAST_MJX
 
 
 def enable_x64(on: bool = True):

@@ -65,7 +65,8 @@ import numpy as np  # noqa: E402
 with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import warp" to stdout
     from mujoco import mjx
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
-from mjxdiff.compat import Batch, SimulationError, data_impl, disable_bit, jaxlib_validated  # noqa: E402
+from mjxdiff.compat import (Batch, SimulationError, data_impl, disable_bit, fast_compile_validated,  # noqa: E402
+                            jaxlib_validated)
 
 from mjxdiff.precision import Precision  # noqa: E402
 from mjxdiff import export_cache, joints, stages  # noqa: E402
@@ -618,8 +619,8 @@ def xla_options(mode: str, steps: int) -> export_cache.Options:
             extra = FAST_SECONDS_PER_FLOP * flops * steps
             choice.update(flops_per_step=flops, fast_extra_seconds=round(extra, 3))
             level = "fast" if extra < FAST_BUDGET_SECONDS else "balanced"
-        if level == "fast" and not jaxlib_validated():
-            level = "balanced"  # LLVM level 0 miscompiles MJX on some jaxlib releases (mjxdiff.compat)
+        if level == "fast" and not fast_compile_validated():
+            level = "balanced"  # LLVM level 0 miscompiles MJX on some jaxlib and MJX releases (mjxdiff.compat)
         choice["level"] = level
         options = {"fast": FAST_COMPILE, "balanced": BALANCED_COMPILE}.get(level, {})
         return dict(options), choice

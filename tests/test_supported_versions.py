@@ -64,7 +64,7 @@ def test_the_fast_compile_is_used_only_where_it_was_validated():
     from mjxdiff.engines import xla_options
 
     _, choice = xla_options("fast", 10)(jax.jit(lambda x: x + 1.0).lower(1.0))
-    assert (choice["level"] == "fast") == compat.jaxlib_validated()
+    assert (choice["level"] == "fast") == compat.fast_compile_validated()
 
 
 def test_a_version_specific_entry_matches_only_on_its_release(monkeypatch):
@@ -113,3 +113,20 @@ def test_mesh_contacts_mjx_fixed_in_3_16_are_known_only_before(monkeypatch):
         for pair in ("plane-mesh", "capsule-mesh"):
             entry = known.match(failing(pair))
             assert (entry is not None and entry.id == f"{pair}-before-3.16") == expect, (release, pair, entry)
+
+
+def test_the_fast_compile_is_used_only_with_the_mjx_it_was_validated_with(monkeypatch):
+    """LLVM level 0 miscompiled MJX 3.10-3.15 on jaxlib 0.10.2 (box_stack left its envelope with
+    every forward stage agreeing; at level 1 it passes): only validated MJX releases get it."""
+    import jax
+
+    from mjxdiff.engines import xla_options
+
+    real = compat._version
+    lowered = jax.jit(lambda x: x + 1.0).lower(1.0)
+    for mjx, jaxlib, fast in (("3.15.0", "0.10.2", False), ("3.10.0", "0.10.2", False), ("3.17.0", "0.7.2", False),
+                              ("3.17.0", "0.10.2", True)):
+        monkeypatch.setattr(compat, "_version", lambda dist, mjx=mjx, jaxlib=jaxlib: {
+            "mujoco-mjx": mjx, "jaxlib": jaxlib}.get(dist) or real(dist))
+        assert compat.fast_compile_validated() == fast, (mjx, jaxlib)
+        assert (xla_options("fast", 10)(lowered)[1]["level"] == "fast") == fast, (mjx, jaxlib)
