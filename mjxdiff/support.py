@@ -268,8 +268,10 @@ class Entry:
         return all(checks)
 
 
-#: MJX releases before 3.16, as ``only_on`` prefixes.
-_BEFORE_3_16 = tuple(f"3.{minor}." for minor in range(3, 16))
+def _releases_before(minor: int) -> tuple[str, ...]:
+    """``only_on`` prefixes of the supported MJX releases 3.3 to 3.``minor - 1``."""
+    return tuple(f"3.{m}." for m in range(3, minor))
+
 
 #: What mjxdiff has measured of MJX 3.17 against MuJoCo 4.0 (README, "Known C/MJX divergences";
 #: scenario notes). Approximations by design first, then bugs; the first matching entry wins.
@@ -278,16 +280,16 @@ CATALOGUE: tuple[Entry, ...] = (
           "tests/test_solver_floor.py: a 1-iteration quadruped parts by radians over 200 steps; with a converged "
           "solver (the twin) and one step from C's states the engines agree to rounding", cause="solver truncation",
           accepted=True, versions=(MEASURED_ON, "3.3.5", "3.9.0")),
-    Entry("plane-mesh-before-3.16", "MJX before 3.16: a plane-mesh manifold of more contacts than C's",
+    Entry("plane-mesh-before-3.14", "MJX before 3.14: a plane-mesh manifold of more contacts than C's",
           "mjxdiff versions (2026-11-26), primitives_on_plane at step 0, geoms floor / mesh: C 3, MJX 4 contacts on "
           "3.3.7 and 3.9.0; C 2, MJX 4 on 3.10.0 and 3.12.0 (the one-step check from C's state shows the same); "
-          "passes on 3.16.0 and 3.17.0 (3.15 not swept)", stage="collision", pattern=r"\(plane-mesh: C \d+, MJX",
-          versions=("3.3.5", "3.3.7", "3.9.0", "3.10.0", "3.12.0"), only_on=_BEFORE_3_16),
-    Entry("capsule-mesh-before-3.16", "MJX before 3.16: capsule-mesh contacts other than C's",
+          "passes on 3.14.0 to 3.17.0 (3.13 not swept)", stage="collision", pattern=r"\(plane-mesh: C \d+, MJX",
+          versions=("3.3.5", "3.3.7", "3.9.0", "3.10.0", "3.12.0"), only_on=_releases_before(14)),
+    Entry("capsule-mesh-before-3.15", "MJX before 3.15: capsule-mesh contacts other than C's",
           "mjxdiff versions (2026-11-26), primitive_pairs at step 0, geoms slab / cap_slab: C 1, MJX 2 contacts on "
-          "3.3.7; C 2, MJX 2 with normals 1e-3 apart on 3.9.0 to 3.14.0 (the one-step check shows the same); "
-          "passes on 3.16.0 and 3.17.0 (3.15 not swept)", stage="collision", pattern=r"\(capsule-mesh:",
-          versions=("3.3.5", "3.3.7", "3.9.0", "3.10.0", "3.12.0", "3.14.0"), only_on=_BEFORE_3_16),
+          "3.3.7; C 2, MJX 2 with normals 1e-3 apart on 3.9.0, 3.10.0, 3.12.0 and 3.14.0 (the one-step check shows "
+          "the same); passes on 3.15.0 to 3.17.0", stage="collision", pattern=r"\(capsule-mesh:",
+          versions=("3.3.5", "3.3.7", "3.9.0", "3.10.0", "3.12.0", "3.14.0"), only_on=_releases_before(15)),
     Entry("plane-box-corners", "plane-box/mesh: MJX keeps only corners within 1 mm of the deepest",
           "primitives_on_plane notes: a box that lands on a corner or rocks (> 1 mm depth spread) diverges ~1e-3; "
           "a tipped cube in sensing: C 4 corners, MJX 3", stage="collision", pattern=r"\(plane-(box|mesh):",

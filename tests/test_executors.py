@@ -5,7 +5,6 @@ import json
 import logging
 import os
 import signal
-import subprocess
 import threading
 import time
 
@@ -38,10 +37,29 @@ def local(tmp_path_factory):
     return pipeline.run(_options(tmp_path_factory.mktemp("local"), isolate=False))
 
 
-def _workers() -> list[int]:
-    """Pids of Ray workers running a unit now."""
-    got = subprocess.run(["pgrep", "-f", "ray::run_payload"], capture_output=True, text=True)
-    return [int(p) for p in got.stdout.split()]
+def _delay(monkeypatch) -> str:
+    """Makes this test's Ray workers wait 4 s before sweeping (time to kill one), by a value of
+    ``MJXDIFF_WORKER_DELAY`` no other test's workers have; returns it (see :func:`_workers`)."""
+    value = f"4.{os.getpid()}{time.monotonic_ns() % 10**6:06d}"
+    monkeypatch.setenv("MJXDIFF_WORKER_DELAY", value)
+    return value
+
+
+def _workers(delay: str) -> list[int]:
+    """Pids of this test's Ray workers running a unit now: titled ``ray::run_payload`` meanwhile,
+    with this test's :func:`_delay` in their environment (another test may run Ray beside it)."""
+    pids = []
+    for entry in os.listdir("/proc"):
+        try:
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                if not f.read().startswith(b"ray::run_payload"):
+                    continue
+            with open(f"/proc/{entry}/environ", "rb") as f:
+                if f"MJXDIFF_WORKER_DELAY={delay}".encode() in f.read().split(b"\0"):
+                    pids.append(int(entry))
+        except (OSError, ValueError):
+            continue
+    return pids
 
 
 def _in_thread(target) -> tuple[threading.Thread, dict]:
@@ -61,20 +79,21 @@ def test_ray_gives_the_local_verdicts_and_journals_each_unit(local, tmp_path):
     run = pipeline.run(_options(tmp_path, executor="ray"))
     assert _verdicts(run.doc) == _verdicts(local.doc)
     records = journal.read(tmp_path / journal.FILE).units
-    assert sorted(r["index"] for r in records) == [0, 1, 2] and all(r["attempts"] == 1 for r in records)
+    assert sorted(r["index"] for r in records) == [0, 1, 2]
+    assert all(r["attempts"] == 1 for r in records), [(r["unit"], r["lost"]) for r in records]
     assert all(s["info"]["worker"]["pid"] != os.getpid() for s in run.doc["scenarios"])  # run by Ray's workers
 
 
 def test_a_worker_killed_on_its_first_attempt_is_retried(local, tmp_path, monkeypatch):
-    monkeypatch.setenv("MJXDIFF_WORKER_DELAY", "4")  # time to find the worker and kill it
+    delay = _delay(monkeypatch)  # time to find the worker and kill it
     ray.init(num_cpus=2, object_store_memory=100 << 20, include_dashboard=False, log_to_driver=False,
              logging_level=logging.ERROR)  # here: ray.init wants the main thread
     try:
         thread, box = _in_thread(lambda: pipeline.run(_options(tmp_path, executor="ray", scenarios=("pendulum",))))
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not _workers():
+        while time.monotonic() < deadline and not _workers(delay):
             time.sleep(0.1)
-        victims = _workers()
+        victims = _workers(delay)
         assert victims, f"no Ray worker ever ran the unit: {box}"
         os.kill(victims[0], signal.SIGKILL)
         thread.join(600)
@@ -92,7 +111,7 @@ def test_a_node_removed_mid_sweep_loses_no_verdict(local, tmp_path, monkeypatch)
     unit: every verdict still arrives, the lost one retried on the head, as the journal says."""
     from ray.cluster_utils import Cluster
 
-    monkeypatch.setenv("MJXDIFF_WORKER_DELAY", "4")
+    delay = _delay(monkeypatch)
     cluster = Cluster(initialize_head=True, head_node_args=dict(num_cpus=1, object_store_memory=100 << 20))
     node = cluster.add_node(num_cpus=1, object_store_memory=100 << 20)
     try:
@@ -100,9 +119,9 @@ def test_a_node_removed_mid_sweep_loses_no_verdict(local, tmp_path, monkeypatch)
         ray.init(address=cluster.address, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
         thread, box = _in_thread(lambda: pipeline.run(_options(tmp_path, executor="ray")))
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and len(_workers()) < 2:
+        while time.monotonic() < deadline and len(_workers(delay)) < 2:
             time.sleep(0.1)
-        assert len(_workers()) >= 2, "the two nodes never ran a unit each"
+        assert len(_workers(delay)) >= 2, "the two nodes never ran a unit each"
         cluster.remove_node(node)
         thread.join(600)
         assert "error" not in box, box.get("error")

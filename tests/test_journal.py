@@ -114,42 +114,47 @@ def test_shards_merged_give_the_report_of_one_run_in_any_order(whole, tmp_path):
     assert partial.exit_code == 1 and partial.doc["journal"]["missing"] == [2]
 
 
+def _lines(out) -> list[str]:
+    return (out / journal.FILE).read_text().splitlines()
+
+
+def _journal_dir(path, records: list) -> str:
+    """A directory whose journal holds ``records`` (JSON lines or dicts)."""
+    path.mkdir()
+    (path / journal.FILE).write_text("".join((r if isinstance(r, str) else json.dumps(r)) + "\n" for r in records))
+    return str(path)
+
+
 def test_disagreeing_records_of_one_unit_are_nondeterminism(whole, tmp_path):
     _, out = whole
-    other = tmp_path / "other"
-    other.mkdir()
-    lines = (out / journal.FILE).read_text().splitlines()
+    lines = _lines(out)
     record = json.loads(lines[2])
     record["result"]["fields"]["qpos"]["max_error"] *= 3  # the same unit, another number
-    (other / journal.FILE).write_text("\n".join([lines[0], json.dumps(record)]) + "\n")
-    merged = pipeline.merge(str(tmp_path / "merged"), [str(out), str(other)])
+    other = _journal_dir(tmp_path / "other", [lines[0], record])
+    merged = pipeline.merge(str(tmp_path / "merged"), [str(out), other])
     assert merged.doc["journal"]["nondeterministic"] == [record["unit"]] and merged.exit_code == 1
 
 
 def test_shards_of_different_sweeps_are_refused(whole, tmp_path):
     _, out = whole
-    other = tmp_path / "seed1"
-    other.mkdir()
-    header = json.loads((out / journal.FILE).read_text().splitlines()[0])
+    header = json.loads(_lines(out)[0])
     header["config"]["seed"] = 1
-    (other / journal.FILE).write_text(json.dumps(header) + "\n")
+    other = _journal_dir(tmp_path / "seed1", [header])
     with pytest.raises(pipeline.OptionsError, match="different sweeps: seed differ"):
-        pipeline.merge(str(tmp_path / "m"), [str(out), str(other)])
+        pipeline.merge(str(tmp_path / "m"), [str(out), other])
 
 
 def test_resume_reuses_settled_units_reruns_the_rest_and_lists_stale_ones(whole, tmp_path):
     run, out = whole
-    resumed_dir = tmp_path / "resumed"
-    resumed_dir.mkdir()
-    lines = (out / journal.FILE).read_text().splitlines()
+    lines = _lines(out)
     crashed = json.loads(lines[2])
     crashed["result"].update(status="error", error_kind="worker", message="worker died")
     failed = json.loads(lines[3])
     failed["result"]["status"] = "fail"
     stale = json.loads(lines[1])
     stale.update(key="0" * 64, unit="renamed")  # recorded by other code or settings
-    (resumed_dir / journal.FILE).write_text("\n".join([lines[0], lines[1], json.dumps(crashed), json.dumps(failed),
-                                                       json.dumps(stale)]) + "\n")
+    resumed_dir = tmp_path / "resumed"
+    _journal_dir(resumed_dir, [lines[0], lines[1], crashed, failed, stale])
     arrived = []
     again = pipeline.run(_options(resumed_dir, resume=str(resumed_dir)), on_result=lambda r, e: arrived.append(r.name))
     assert arrived == ["cartpole"]  # only the crashed unit ran; the others came from the journal

@@ -99,34 +99,18 @@ def test_a_flex_is_a_catalogued_divergence_before_3_3_5_and_unsupported_since(fr
     assert entry is not None and entry.id == "flex-ignored-3.3", r.message
 
 
-def test_mesh_contacts_mjx_fixed_in_3_16_are_known_only_before(monkeypatch):
-    """plane-mesh and capsule-mesh contacts differed from C's on every release swept before
-    3.16 (mjxdiff versions, support.CATALOGUE's evidence): labelled there, not on 3.16 and later."""
+def test_mesh_contacts_mjx_fixed_later_are_known_only_before(monkeypatch):
+    """plane-mesh contacts differed from C's on every release swept before 3.14, capsule-mesh
+    before 3.15 (bisected with mjxdiff versions, support.CATALOGUE's evidence): labelled there,
+    not on the releases that fixed them."""
     from mjxdiff import known, support
 
     def failing(pair):
         return dict(status="fail", message="", diagnosis=dict(drill_down=dict(
             first_stage="collision", object=f"geoms a / b ({pair}: C 3, MJX 4 contacts)")))
-    for release, expect in (("3.3.7", True), ("3.9.0", True), ("3.14.0", True), ("3.16.0", False),
-                            ("3.17.0", False)):
+    for release, plane, capsule in (("3.3.7", True, True), ("3.9.0", True, True), ("3.12.0", True, True),
+                                    ("3.14.0", False, True), ("3.15.0", False, False), ("3.17.0", False, False)):
         monkeypatch.setattr(support, "_mjx_version", lambda release=release: release)
-        for pair in ("plane-mesh", "capsule-mesh"):
+        for pair, fixed_in, expect in (("plane-mesh", "3.14", plane), ("capsule-mesh", "3.15", capsule)):
             entry = known.match(failing(pair))
-            assert (entry is not None and entry.id == f"{pair}-before-3.16") == expect, (release, pair, entry)
-
-
-def test_the_fast_compile_is_used_only_with_the_mjx_it_was_validated_with(monkeypatch):
-    """LLVM level 0 miscompiled MJX 3.10-3.15 on jaxlib 0.10.2 (box_stack left its envelope with
-    every forward stage agreeing; at level 1 it passes): only validated MJX releases get it."""
-    import jax
-
-    from mjxdiff.engines import xla_options
-
-    real = compat._version
-    lowered = jax.jit(lambda x: x + 1.0).lower(1.0)
-    for mjx, jaxlib, fast in (("3.15.0", "0.10.2", False), ("3.10.0", "0.10.2", False), ("3.17.0", "0.7.2", False),
-                              ("3.17.0", "0.10.2", True)):
-        monkeypatch.setattr(compat, "_version", lambda dist, mjx=mjx, jaxlib=jaxlib: {
-            "mujoco-mjx": mjx, "jaxlib": jaxlib}.get(dist) or real(dist))
-        assert compat.fast_compile_validated() == fast, (mjx, jaxlib)
-        assert (xla_options("fast", 10)(lowered)[1]["level"] == "fast") == fast, (mjx, jaxlib)
+            assert (entry is not None and entry.id == f"{pair}-before-{fixed_in}") == expect, (release, pair, entry)
