@@ -153,8 +153,10 @@ def ray_sweep(jobs: list[tuple[Any, Any, Any]], arrived: Callable[[Any, Scenario
             if address:
                 ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
             else:
-                ray.init(num_cpus=max(cpus, os.cpu_count() or 1), object_store_memory=OBJECT_STORE_BYTES,
-                         include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+                # "local": a new instance, never another one already running here (ray.init's default)
+                ray.init(address="local", num_cpus=max(cpus, os.cpu_count() or 1),
+                         object_store_memory=OBJECT_STORE_BYTES, include_dashboard=False, log_to_driver=False,
+                         logging_level=logging.ERROR)
     env = {"MJXDIFF_CORES": str(cpus), "MJXDIFF_DEVICES": str(cpus)}
     for key in (_DELAY_ENV, "MJXDIFF_CACHE", "MJXDIFF_SCENARIOS"):
         if os.environ.get(key):

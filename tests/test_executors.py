@@ -86,8 +86,8 @@ def test_ray_gives_the_local_verdicts_and_journals_each_unit(local, tmp_path):
 
 def test_a_worker_killed_on_its_first_attempt_is_retried(local, tmp_path, monkeypatch):
     delay = _delay(monkeypatch)  # time to find the worker and kill it
-    ray.init(num_cpus=2, object_store_memory=100 << 20, include_dashboard=False, log_to_driver=False,
-             logging_level=logging.ERROR)  # here: ray.init wants the main thread
+    ray.init(address="local", num_cpus=2, object_store_memory=100 << 20, include_dashboard=False,
+             log_to_driver=False, logging_level=logging.ERROR)  # here: ray.init wants the main thread
     try:
         thread, box = _in_thread(lambda: pipeline.run(_options(tmp_path, executor="ray", scenarios=("pendulum",))))
         deadline = time.monotonic() + 120

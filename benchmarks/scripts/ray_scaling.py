@@ -52,7 +52,7 @@ def main() -> int:
 
     quiet = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
     t0 = time.perf_counter()
-    ray.init(num_cpus=2, object_store_memory=200 << 20, **quiet)
+    ray.init(address="local", num_cpus=2, object_store_memory=200 << 20, **quiet)
     t1 = time.perf_counter()
     ray.get(ray.remote(lambda: os.getpid()).remote())
     t2 = time.perf_counter()
