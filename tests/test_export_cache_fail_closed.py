@@ -127,7 +127,12 @@ def _made_during_the_trace(orig):
     def damped(m, d):
         namespace: dict = {}
         exec(compile("scale = lambda q: q * 1.0", "<made during the trace>", "exec"), namespace)
-        return namespace["scale"](orig(m, d))
+        out = namespace["scale"](orig(m, d))
+        # the lambda and its globals form a cycle, freed only at the collector's next pass (the
+        # artifact is then keyed on it and saved, when that pass had not run: order-dependent);
+        # breaking it frees the lambda now, as the test means
+        namespace.clear()
+        return out
     return damped
 
 
