@@ -4,9 +4,10 @@
 
 1. Ray's fixed cost: ``ray.init`` + ``ray.shutdown`` of a local instance, and a Ray sweep of no
    unit's worth (one trivial task), in seconds.
-2. The same sweep three ways, each from a warm compile cache: local (this machine's executor),
-   Ray on one node (a ``ray.cluster_utils.Cluster`` head of 1 CPU) and Ray on two nodes (1 CPU
-   each); wall seconds of each, and Ray's per-unit cost: (Ray 1-node wall - fixed - sum of the
+2. The same sweep three ways, each from a warm compile cache (a Ray run first, unmeasured: a
+   task's single XLA device keys its rollouts apart from the local sweep's): local (this
+   machine's executor), Ray on one node (a ``ray.cluster_utils.Cluster`` head of 1 CPU) and Ray
+   on two nodes (1 CPU each); wall seconds of each, and Ray's per-unit cost: (Ray 1-node wall - fixed - sum of the
    units' worker seconds) / units.
 3. The model (:mod:`mjxdiff.scaling`) fed the 1-node run's journal, the fixed and per-unit costs,
    predicting the 1- and 2-node walls; printed beside the measured ones, then 1-64 nodes.
@@ -66,9 +67,11 @@ def main() -> int:
         _sweep(tmp / "warmup", args.scenarios, args.quick, isolate=False)  # the compile cache, warm
         local = _sweep(tmp / "local", args.scenarios, args.quick)
         walls = {}
-        for nodes in (1, 2):
+        # a Ray task runs on K=1 XLA device, the local sweep on one per core, and a traced rollout's
+        # key includes the device count: the first Ray run is cold whatever the local cache holds
+        for nodes in (0, 1, 2):  # 0: the warm-up, one node, not measured
             cluster = Cluster(initialize_head=True, head_node_args=dict(num_cpus=1, object_store_memory=100 << 20))
-            for _ in range(nodes - 1):
+            for _ in range(max(nodes, 1) - 1):
                 cluster.add_node(num_cpus=1, object_store_memory=100 << 20)
             cluster.wait_for_nodes()
             ray.init(address=cluster.address, **quiet)
