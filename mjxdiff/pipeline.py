@@ -25,7 +25,7 @@ import dataclasses
 import os
 import time
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Callable, Literal, Sequence
 
 from mjxdiff.errors import one_line
 from mjxdiff import baseline, export_cache, journal, known, report
@@ -205,6 +205,21 @@ def _units(config, scenarios: list, impl: str, journaled: bool) -> list[Unit]:
     return units
 
 
+def _deliver(u: Unit, r: ScenarioResult, done: dict[int, ScenarioResult], writer: journal.Journal | None,
+             on_result, entries, lost: Sequence[str] = (), seconds: float | None = None) -> None:
+    """One unit's verdict as it arrives, from either executor: renamed for its pair, kept in
+    ``done``, journaled, passed to ``on_result`` with its known entry."""
+    r = dataclasses.replace(r, name=r.name + u.suffix)
+    done[u.index] = r
+    if writer is None and on_result is None:
+        return
+    as_dict = report.result_dict(r)
+    if writer is not None:
+        writer.unit(u.key, u.parts, u.index, as_dict, r.pending, list(lost), seconds)
+    if on_result is not None:
+        on_result(r, known.match(as_dict, entries))
+
+
 def _ray(options: SweepOptions, config, units: list[Unit], done: dict[int, ScenarioResult],
          writer: journal.Journal | None, on_result, entries) -> None:
     """The units not ``done`` as Ray tasks (:func:`mjxdiff.executors.ray_sweep`), each result
@@ -217,12 +232,7 @@ def _ray(options: SweepOptions, config, units: list[Unit], done: dict[int, Scena
     jobs = [(u, u.scenario, configs[u.suffix]) for u in units if u.index not in done]
 
     def arrived(u: Unit, r: ScenarioResult, lost: list[str], seconds: float | None) -> None:
-        r = dataclasses.replace(r, name=r.name + u.suffix)
-        done[u.index] = r
-        if writer is not None:
-            writer.unit(u.key, u.parts, u.index, report.result_dict(r), r.pending, lost, seconds)
-        if on_result is not None:
-            on_result(r, known.match(report.result_dict(r), entries))
+        _deliver(u, r, done, writer, on_result, entries, lost, seconds)
 
     progress = sys.stderr.isatty() if options.progress is None else options.progress
     say = (lambda text: print(f"... {text}", file=sys.stderr, flush=True)) if progress else None
@@ -245,7 +255,8 @@ def _shard(text: str | None) -> tuple[int, int] | None:
 def _resumed(options: SweepOptions, units: list[Unit]) -> tuple[dict[int, ScenarioResult], dict[str, Any] | None]:
     """The verdicts a resumed sweep keeps (by unit index) and what the journal said: ``reused``
     units, ``stale`` records (a key no current unit has: other code, seed, settings or model),
-    ``torn`` (an interrupted last line) and ``bad`` lines. (None, None) without ``resume``."""
+    ``torn`` (an interrupted last line) and ``bad`` lines. Without ``resume``: nothing kept, and
+    the journal's file where ``out`` is given (else None)."""
     if not options.resume:
         return {}, ({"file": str(Path(options.out) / journal.FILE)} if options.out else None)
     records = journal.read(Path(options.resume) / journal.FILE)
@@ -343,13 +354,8 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
             todo = [u for u in units if u.suffix == suffix and u.index not in done]
             arriving = iter(todo)
 
-            def arrived(r: ScenarioResult, suffix: str = suffix) -> None:
-                u = next(arriving)
-                r = dataclasses.replace(r, name=r.name + suffix)
-                if writer is not None:
-                    writer.unit(u.key, u.parts, u.index, report.result_dict(r), r.pending)
-                if on_result is not None:
-                    on_result(r, known.match(report.result_dict(r), entries))
+            def arrived(r: ScenarioResult) -> None:
+                _deliver(next(arriving), r, done, writer, on_result, entries)
             picked = [u.scenario for u in todo]
             if not picked:
                 continue
