@@ -75,6 +75,18 @@ Predict how a sweep would scale over more nodes, from the per-unit seconds its j
 units start longest first, each on the worker that frees first, node count x (CPUs per node //
 CPUs per scenario) workers, plus --per-task seconds per unit and --fixed seconds once. No
 schedule beats the longest unit: the table says which it is and where the speed-up levels off.""",
+    "shrink": """\
+Shrink a model that diverges to a minimal MJCF that still shows the same divergence, for a bug
+report upstream can act on. The state: the first one of C's rollout (from --keyframe, or qpos0 at
+rest, zero controls; or a reproducer's member with its controls) at which MJX's forward or one
+converged step differs from C's. Delta debugging then drops bodies, joints (welded where the state
+holds them), geoms, sites, actuators, sensors, tendons, equality constraints, pairs, excludes and
+keyframes, resets options and flags to MuJoCo's defaults and rounds the state, keeping each edit
+only while C compiles the model and the same signature shows: the same check (forward or step),
+first stage, first field and contact geom types. Deterministic; Ctrl-C or --budget stops it with
+the best so far. Writes OUT/model.xml and OUT/state.json; --bundle adds repro.py (standalone:
+mujoco and mujoco-mjx only), signature.json and README.md. Exit 0 when shrunk, 2 on bad input or
+a model that shows no divergence.""",
     "merge": """\
 Join the --out directories of a sweep's shards ('mjxdiff sweep --shard I/N --out DIR'), or of
 resumed runs, into one report: every unit's verdict from the directories' journal.jsonl, in the
@@ -690,6 +702,79 @@ def _cmd_merge(args: argparse.Namespace) -> int:
     return run.exit_code
 
 
+def _shrink_parser(sub) -> argparse.ArgumentParser:
+    sh = sub.add_parser("shrink", help="shrink a diverging model to a minimal MJCF with the same divergence",
+                        description=_DESCRIPTIONS["shrink"])
+    sh.add_argument("model", metavar="MODEL", help="an MJCF file, or a reproducer .json ('sweep --out' writes them)")
+    sh.add_argument("--out", metavar="DIR", default="mjxdiff-out/shrink", help="where to write (default %(default)s)")
+    sh.add_argument("--bundle", action="store_true",
+                    help="write a bug bundle: repro.py, signature.json and README.md beside the model")
+    sh.add_argument("--keyframe", type=int, metavar="K", help="start C's rollout from keyframe K (default qpos0)")
+    sh.add_argument("--steps", type=_positive, default=200, metavar="N",
+                    help="states of C's rollout searched for the divergence (default 200)")
+    sh.add_argument("--budget", type=_seconds, default=600.0, metavar="SECONDS",
+                    help="stop shrinking after this long with the best so far (default 600)")
+    return sh
+
+
+def _shrink_input(path: str, keyframe: int | None, steps: int):
+    """(spec, state, signature, step, source directory) of a model file or a reproducer."""
+    import mujoco
+    import numpy as np
+
+    from mjxdiff import reproducer, shrink
+
+    ctrl = None
+    if path.endswith(".json"):
+        rep = reproducer.load(path)
+        spec = mujoco.MjSpec.from_string(rep.model_xml)
+        m = spec.compile()
+        controls = np.asarray(rep.inputs.ctrl[0])
+        ctrl = (lambda k: controls[min(k, len(controls) - 1)]) if controls.size else None
+        start = (rep.inputs.qpos[0], rep.inputs.qvel[0], rep.inputs.act[0])
+        source = None
+    else:
+        spec = mujoco.MjSpec.from_file(path)
+        m, start, source = spec.compile(), None, Path(path).resolve().parent
+    if keyframe is not None and not 0 <= keyframe < m.nkey:
+        raise ValueError(f"--keyframe {keyframe}: the model has {m.nkey} keyframes")
+    found = shrink.find_state(m, steps, keyframe, ctrl, start)
+    return spec, found, source
+
+
+def _cmd_shrink(args: argparse.Namespace) -> int:
+    from mjxdiff import bundle, engines, shrink
+    from mjxdiff.scenario import ScenarioError
+
+    engines.configure_jax("float64")
+    try:
+        spec, found, source = _shrink_input(args.model, args.keyframe, args.steps)
+    except NotImplementedError as e:
+        print(f"mjxdiff shrink: error: unsupported by MJX, nothing to compare: {one_line(e)}", file=sys.stderr)
+        return 2
+    except (ScenarioError, ValueError, OSError) as e:
+        print(f"mjxdiff shrink: error: {one_line(e)}", file=sys.stderr)
+        return 2
+    if found is None:
+        print(f"mjxdiff shrink: error: no divergence in the first {args.steps} states of C's rollout: nothing to "
+              "shrink (a sweep's reproducer starts from the failing member's state)", file=sys.stderr)
+        return 2
+    state, signature, step = found
+    print(f"shrink: {signature.describe()} at step {step}", file=sys.stderr)
+    shrunk = shrink.shrink(spec, state, signature, args.budget, lambda line: print(line, file=sys.stderr),
+                           steps_before=step + 1)
+    out = Path(args.out)
+    if args.bundle:
+        bundle.write(shrunk, out, source, origin=args.model)
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        bundle.write_model(shrunk, out, source)
+    print(f"{signature.describe()}\nbefore: {shrunk.before}\nafter:  {shrunk.after}\n"
+          f"{shrunk.candidates} candidates, {shrunk.compiles} XLA compiles, {shrunk.seconds:.0f} s"
+          + ("" if shrunk.complete else " (stopped early: the best so far)") + f"\nwritten to {out}")
+    return 0
+
+
 def _scale_parser(sub) -> argparse.ArgumentParser:
     sc = sub.add_parser("scale", help="predict a sweep's wall time on 1-64 nodes from its journal",
                         description=_DESCRIPTIONS["scale"])
@@ -1044,7 +1129,7 @@ _COMMANDS = ((_sweep_parser, _cmd_sweep), (_replay_parser, _cmd_replay), (_fuzz_
              (_bench_parser, _cmd_bench), (_policy_parser, _cmd_policy), (_coverage_parser, _cmd_coverage),
              (_grad_parser, _cmd_grad), (_history_parser, _cmd_history), (_cache_parser, _cmd_cache),
              (_versions_parser, _cmd_versions), (_merge_parser, _cmd_merge), (_scale_parser, _cmd_scale),
-             (_list_parser, _cmd_list))
+             (_shrink_parser, _cmd_shrink), (_list_parser, _cmd_list))
 
 
 #: Commands that run neither MuJoCo nor MJX: no version check.

@@ -346,6 +346,7 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
     t0 = time.perf_counter()
     cache_before = export_cache.events()
     done, book = _resumed(options, units)
+    resumed = set(done)
     writer = _open_journal(options, len(scenarios) * len(_PAIRS[options.impl]), done)
     try:
         if options.executor == "ray":
@@ -372,7 +373,11 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
     seconds = time.perf_counter() - t0
 
     doc = report.to_json(results, dict(options.as_config(), seconds=seconds, mjx_compiles=engines.compile_count()))
-    doc["code"]["cache"] = export_cache.events_since(cache_before)
+    doc["code"]["cache"] = cache = export_cache.events_since(cache_before)
+    if options.executor == "ray":  # Ray's workers traced and loaded, not this process
+        fresh = [done[i].info for i in done if i not in resumed]
+        cache.update(loaded=sum(i.get("mjx_loaded", 0) for i in fresh),
+                     traced=sum(i.get("mjx_compiles", 0) for i in fresh), where="Ray's workers")
     if book is not None:
         doc["journal"] = book
     return _finish(options, results, bad, seconds, doc, entries, base)

@@ -151,11 +151,13 @@ def code() -> dict[str, str]:
 
 def format_cache(cache: dict[str, Any]) -> str:
     """One line on what the cache of traced rollouts did in a run (:func:`mjxdiff.export_cache.events_since`):
-    how many were loaded instead of traced and from where, and any trace it could not save
-    or key it did not trust."""
+    how many were loaded instead of traced and from where (``where``: by whom, when not this
+    process), and any trace it could not save or key it did not trust."""
     if cache.get("dir") is None:
         return f"cache: off ({cache.get('traced', 0)} MJX rollouts traced)"
     line = f"cache: {cache['loaded']} MJX rollouts loaded from {cache['dir']}, {cache['traced']} traced"
+    if cache.get("where"):
+        line += f" (by {cache['where']})"
     if cache["unsaved"]:
         line += f"; {len(cache['unsaved'])} not saved ({cache['unsaved'][0]})"
     if cache["ambiguous"]:

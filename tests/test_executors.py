@@ -82,6 +82,9 @@ def test_ray_gives_the_local_verdicts_and_journals_each_unit(local, tmp_path):
     assert sorted(r["index"] for r in records) == [0, 1, 2]
     assert all(r["attempts"] == 1 for r in records), [(r["unit"], r["lost"]) for r in records]
     assert all(s["info"]["worker"]["pid"] != os.getpid() for s in run.doc["scenarios"])  # run by Ray's workers
+    # the cache line counts what the workers traced or loaded (this process traced nothing)
+    cache = run.doc["code"]["cache"]
+    assert cache["where"] == "Ray's workers" and cache["traced"] + cache["loaded"] >= len(SCENARIOS), cache
 
 
 def test_a_worker_killed_on_its_first_attempt_is_retried(local, tmp_path, monkeypatch):

@@ -1,0 +1,522 @@
+"""Shrinking a model that diverges to a minimal MJCF that still shows the same divergence.
+
+Delta debugging (Zeller and Hildebrandt's ddmin) over :class:`mujoco.MjSpec` edits, coarse to
+fine: drop bodies (with their subtrees), then joints (a body without its joint is welded to its
+parent), geoms, sites, actuators, sensors, tendons, equality constraints, explicit pairs and
+excludes, keyframes; then options and flags back to MuJoCo's defaults; then round the state
+and the geometry. A candidate is kept when it compiles in C and shows the same
+:class:`Signature`, checked from one state (:class:`State`, the one-step check's end point:
+one C state, one step):
+
+- ``forward``: the first stage of ``mj_forward`` whose fields differ
+  (:func:`mjxdiff.diagnose.drill_down`), its first field, and for contacts the geom-type pair;
+- ``step``: every forward stage agrees and one step does not (``mj_step`` against
+  ``mjx.step`` from the state, both solvers converged): the first field beyond
+  :data:`STEP_RTOL`.
+
+The state is kept by name (each joint's ``qpos``/``qvel``, each actuator's ``ctrl``/``act``),
+so it follows the model as parts are dropped; a joint dropped takes its coordinates with it.
+Candidates of one structure share one compile: MJX's forward and step are jitted with the
+model as an argument, and only a new structure traces again (:attr:`Shrunk.compiles`).
+Deterministic: the edits are tried in a fixed order, and nothing is random.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import re
+import time
+from typing import Callable, Iterable, Sequence
+
+import jax
+import mujoco
+import numpy as np
+
+__all__ = ["KINDS", "OPTIONS", "STEP_RTOL", "Counts", "Shrunk", "Signature", "State", "counts", "ddmin", "drop",
+           "element_names", "find_state", "probe", "scaled_error", "shrink", "step_errors"]
+
+#: Relative disagreement (|mjx - c| / (1 + max|c|)) of one converged step above which it differs:
+#: far above a step's rounding (1e-15 of the scale) and a converged solver's residue.
+STEP_RTOL = 1e-6
+#: The fields a step compares, in order.
+STEP_FIELDS = ("qpos", "qvel", "act", "sensordata")
+#: Element lists delta debugging drops from, coarse to fine (MjSpec attribute names).
+KINDS = ("bodies", "joints", "geoms", "sites", "actuators", "sensors", "tendons", "equalities", "pairs", "excludes",
+         "keys")
+#: Options reset one by one to MuJoCo's defaults (``mjOption``), after the elements.
+OPTIONS = ("integrator", "cone", "jacobian", "solver", "iterations", "ls_iterations", "tolerance", "ls_tolerance",
+           "noslip_iterations", "impratio", "timestep", "gravity", "wind", "magnetic", "density", "viscosity",
+           "o_margin", "o_solref", "o_solimp", "o_friction")
+
+
+@dataclasses.dataclass(frozen=True)
+class Signature:
+    """What diverges, independent of names and sizes: which ``check``, the first differing
+    ``stage`` and ``field``, and for contacts the geom ``kinds`` (e.g. ``box-box``)."""
+
+    check: str
+    stage: str
+    field: str
+    kinds: str = ""
+
+    def describe(self) -> str:
+        where = f"{self.stage}: {self.field}" + (f" ({self.kinds})" if self.kinds else "")
+        return f"{'mj_forward' if self.check == 'forward' else 'one mj_step'} differs first at {where}"
+
+
+@dataclasses.dataclass(frozen=True)
+class State:
+    """One state by name. ``joints``: (name, qpos, qvel) per joint; ``actuators``: (name, ctrl,
+    act) per actuator (act empty without activation); ``time`` in seconds."""
+
+    joints: tuple[tuple[str, tuple[float, ...], tuple[float, ...]], ...]
+    actuators: tuple[tuple[str, float, tuple[float, ...]], ...]
+    time: float = 0.0
+
+    @classmethod
+    def of(cls, m: mujoco.MjModel, d: mujoco.MjData) -> State:
+        joints = tuple((_name(m, mujoco.mjtObj.mjOBJ_JOINT, j), tuple(d.qpos[_qpos(m, j)].tolist()),
+                        tuple(d.qvel[_dofs(m, j)].tolist())) for j in range(m.njnt))
+        acts = tuple((_name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a), float(d.ctrl[a]),
+                      tuple(d.act[m.actuator_actadr[a]:m.actuator_actadr[a] + m.actuator_actnum[a]].tolist())
+                      if m.actuator_actadr[a] >= 0 else ()) for a in range(m.nu))
+        return cls(joints, acts, float(d.time))
+
+    def data(self, m: mujoco.MjModel) -> mujoco.MjData:
+        """An ``MjData`` of ``m`` in this state: joints and actuators it does not name keep
+        their defaults (``qpos0``, zero)."""
+        d = mujoco.MjData(m)
+        joints = {n: (q, v) for n, q, v in self.joints}
+        for j in range(m.njnt):
+            name = _name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
+            if name not in joints:
+                continue
+            q, v = joints[name]
+            if len(q) == len(d.qpos[_qpos(m, j)]) and len(v) == len(d.qvel[_dofs(m, j)]):
+                d.qpos[_qpos(m, j)], d.qvel[_dofs(m, j)] = q, v
+        acts = {n: (c, a) for n, c, a in self.actuators}
+        for i in range(m.nu):
+            c, a = acts.get(_name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, i), (0.0, ()))
+            d.ctrl[i] = c
+            if m.actuator_actadr[i] >= 0 and len(a) == m.actuator_actnum[i]:
+                d.act[m.actuator_actadr[i]:m.actuator_actadr[i] + len(a)] = a
+        d.time = self.time
+        return d
+
+    def rounded(self, digits: int) -> State:
+        """Every number to ``digits`` significant digits."""
+        def r(xs):
+            return tuple(float(f"{x:.{digits}g}") for x in xs)
+        return State(tuple((n, r(q), r(v)) for n, q, v in self.joints),
+                     tuple((n, float(f"{c:.{digits}g}"), r(a)) for n, c, a in self.actuators),
+                     float(f"{self.time:.{digits}g}"))
+
+
+def _name(m: mujoco.MjModel, obj: mujoco.mjtObj, i: int) -> str:
+    return mujoco.mj_id2name(m, obj, int(i)) or f"#{int(i)}"
+
+
+_QPOS_WIDTH = {int(mujoco.mjtJoint.mjJNT_FREE): 7, int(mujoco.mjtJoint.mjJNT_BALL): 4}
+_DOF_WIDTH = {int(mujoco.mjtJoint.mjJNT_FREE): 6, int(mujoco.mjtJoint.mjJNT_BALL): 3}
+
+
+def _qpos(m: mujoco.MjModel, j: int) -> slice:
+    a = int(m.jnt_qposadr[j])
+    return slice(a, a + _QPOS_WIDTH.get(int(m.jnt_type[j]), 1))
+
+
+def _dofs(m: mujoco.MjModel, j: int) -> slice:
+    a = int(m.jnt_dofadr[j])
+    return slice(a, a + _DOF_WIDTH.get(int(m.jnt_type[j]), 1))
+
+
+# -- the check ------------------------------------------------------------------------------------
+
+_JITTED: dict[str, Callable] = {}
+
+
+def _jitted(name: str) -> Callable:
+    """``mjx.<name>`` jitted with the model as an argument (one compile per structure), with
+    XLA's quick compile options where they are validated (:func:`mjxdiff.compat.fast_compile_validated`):
+    a shrink compiles once per candidate structure and runs each once."""
+    if name not in _JITTED:
+        from mujoco import mjx
+
+        from mjxdiff import compat, engines
+        options = engines.FAST_COMPILE if compat.fast_compile_validated() else {}
+        _JITTED[name] = jax.jit(getattr(mjx, name), compiler_options=options)
+    return _JITTED[name]
+
+
+class _Forward:
+    """The engine :func:`probe`'s drill-down runs: MJX's forward as
+    :meth:`mjxdiff.engines.MJXEngine.forward`, compiled by :func:`_jitted`."""
+
+    def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]):
+        from mujoco import mjx
+
+        from mjxdiff import export_cache, stages
+        from mjxdiff.stages import Forward
+        export_cache.fresh_digest()  # never a trace of MJX code since changed
+        mx = mjx.put_model(m)
+        dx = _jitted("forward")(mx, mjx.put_data(m, d))
+        return Forward({f: np.asarray(getattr(dx, f)).ravel() for f in fields}, np.asarray(mjx.full_m(mx, dx)),
+                       stages.contacts_mjx(m, dx))
+
+
+def _kinds(obj: str) -> str:
+    found = re.search(r"\(([a-z-]+): C \d+, MJX \d+ contacts", obj)
+    return found.group(1) if found else ""
+
+
+def scaled_error(c: np.ndarray, x: np.ndarray) -> float:
+    """``max |x - c| / (1 + max |c|)`` (inf where ``x`` has a NaN); 0 for empty arrays."""
+    c, x = np.ravel(c), np.ravel(x)
+    if c.size == 0:
+        return 0.0
+    e = np.abs(x - c) / (1.0 + np.max(np.abs(c)))
+    return float(np.inf) if np.isnan(e).any() else float(e.max())
+
+
+def step_errors(m: mujoco.MjModel, state: State) -> dict[str, float]:
+    """One step from ``state``, C against MJX, both solvers converged: the scaled error
+    ``max |mjx - c| / (1 + max |c|)`` of each of :data:`STEP_FIELDS`."""
+    from mujoco import mjx
+
+    from mjxdiff.noise import converge_solver
+
+    m = copy.copy(m)
+    converge_solver(m)
+    d = state.data(m)
+    dx = _jitted("step")(mjx.put_model(m), mjx.put_data(m, d))
+    mujoco.mj_step(m, d)
+    return {f: scaled_error(getattr(d, f), np.asarray(getattr(dx, f))) for f in STEP_FIELDS}
+
+
+def probe(m: mujoco.MjModel, state: State) -> Signature | None:
+    """The divergence ``m`` shows from ``state``, or None: the forward drill-down's first
+    differing stage, else the first field of one step beyond :data:`STEP_RTOL`. Both with the
+    solver converged (:func:`mjxdiff.noise.converge_solver`): a solver stopped after a few
+    iterations parts MJX from C by truncation, which is no bug to shrink."""
+    from mjxdiff.diagnose import drill_down
+    from mjxdiff.noise import converge_solver
+
+    m = copy.copy(m)
+    converge_solver(m)
+    d = state.data(m)
+    dd = drill_down(m, d.qpos.copy(), d.qvel.copy(), d.act.copy(), d.ctrl.copy(), float(d.time),
+                    engine=_Forward())  # pyright: ignore[reportArgumentType]
+    if dd.first_stage is not None:
+        return Signature("forward", dd.first_stage, str(dd.first_field), _kinds(dd.object))
+    errors = step_errors(m, state)
+    field = next((f for f in STEP_FIELDS if not errors[f] <= STEP_RTOL), None)
+    return Signature("step", "integration", field) if field else None
+
+
+def find_state(m: mujoco.MjModel, steps: int = 200, key: int | None = None,
+               ctrl: Callable[[int], np.ndarray] | None = None,
+               start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[State, Signature, int] | None:
+    """The first state of C's rollout from ``key`` (a keyframe), or ``start`` (qpos, qvel, act),
+    else ``qpos0`` at rest, with controls ``ctrl(step)`` (default zero) at which :func:`probe`
+    finds a divergence, checked before each of ``steps`` steps: (state, signature, step), or None."""
+    d = mujoco.MjData(m)
+    if key is not None:
+        mujoco.mj_resetDataKeyframe(m, d, key)
+    elif start is not None:
+        d.qpos[:], d.qvel[:] = start[0], start[1]
+        if m.na:
+            d.act[:] = start[2]
+    for k in range(steps):
+        if ctrl is not None:
+            d.ctrl[:] = ctrl(k)
+        state = State.of(m, d)
+        sig = probe(m, state)
+        if sig is not None:
+            return state, sig, k
+        mujoco.mj_step(m, d)
+    return None
+
+
+# -- the model ------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Counts:
+    """A model's size: bodies (the world excluded), geoms, joints, actuators, sensors, tendons,
+    equalities, options (differing from MuJoCo's defaults) and steps."""
+
+    bodies: int
+    geoms: int
+    joints: int
+    actuators: int
+    sensors: int
+    tendons: int
+    equalities: int
+    options: int
+    steps: int = 1
+
+    def __str__(self) -> str:
+        return ", ".join(f"{v} {k}" for k, v in dataclasses.asdict(self).items())
+
+
+def _option_changes(spec: mujoco.MjSpec) -> int:
+    default = mujoco.MjSpec().option
+    n = sum(not np.array_equal(np.asarray(getattr(spec.option, o)), np.asarray(getattr(default, o)))
+            for o in OPTIONS)
+    return n + bin(spec.option.disableflags).count("1") + bin(spec.option.enableflags).count("1")
+
+
+def counts(spec: mujoco.MjSpec, steps: int = 1) -> Counts:
+    m = spec.compile()
+    return Counts(m.nbody - 1, m.ngeom, m.njnt, m.nu, m.nsensor, m.ntendon, m.neq, _option_changes(spec), steps)
+
+
+def _named(spec: mujoco.MjSpec) -> mujoco.MjSpec:
+    """``spec`` with every element of :data:`KINDS` named (``mjxdiff_<kind><i>`` where it had
+    none), so that edits and the state can refer to it."""
+    for kind in KINDS:
+        for i, e in enumerate(getattr(spec, kind)):
+            if not e.name:
+                e.name = f"mjxdiff_{kind}{i}"
+    return spec
+
+
+def element_names(spec: mujoco.MjSpec, kind: str) -> list[str]:
+    """The names of ``spec``'s elements of ``kind`` (:data:`KINDS`), the world body left out."""
+    return [e.name for e in getattr(spec, kind) if kind != "bodies" or e.name != "world"]
+
+
+_FIND = {"bodies": "body", "joints": "joint", "geoms": "geom", "sites": "site", "actuators": "actuator",
+         "sensors": "sensor", "tendons": "tendon", "equalities": "equality", "pairs": "pair", "excludes": "exclude",
+         "keys": "key"}
+
+
+def _without(spec: mujoco.MjSpec, kind: str, names: Iterable[str]) -> mujoco.MjSpec:
+    out = spec.copy()
+    find = getattr(out, _FIND[kind])
+    for n in names:
+        e = find(n)
+        if e is not None:  # a body's descendants go with it
+            out.delete(e)
+    return out
+
+
+def _explicit(spec: mujoco.MjSpec) -> mujoco.MjSpec:
+    """``spec`` with every body's frame (``pos``, ``quat``) and, where it has mass, its inertia
+    written out as compiled: the same model, whose geoms can go without its bodies losing
+    their mass, and whose joints can be welded at a state (:func:`_welded`). Bodies placed in
+    a ``<frame>`` keep their frames as written."""
+    m = spec.compile()
+    out = spec.copy()
+    for b in out.bodies:
+        if b.name == "world" or b.frame is not None:
+            continue
+        i = m.body(b.name).id
+        b.pos, b.quat = m.body_pos[i], m.body_quat[i]
+        b.alt.type = mujoco.mjtOrientation.mjORIENTATION_QUAT
+        if m.body_mass[i] > 0:
+            b.explicitinertial = True
+            b.mass, b.ipos, b.iquat, b.inertia = m.body_mass[i], m.body_ipos[i], m.body_iquat[i], m.body_inertia[i]
+    return out
+
+
+def _welded(spec: mujoco.MjSpec, m: mujoco.MjModel, state: State, names: Iterable[str]) -> mujoco.MjSpec:
+    """``spec`` without the joints ``names``, each body welded to its parent where ``state``
+    holds it (``m``: ``spec`` compiled): a hinge's or slide's displacement from ``qpos0``, a
+    ball's rotation, a free body's pose become the body's frame. The actuators, sensors and
+    equality constraints naming a dropped joint are dropped with it."""
+    out = spec.copy()
+    qpos = state.data(m).qpos
+    for n in names:
+        joint = out.joint(n)
+        if joint is None:
+            continue
+        j = m.joint(n).id
+        body = out.body(m.body(int(m.jnt_bodyid[j])).name)
+        adr, kind = int(m.jnt_qposadr[j]), int(m.jnt_type[j])
+        pos, quat = np.array(body.pos, float), np.array(body.quat, float)
+        if body.frame is None:
+            if kind == mujoco.mjtJoint.mjJNT_FREE:
+                pos, quat = qpos[adr:adr + 3].copy(), qpos[adr + 3:adr + 7].copy()
+            else:
+                turn = np.array([1.0, 0, 0, 0])
+                shift = np.zeros(3)
+                if kind == mujoco.mjtJoint.mjJNT_BALL:
+                    turn = qpos[adr:adr + 4].copy()
+                elif kind == mujoco.mjtJoint.mjJNT_HINGE:
+                    mujoco.mju_axisAngle2Quat(turn, m.jnt_axis[j], qpos[adr] - m.qpos0[adr])
+                else:
+                    shift = m.jnt_axis[j] * (qpos[adr] - m.qpos0[adr])
+                # a point p of the body: pos + R(quat) (R(turn) (p - jpos) + jpos + shift)
+                moved = np.zeros(3)
+                mujoco.mju_rotVecQuat(moved, m.jnt_pos[j], turn)
+                offset = np.zeros(3)
+                mujoco.mju_rotVecQuat(offset, m.jnt_pos[j] - moved + shift, quat)
+                pos = pos + offset
+                mujoco.mju_mulQuat(quat, quat.copy(), turn)
+            body.pos, body.quat = pos, quat
+            body.alt.type = mujoco.mjtOrientation.mjORIENTATION_QUAT
+        for e in [*out.actuators, *out.sensors, *out.equalities]:  # what acts on or reads the joint goes with it
+            if n in (getattr(e, "target", None), getattr(e, "objname", None), getattr(e, "name1", None),
+                     getattr(e, "name2", None)):
+                out.delete(e)
+        out.delete(joint)
+    return out
+
+
+def drop(spec: mujoco.MjSpec, kind: str, names: Sequence[str], m: mujoco.MjModel, state: State) -> mujoco.MjSpec:
+    """``spec`` without its elements of ``kind`` named ``names``; joints welded where ``state``
+    holds them (``m``: ``spec`` compiled)."""
+    return _welded(spec, m, state, names) if kind == "joints" else _without(spec, kind, names)
+
+
+def ddmin(items: Sequence[str], keeps: Callable[[list[str]], bool]) -> list[str]:
+    """The smallest subset of ``items`` delta debugging finds for which ``keeps`` holds
+    (``keeps(list(items))`` is assumed): all dropped at once first, then complements of ``n``
+    chunks, ``n`` doubling to single items (Zeller and Hildebrandt 2002, ddmin)."""
+    items = list(items)
+    if items and keeps([]):
+        return []
+    n = 2
+    while len(items) >= 2 or (len(items) == 1 and n == 2):
+        size = math.ceil(len(items) / n)
+        chunks = [items[i:i + size] for i in range(0, len(items), size)]
+        for chunk in chunks:
+            rest = [x for x in items if x not in chunk]
+            if keeps(rest):
+                items, n = rest, max(n - 1, 2)
+                break
+        else:
+            if n >= len(items):
+                break
+            n = min(2 * n, len(items))
+    return items
+
+
+@dataclasses.dataclass(frozen=True)
+class Shrunk:
+    """What :func:`shrink` found: the minimal ``spec``, its ``state`` and the kept
+    ``signature``; sizes ``before`` and ``after``; ``candidates`` checked, ``compiles`` (MJX
+    XLA compiles: one per structure for forward, and for step), ``seconds``, the ``log`` of kept edits, and
+    whether it stopped on its ``budget`` or an interrupt (``complete`` False: the best so far)."""
+
+    spec: mujoco.MjSpec
+    state: State
+    signature: Signature
+    before: Counts
+    after: Counts
+    candidates: int
+    compiles: int
+    seconds: float
+    log: tuple[str, ...]
+    complete: bool
+
+
+class _Budget(Exception):
+    pass
+
+
+_XLA = {"compiles": 0}
+
+
+def _on_duration(event: str, duration_secs: float, **_) -> None:
+    if event == "/jax/core/compile/backend_compile_duration":
+        _XLA["compiles"] += 1
+
+
+jax.monitoring.register_event_duration_secs_listener(_on_duration)
+
+
+def _compiles() -> int:
+    """XLA compiles in this process so far (a new structure's forward or step; a persistent
+    cache hit counts too)."""
+    return _XLA["compiles"]
+
+
+def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None, budget: float = 600.0,
+           say: Callable[[str], None] = lambda s: None, steps_before: int = 1) -> Shrunk:
+    """Shrinks ``spec`` (not changed) while it shows ``signature`` from ``state`` (default: what
+    it shows there now), for at most ``budget`` seconds; Ctrl-C stops it with the best so far.
+
+    Raises ValueError when the model does not show a divergence from ``state``."""
+    t0, compiles0 = time.perf_counter(), _compiles()
+    best = _named(spec.copy())
+    target = probe(best.compile(), state) if signature is None else signature
+    if target is None:
+        raise ValueError("the model shows no divergence from this state: nothing to shrink")
+    explicit = _explicit(best)
+    if _shows_safely(explicit, state, target):
+        best = explicit
+    before = counts(best, steps_before)
+    log: list[str] = []
+    tried = 0
+
+    def shows(candidate: mujoco.MjSpec, s: State) -> bool:
+        nonlocal tried
+        if time.perf_counter() - t0 > budget:
+            raise _Budget
+        tried += 1
+        try:
+            m = candidate.compile()
+        except Exception:  # noqa: BLE001 - a candidate C cannot compile is not kept
+            return False
+        try:
+            return probe(m, s) == target
+        except Exception:  # noqa: BLE001 - nor one an engine cannot run
+            return False
+
+    complete = True
+    try:
+        for kind in KINDS:
+            names = element_names(best, kind)
+            if not names:
+                continue
+            m = best.compile()
+
+            def edit(dropped, k=kind, b=best, m=m):
+                return drop(b, k, dropped, m, state)
+            kept = ddmin(names, lambda keep, ns=names: shows(edit([n for n in ns if n not in keep]), state))
+            if len(kept) < len(names):
+                best = edit([n for n in names if n not in kept])
+                log.append(f"{kind}: {len(names)} -> {len(kept)}")
+                say(f"shrink: {kind} {len(names)} -> {len(kept)} ({tried} candidates, "
+                    f"{time.perf_counter() - t0:.0f} s)")
+        default = mujoco.MjSpec().option
+        for o in OPTIONS:
+            if np.array_equal(np.asarray(getattr(best.option, o)), np.asarray(getattr(default, o))):
+                continue
+            candidate = best.copy()
+            setattr(candidate.option, o, getattr(default, o))
+            if shows(candidate, state):
+                best = candidate
+                log.append(f"option {o}: default")
+        for flags in ("disableflags", "enableflags"):
+            for bit in range(32):
+                if getattr(best.option, flags) & (1 << bit):
+                    candidate = best.copy()
+                    setattr(candidate.option, flags, getattr(best.option, flags) & ~(1 << bit))
+                    if shows(candidate, state):
+                        best = candidate
+                        log.append(f"option {flags}: bit {bit} cleared")
+        say(f"shrink: options {_option_changes(spec)} -> {_option_changes(best)} changed from the defaults")
+        for digits in (2, 3, 6):
+            if shows(best, state.rounded(digits)):
+                state = state.rounded(digits)
+                log.append(f"state: {digits} significant digits")
+                break
+    except (_Budget, KeyboardInterrupt):
+        complete = False
+        say("shrink: stopped (budget or interrupt): the best so far")
+    return Shrunk(best, state, target, before, counts(best), tried, _compiles() - compiles0,
+                  time.perf_counter() - t0, tuple(log), complete)
+
+
+def _shows_safely(spec: mujoco.MjSpec, state: State, target: Signature) -> bool:
+    try:
+        return probe(spec.compile(), state) == target
+    except Exception:  # noqa: BLE001 - a model C or MJX cannot run shows nothing
+        return False
+
+
