@@ -15,12 +15,15 @@ Code map, by stage (data flows down):
   ``segments`` (MJX's regularized capsule contacts, in NumPy).
 - Running: ``sweep`` (scenarios end to end), ``guard`` (a sweep in a watched child process),
   ``pipeline`` (a whole sweep with known labels, history, baseline, files: :func:`run`;
-  shards, resume, :func:`merge`), ``journal`` (each finished unit on disk at once).
+  shards, resume, :func:`merge`), ``journal`` (each finished unit on disk at once),
+  ``executors`` (a sweep's units as Ray tasks), ``scaling`` (wall time over more nodes).
 - Output: ``report`` (text, report.json), ``html_report`` (report.html), ``reproducer``
   (failing members, replay), ``history`` (Parquet run history), ``baseline`` (what changed),
   ``known`` (the known-divergence catalogue), ``files`` (atomic writes), ``errors`` (one-line
   exceptions).
-- Other uses: ``versions`` (the same sweep on several MJX releases), ``fuzz`` and ``strategies``
+- Other uses: ``versions`` (the same sweep on several MJX releases), ``shrink`` (a diverging
+  model to a minimal one with the same divergence), ``bundle`` (that as a bug report an MJX
+  maintainer can run), ``fuzz`` and ``strategies``
   (Hypothesis), ``interactions`` and ``coverage`` (what the scenarios reach), ``grad``
   (Jacobians), ``closedloop`` (policies), ``bench`` (performance), ``testing`` and
   ``pytest_plugin`` (users' own tests), ``cli`` (``python -m mjxdiff``).
@@ -68,6 +71,7 @@ _PUBLIC = {
     "metrics": None,  # the module itself
     "run": "mjxdiff.pipeline",  # a whole sweep as the CLI runs it: verdicts, known, history, baseline, files
     "run_scenario": "mjxdiff.sweep",
+    "shrink": None,  # the module: a diverging model shrunk to a minimal one with the same divergence
     "sweep": "mjxdiff.sweep",
 }
 

@@ -106,6 +106,8 @@ def test_a_worker_killed_on_its_first_attempt_is_retried(local, tmp_path, monkey
     run = box["run"]
     assert _verdicts(run.doc) == _verdicts(local.doc)[:1]
     [record] = journal.read(tmp_path / journal.FILE).units
+    print(f"\nkilled worker {victims[0]}; journal: {record['unit']} attempts {record['attempts']}, "
+          f"lost {record['lost']}")
     assert record["attempts"] == 2 and "WorkerCrashedError" in record["lost"][0], record["lost"]
 
 
@@ -130,6 +132,8 @@ def test_a_node_removed_mid_sweep_loses_no_verdict(local, tmp_path, monkeypatch)
         assert "error" not in box, box.get("error")
         assert _verdicts(box["run"].doc) == _verdicts(local.doc)
         records = journal.read(tmp_path / journal.FILE).units
+        print("\nnode removed; journal:" + "".join(f"\n  {r['unit']}: attempts {r['attempts']}, lost {r['lost']}"
+                                                   for r in records))
         retried = [r for r in records if r["attempts"] > 1]
         assert retried and all(r["lost"] for r in retried), [(r["unit"], r["attempts"], r["lost"]) for r in records]
     finally:

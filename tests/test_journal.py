@@ -194,6 +194,9 @@ def test_a_sweep_killed_after_its_first_record_resumes_without_recomputing_it(wh
     doc = json.loads(done.stdout)
     assert _verdicts(doc) == _verdicts(run.doc)
     after = journal.read(out / journal.FILE).units
+    rollouts = {s["name"]: s["info"].get("mjx_compiles", 0) + s["info"].get("mjx_loaded", 0) for s in doc["scenarios"]}
+    print(f"\nSIGKILL after {[r['unit'] for r in before]} was journaled; --resume reused {doc['journal']['reused']}, "
+          f"swept {[r['unit'] for r in after[len(before):]]} (MJX rollouts traced or loaded: {rollouts})")
     assert doc["journal"]["reused"] == len(before)
     assert [r["unit"] for r in after[len(before):]] == [s for s in SCENARIOS if s not in {r["unit"] for r in before}]
     assert json.loads((out / "report.json").read_text())["summary"]["total"] == len(SCENARIOS)

@@ -83,9 +83,12 @@ def plot(predictions: dict[str, list], path: Path) -> None:
         nodes = [p.nodes for p in table]
         ax.plot(nodes, [p.speedup for p in table], marker="o", label=f"{label} (bound: {table[0].longest})")
         ax.axhline(table[0].wall / table[0].bound, linestyle=":", linewidth=0.8, color=ax.lines[-1].get_color())
-    ax.set(xscale="log", yscale="log", xlabel="nodes (2 CPUs each, 1 per unit)", ylabel="predicted speed-up",
+    ax.set(xscale="log", yscale="log", xlabel=f"nodes ({os.cpu_count()} CPUs each, 1 per unit)",
+           ylabel="predicted speed-up",
            title="Default sweep on Ray: speed-up over one node")
     ax.set_xticks([1, 2, 4, 8, 16, 32, 64], labels=["1", "2", "4", "8", "16", "32", "64"])
+    ax.set_yticks([1, 2, 3, 4, 6], labels=["1", "2", "3", "4", "6"])
+    ax.minorticks_off()
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
