@@ -1,6 +1,5 @@
 """Shared test settings: float64 JAX, a persistent compile cache, Hypothesis profiles."""
 
-import functools
 import os
 import tempfile
 from pathlib import Path
@@ -105,31 +104,15 @@ def pytest_make_collect_report(collector):
     _skip_to_failure(outcome.get_result())
 
 
-#: Session fixtures of this conftest: the test files using one share one xdist group (below), so
-#: each is built once in the whole run.
-SHARED_FIXTURES = ("two_sweeps",)
-
-
-@functools.lru_cache(maxsize=None)
-def _group(path: str) -> str:
-    """The xdist group of a test file (``tests/test_x.py``): its own, or the first shared
-    fixture its source names."""
-    source = (ROOT / path).read_text() if (ROOT / path).is_file() else ""
-    return next((f for f in SHARED_FIXTURES if f in source), path)
-
-
-def pytest_xdist_make_scheduler(config, log):
-    """``--dist loadgroup`` (pyproject's addopts) as one group per test file, so a module's
-    fixtures are built once, not once per worker. xdist's own loadgroup reads ``xdist_group``
-    markers through ``item._nodeid``, which pytest 9.2's nodes ignore (their id is ``item._id``):
-    there it silently spreads single tests over the workers. The scheduler groups by nodeid
-    instead, on the controller, largest group first (xdist's loadscope)."""
-    if config.getvalue("dist") != "loadgroup":
-        return None
-    from xdist.scheduler import LoadScopeScheduling
-
-    class FileGroups(LoadScopeScheduling):
-        def _split_scope(self, nodeid: str) -> str:
-            return _group(nodeid.split("::", 1)[0])
-
-    return FileGroups(config, log)
+def pytest_collection_modifyitems(items):
+    """Groups for ``--dist loadgroup`` (pytest-xdist): one group per test file, so a module's
+    fixtures are built once; files using a run-wide fixture of this conftest share one group,
+    so that fixture is built once in the whole run."""
+    shared = ("two_sweeps",)
+    group_of = {}
+    for item in items:
+        used = next((f for f in shared if f in getattr(item, "fixturenames", ())), None)
+        if used or item.path not in group_of:
+            group_of[item.path] = used or group_of.get(item.path) or item.path.name
+    for item in items:
+        item.add_marker(pytest.mark.xdist_group(group_of[item.path]))
