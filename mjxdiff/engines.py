@@ -391,7 +391,7 @@ def put_models(models: tuple[mujoco.MjModel, ...]) -> tuple[mjx.Model, tuple[boo
     return jax.tree.unflatten(treedef, stacked), varying
 
 
-_COMPILES = export_cache.untraced({"count": 0, "seconds": 0.0})
+_COMPILES = export_cache.untraced({"count": 0, "seconds": 0.0, "xla": 0})
 # JAX's own timings of tracing, lowering and XLA compilation (a persistent-cache hit is
 # timed as the load that replaces compilation).
 _COMPILE_EVENTS = frozenset({"/jax/core/compile/jaxpr_trace_duration",
@@ -403,6 +403,8 @@ def _on_duration(event: str, duration_secs: float, **_) -> None:
     if event in _COMPILE_EVENTS:
         _COMPILES["seconds"] += duration_secs
         export_cache.count("seconds", duration_secs)
+    if event == "/jax/core/compile/backend_compile_duration":
+        _COMPILES["xla"] += 1
 
 
 def _traced() -> None:
@@ -420,6 +422,11 @@ def compile_count() -> int:
     traced and not counted here: see :func:`export_cache.loaded_count`.
     """
     return _COMPILES["count"]
+
+
+def xla_compiles() -> int:
+    """XLA compiles of any JAX function in this process so far (a persistent-cache hit counts too)."""
+    return _COMPILES["xla"]
 
 
 def compile_seconds() -> float:

@@ -418,21 +418,11 @@ class _Budget(Exception):
     pass
 
 
-_XLA = {"compiles": 0}
-
-
-def _on_duration(event: str, duration_secs: float, **_) -> None:
-    if event == "/jax/core/compile/backend_compile_duration":
-        _XLA["compiles"] += 1
-
-
-jax.monitoring.register_event_duration_secs_listener(_on_duration)
-
-
 def _compiles() -> int:
     """XLA compiles in this process so far (a new structure's forward or step; a persistent
     cache hit counts too)."""
-    return _XLA["compiles"]
+    from mjxdiff import engines
+    return engines.xla_compiles()
 
 
 def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None, budget: float = 600.0,
