@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import sys
 import tempfile
 import time
@@ -51,16 +50,10 @@ def main() -> int:
 
     from mjxdiff import journal, scaling
 
+    from ray_overhead import ray_fixed_cost  # this script's directory is on sys.path
+
     quiet = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
-    t0 = time.perf_counter()
-    ray.init(address="local", num_cpus=2, object_store_memory=200 << 20, **quiet)
-    t1 = time.perf_counter()
-    ray.get(ray.remote(lambda: os.getpid()).remote())
-    t2 = time.perf_counter()
-    ray.shutdown()
-    fixed = time.perf_counter() - t0
-    print(f"Ray fixed cost: init {t1 - t0:.1f} s, first task {t2 - t1:.1f} s, shutdown {time.perf_counter() - t2:.1f} s"
-          f" = {fixed:.1f} s", flush=True)
+    fixed = ray_fixed_cost()
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
