@@ -110,7 +110,7 @@ def magnitude(m: mujoco.MjModel, state: State, sig: Signature) -> dict[str, Any]
 def ablations(shrunk: Shrunk) -> list[dict[str, Any]]:
     """Each remaining element dropped alone and each option changed from its default reset, on
     the minimal model: whether the divergence stays, goes (``None``) or turns into another."""
-    from mjxdiff.shrink import KINDS, OPTIONS, drop, element_names
+    from mjxdiff.shrink import KINDS, changed_options, drop, element_names
 
     out = []
     m = shrunk.spec.compile()
@@ -120,11 +120,10 @@ def ablations(shrunk: Shrunk) -> list[dict[str, Any]]:
             out.append(dict(edit=f"drop {kind[:-1] if kind != 'bodies' else 'body'} '{name}'",
                             **_outcome(candidate, shrunk)))
     default = mujoco.MjSpec().option
-    for o in OPTIONS:
-        if not np.array_equal(np.asarray(getattr(shrunk.spec.option, o)), np.asarray(getattr(default, o))):
-            candidate = shrunk.spec.copy()
-            setattr(candidate.option, o, getattr(default, o))
-            out.append(dict(edit=f"option {o} to its default", **_outcome(candidate, shrunk)))
+    for o in changed_options(shrunk.spec):
+        candidate = shrunk.spec.copy()
+        setattr(candidate.option, o, getattr(default, o))
+        out.append(dict(edit=f"option {o} to its default", **_outcome(candidate, shrunk)))
     return out
 
 

@@ -34,8 +34,10 @@ import jax
 import mujoco
 import numpy as np
 
-__all__ = ["KINDS", "OPTIONS", "STEP_RTOL", "Counts", "Shrunk", "Signature", "State", "counts", "ddmin", "drop",
-           "element_names", "find_state", "probe", "scaled_error", "shrink", "step_errors"]
+from mjxdiff.joints import DOF_WIDTH, QPOS_WIDTH
+
+__all__ = ["KINDS", "OPTIONS", "STEP_RTOL", "Counts", "Shrunk", "Signature", "State", "changed_options", "counts",
+           "ddmin", "drop", "element_names", "find_state", "probe", "scaled_error", "shrink", "step_errors"]
 
 #: Relative disagreement (|mjx - c| / (1 + max|c|)) of one converged step above which it differs:
 #: far above a step's rounding (1e-15 of the scale) and a converged solver's residue.
@@ -118,18 +120,14 @@ def _name(m: mujoco.MjModel, obj: mujoco.mjtObj, i: int) -> str:
     return mujoco.mj_id2name(m, obj, int(i)) or f"#{int(i)}"
 
 
-_QPOS_WIDTH = {int(mujoco.mjtJoint.mjJNT_FREE): 7, int(mujoco.mjtJoint.mjJNT_BALL): 4}
-_DOF_WIDTH = {int(mujoco.mjtJoint.mjJNT_FREE): 6, int(mujoco.mjtJoint.mjJNT_BALL): 3}
-
-
 def _qpos(m: mujoco.MjModel, j: int) -> slice:
     a = int(m.jnt_qposadr[j])
-    return slice(a, a + _QPOS_WIDTH.get(int(m.jnt_type[j]), 1))
+    return slice(a, a + QPOS_WIDTH[int(m.jnt_type[j])])
 
 
 def _dofs(m: mujoco.MjModel, j: int) -> slice:
     a = int(m.jnt_dofadr[j])
-    return slice(a, a + _DOF_WIDTH.get(int(m.jnt_type[j]), 1))
+    return slice(a, a + DOF_WIDTH[int(m.jnt_type[j])])
 
 
 # -- the check ------------------------------------------------------------------------------------
@@ -261,10 +259,15 @@ class Counts:
         return ", ".join(f"{v} {k}" for k, v in dataclasses.asdict(self).items())
 
 
-def _option_changes(spec: mujoco.MjSpec) -> int:
+def changed_options(spec: mujoco.MjSpec) -> list[str]:
+    """The :data:`OPTIONS` of ``spec`` that differ from MuJoCo's defaults (``mjOption``)."""
     default = mujoco.MjSpec().option
-    n = sum(not np.array_equal(np.asarray(getattr(spec.option, o)), np.asarray(getattr(default, o)))
-            for o in OPTIONS)
+    return [o for o in OPTIONS
+            if not np.array_equal(np.asarray(getattr(spec.option, o)), np.asarray(getattr(default, o)))]
+
+
+def _option_changes(spec: mujoco.MjSpec) -> int:
+    n = len(changed_options(spec))
     return n + bin(spec.option.disableflags).count("1") + bin(spec.option.enableflags).count("1")
 
 
@@ -474,9 +477,7 @@ def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None
                 say(f"shrink: {kind} {len(names)} -> {len(kept)} ({tried} candidates, "
                     f"{time.perf_counter() - t0:.0f} s)")
         default = mujoco.MjSpec().option
-        for o in OPTIONS:
-            if np.array_equal(np.asarray(getattr(best.option, o)), np.asarray(getattr(default, o))):
-                continue
+        for o in changed_options(best):
             candidate = best.copy()
             setattr(candidate.option, o, getattr(default, o))
             if shows(candidate, state):
