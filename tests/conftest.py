@@ -104,15 +104,30 @@ def pytest_make_collect_report(collector):
     _skip_to_failure(outcome.get_result())
 
 
-def pytest_collection_modifyitems(items):
-    """Groups for ``--dist loadgroup`` (pytest-xdist): one group per test file, so a module's
-    fixtures are built once; files using a run-wide fixture of this conftest share one group,
-    so that fixture is built once in the whole run."""
-    shared = ("two_sweeps",)
-    group_of = {}
+#: Test files whose module- or session-scoped fixtures are expensive (a sweep, a coverage trace,
+#: an MJX compile, a wheel build), each run whole on one xdist worker so they are built once; the
+#: files using :func:`two_sweeps` share one group, so it is built once in the run. Every other
+#: test is scheduled on its own, which balances the two workers best.
+GROUPS = {
+    **{name: "two_sweeps" for name in ("test_baseline.py", "test_history.py", "test_html_report.py",
+                                       "test_pipeline.py")},
+    **{name: name for name in ("test_coverage.py", "test_closedloop.py", "test_journal.py",
+                               "test_executors.py", "test_engines.py", "test_packaging.py")},
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    """Groups for ``--dist loadgroup`` (:data:`GROUPS`), on the node id, where xdist's scheduler
+    reads them: a test ``tests/test_coverage.py::test_x`` becomes ``...::test_x@test_coverage.py``.
+
+    Not through xdist's own ``xdist_group`` marker: xdist 3.8 appends the group to
+    ``item._nodeid``, which pytest 9 no longer reads (its node id is ``item._id``), so every
+    test was scheduled alone and a module's fixtures were built on both workers."""
+    if not config.getoption("loadgroup", default=False):
+        return
+    from _pytest.nodeid import coerce_node_id
+
     for item in items:
-        used = next((f for f in shared if f in getattr(item, "fixturenames", ())), None)
-        if used or item.path not in group_of:
-            group_of[item.path] = used or group_of.get(item.path) or item.path.name
-    for item in items:
-        item.add_marker(pytest.mark.xdist_group(group_of[item.path]))
+        group = GROUPS.get(item.path.name)
+        if group is not None and "@" not in item.nodeid:
+            item._id = coerce_node_id(f"{item.nodeid}@{group}")

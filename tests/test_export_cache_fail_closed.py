@@ -97,29 +97,31 @@ def _fresh(variant: str, workspace: Path, monkeypatch) -> list:
     return _FRESH[variant]
 
 
-@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(runs=st.lists(st.sampled_from(VARIANTS), min_size=2, max_size=4))
 def test_any_sequence_of_code_variants_sharing_a_cache_gets_the_verdicts_of_a_fresh_cache(
-        runs, tmp_path_factory, monkeypatch):
+        tmp_path_factory, monkeypatch):
     """Property: runs of different code, one after another over one artifact cache, each give
-    exactly the verdicts (status and worst error, bit for bit) of the same code with no cache."""
+    exactly the verdicts (status and worst error, bit for bit) of the same code with no cache.
+
+    It could not fail if the variants computed the same thing: first, each edited variant fails
+    at least one scenario and no two give the same verdicts. (One test, so that the fresh
+    verdicts, a sweep of each variant, are computed in one process: xdist would otherwise run
+    them again on the other worker.)"""
     workspace = tmp_path_factory.getbasetemp() / "variants-workspace"  # one workspace file, edited between runs
-    exports = tmp_path_factory.mktemp("shared") / "mjxdiff-exports"
-    for variant in runs:
-        assert _verdicts(variant, workspace, exports, monkeypatch) == _fresh(variant, workspace, monkeypatch), \
-            f"{variant} after {runs}"
-    assert not export_cache.check(exports)["ambiguous"]
-
-
-def test_the_variants_change_what_the_sweep_sees(tmp_path_factory, monkeypatch):
-    """The property above could not fail if the variants computed the same thing: each edited
-    variant fails at least one scenario, and no two give the same verdicts."""
-    workspace = tmp_path_factory.getbasetemp() / "variants-workspace"
     fresh = {v: _fresh(v, workspace, monkeypatch) for v in VARIANTS}
     assert all(status == "pass" for _, status, _ in fresh["clean"])
     for v in VARIANTS[1:]:
         assert any(status == "fail" for _, status, _ in fresh[v]), v
     assert len({repr(f) for f in fresh.values()}) == len(VARIANTS)
+
+    @settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+    @given(runs=st.lists(st.sampled_from(VARIANTS), min_size=2, max_size=4))
+    def sequence_matches_fresh(runs):
+        exports = tmp_path_factory.mktemp("shared") / "mjxdiff-exports"
+        for variant in runs:
+            assert _verdicts(variant, workspace, exports, monkeypatch) == fresh[variant], f"{variant} after {runs}"
+        assert not export_cache.check(exports)["ambiguous"]
+
+    sequence_matches_fresh()
 
 
 def _made_during_the_trace(orig):

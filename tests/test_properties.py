@@ -309,8 +309,8 @@ def test_one_mjx_step_matches_one_c_step(data):
     _one_step_property(data, max_bodies=2)
 
 
-@pytest.mark.slow
-@settings(max_examples=25)
+@pytest.mark.slow  # a compile per example: 10 examples cost about 2.5 CI minutes (25 cost 6.7)
+@settings(max_examples=10)
 @given(st.data())
 def test_one_mjx_step_matches_one_c_step_wide(data):
     _one_step_property(data, max_bodies=3)
@@ -667,8 +667,8 @@ def test_conservative_system_conserves_energy_in_both_engines(states):
     assert not bad, "\n".join(bad) + f"\n(timestep {SPRINGY.opt.timestep:.3g} s)"
 
 
-@pytest.mark.slow
-@settings(max_examples=10)
+@pytest.mark.slow  # a compile per example: 10 examples cost 5 CI minutes
+@settings(max_examples=5)
 @given(st.data())
 def test_generated_conservative_systems_conserve_energy_in_both_engines(data):
     """As above on generated models made :func:`conservative`, RK4 at ``omega dt <= 0.02``;
