@@ -44,6 +44,9 @@ d.qpos[:], d.qvel[:], d.ctrl[:], d.act[:], d.time = s["qpos"], s["qvel"], s["ctr
 # both solvers converged: what differs is not where each stopped
 m.opt.iterations, m.opt.ls_iterations, m.opt.tolerance = 200, 100, 1e-14
 mx, dx = mjx.put_model(m), mjx.put_data(m, d)
+if CHECK == "transfer":  # C's data into MJX and back: are C's contacts still there?
+    mujoco.mj_forward(m, d); back = mjx.get_data(m, mjx.put_data(m, d))
+    print("C contacts:", d.ncon, " after put_data and get_data:", back.ncon); raise SystemExit(int(back.ncon != d.ncon))
 if CHECK == "step":
     mujoco.mj_step(m, d); dx = jax.jit(mjx.step)(mx, dx)
 else:
@@ -68,6 +71,11 @@ raise SystemExit(1 if err > RTOL else 0)
 '''
 
 
+#: What each check of a signature runs, for the README.
+CHECKS = {"forward": "one mj_forward", "step": "one mj_step",
+          "transfer": "C's data after one mj_forward, through mjx.put_data and back through mjx.get_data,"}
+
+
 def _rtol(sig: Signature) -> float:
     from mjxdiff.diagnose import STAGE_RTOL
 
@@ -86,6 +94,9 @@ def magnitude(m: mujoco.MjModel, state: State, sig: Signature) -> dict[str, Any]
     m = copy.copy(m)
     converge_solver(m)
     d = state.data(m)
+    if sig.check == "transfer":
+        c, back = shrink.transfer_contacts(m, state)
+        return dict(error=float(abs(c - back)), object=f"C {c} contacts, get_data {back}", rounding=0.0)
     if sig.check == "step":
         errors = shrink.step_errors(m, state)
         a, b = state.data(m), state.data(m)
@@ -198,8 +209,8 @@ def _readme(doc: dict[str, Any], title: str) -> str:
              "Run it (only `mujoco` and `mujoco-mjx` needed): `python repro.py` prints both engines' values and "
              "exits 1 while they differ.", "",
              "## What differs", "",
-             f"- check: one {'mj_forward' if sig['check'] == 'forward' else 'mj_step'} from the state in "
-             "state.json, both solvers converged (200 iterations, tolerance 1e-14)",
+             f"- check: {CHECKS[sig['check']]} from the state in state.json, both solvers converged (200 "
+             "iterations, tolerance 1e-14)",
              f"- first differing stage: {sig['stage']}; field: `{sig['field']}`"
              + (f"; contacts: {sig['kinds']}" if sig["kinds"] else ""),
              f"- where: {size.get('object') or 'see repro.py'}",

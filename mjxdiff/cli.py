@@ -79,14 +79,21 @@ schedule beats the longest unit: the table says which it is and where the speed-
 Shrink a model that diverges to a minimal MJCF that still shows the same divergence, for a bug
 report upstream can act on. The state: the first one of C's rollout (from --keyframe, or qpos0 at
 rest, zero controls; or a reproducer's member with its controls) at which MJX's forward or one
-converged step differs from C's. Delta debugging then drops bodies, joints (welded where the state
+converged step differs from C's, or C's contacts are lost through mjx.put_data and get_data.
+Delta debugging then drops bodies, joints (welded where the state
 holds them), geoms, sites, actuators, sensors, tendons, equality constraints, pairs, excludes and
 keyframes, resets options and flags to MuJoCo's defaults and rounds the state, keeping each edit
-only while C compiles the model and the same signature shows: the same check (forward or step),
+only while C compiles the model and the same signature shows: the same check (forward, step or transfer),
 first stage, first field and contact geom types. Deterministic; Ctrl-C or --budget stops it with
 the best so far. Writes OUT/model.xml and OUT/state.json; --bundle adds repro.py (standalone:
 mujoco and mujoco-mjx only), signature.json and README.md. Exit 0 when shrunk, 2 on bad input or
 a model that shows no divergence.""",
+    "known": """\
+List the catalogue of known C/MJX divergences a sweep labels failures with ('known: ID'): each
+entry's id, kind and title, and for an MJX bug its bundle, a minimal model with a standalone
+repro.py made by 'mjxdiff shrink --bundle' (a directory of the mjxdiff repository). Kinds:
+approximation (MJX computes it another way on purpose, or a setting such as a capped solver parts
+the engines), bug (wrong in the MJX release measured), fixed (a bug of older releases only).""",
     "merge": """\
 Join the --out directories of a sweep's shards ('mjxdiff sweep --shard I/N --out DIR'), or of
 resumed runs, into one report: every unit's verdict from the directories' journal.jsonl, in the
@@ -557,6 +564,31 @@ def _list_parser(sub) -> argparse.ArgumentParser:
                    description="List bundled scenarios with their model, size and what they exercise.")
 
 
+def _known_parser(sub) -> argparse.ArgumentParser:
+    kn = sub.add_parser("known", help="list the known-divergence catalogue: each entry, its kind and its bug bundle",
+                        description=_DESCRIPTIONS["known"])
+    kn.add_argument("--list", action="store_true", help="list every entry (what 'known' does; the flag says so)")
+    kn.add_argument("--known", metavar="FILE", help="your own entries ([[known]] tables), listed first, as a sweep "
+                                                  "tries them")
+    return kn
+
+
+def _cmd_known(args: argparse.Namespace) -> int:
+    from mjxdiff import known
+
+    try:
+        entries = (known.load_entries(args.known) if args.known else ()) + known.CATALOGUE
+    except known.KnownError as e:
+        print(f"mjxdiff known: error: {e}", file=sys.stderr)
+        return 2
+    for e in entries:
+        print(f"{e.id:<42} {e.kind:<13} {e.title}")
+        print(f"{'':<42} bundle: {e.bundle or 'none: not an MJX bug'}")
+    kinds = [e.kind for e in entries]
+    print(f"{len(entries)} entries: " + ", ".join(f"{kinds.count(k)} {k}" for k in dict.fromkeys(kinds)))
+    return 0
+
+
 def _versions_parser(sub) -> argparse.ArgumentParser:
     ve = sub.add_parser("versions", help="run the same sweep on several MJX releases and tabulate the verdicts",
                         description=_DESCRIPTIONS["versions"], epilog=_VERSIONS_EPILOG,
@@ -727,14 +759,14 @@ def _shrink_input(path: str, keyframe: int | None, steps: int):
     ctrl = None
     if path.endswith(".json"):
         rep = reproducer.load(path)
-        spec = mujoco.MjSpec.from_string(rep.model_xml)
+        spec = shrink.named(mujoco.MjSpec.from_string(rep.model_xml))
         m = spec.compile()
         controls = np.asarray(rep.inputs.ctrl[0])
         ctrl = (lambda k: controls[min(k, len(controls) - 1)]) if controls.size else None
         start = (rep.inputs.qpos[0], rep.inputs.qvel[0], rep.inputs.act[0])
         source = None
     else:
-        spec = mujoco.MjSpec.from_file(path)
+        spec = shrink.named(mujoco.MjSpec.from_file(path))
         m, start, source = spec.compile(), None, Path(path).resolve().parent
     if keyframe is not None and not 0 <= keyframe < m.nkey:
         raise ValueError(f"--keyframe {keyframe}: the model has {m.nkey} keyframes")
@@ -1129,11 +1161,12 @@ _COMMANDS = ((_sweep_parser, _cmd_sweep), (_replay_parser, _cmd_replay), (_fuzz_
              (_bench_parser, _cmd_bench), (_policy_parser, _cmd_policy), (_coverage_parser, _cmd_coverage),
              (_grad_parser, _cmd_grad), (_history_parser, _cmd_history), (_cache_parser, _cmd_cache),
              (_versions_parser, _cmd_versions), (_merge_parser, _cmd_merge), (_scale_parser, _cmd_scale),
-             (_shrink_parser, _cmd_shrink), (_list_parser, _cmd_list))
+             (_shrink_parser, _cmd_shrink), (_known_parser, _cmd_known), (_list_parser, _cmd_list))
 
 
 #: Commands that run neither MuJoCo nor MJX: no version check.
-_UNGATED = (_cmd_history, _cmd_list, _cmd_versions, _cmd_scale)  # versions: each environment is gated by its own range
+# versions: each environment is gated by its own range
+_UNGATED = (_cmd_history, _cmd_list, _cmd_versions, _cmd_scale, _cmd_known)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

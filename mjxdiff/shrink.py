@@ -37,7 +37,8 @@ import numpy as np
 from mjxdiff.joints import DOF_WIDTH, QPOS_WIDTH
 
 __all__ = ["KINDS", "OPTIONS", "STEP_RTOL", "Counts", "Shrunk", "Signature", "State", "changed_options", "counts",
-           "ddmin", "drop", "element_names", "find_state", "probe", "scaled_error", "shrink", "step_errors"]
+           "ddmin", "drop", "element_names", "find_state", "named", "probe", "scaled_error", "shrink", "step_errors",
+           "transfer_contacts"]
 
 #: Relative disagreement (|mjx - c| / (1 + max|c|)) of one converged step above which it differs:
 #: far above a step's rounding (1e-15 of the scale) and a converged solver's residue.
@@ -64,6 +65,8 @@ class Signature:
     kinds: str = ""
 
     def describe(self) -> str:
+        if self.check == "transfer":
+            return f"mjx.get_data(mjx.put_data(C's data)) differs from C's data: {self.field}"
         where = f"{self.stage}: {self.field}" + (f" ({self.kinds})" if self.kinds else "")
         return f"{'mj_forward' if self.check == 'forward' else 'one mj_step'} differs first at {where}"
 
@@ -193,11 +196,22 @@ def step_errors(m: mujoco.MjModel, state: State) -> dict[str, float]:
     return {f: scaled_error(getattr(d, f), np.asarray(getattr(dx, f))) for f in STEP_FIELDS}
 
 
+def transfer_contacts(m: mujoco.MjModel, state: State) -> tuple[int, int]:
+    """(C's contact count after ``mj_forward`` from ``state``, the count ``mjx.get_data`` gives
+    back from ``mjx.put_data`` of that data): the host interface, no MJX physics."""
+    from mujoco import mjx
+
+    d = state.data(m)
+    mujoco.mj_forward(m, d)
+    return d.ncon, mjx.get_data(m, mjx.put_data(m, d)).ncon
+
+
 def probe(m: mujoco.MjModel, state: State) -> Signature | None:
     """The divergence ``m`` shows from ``state``, or None: the forward drill-down's first
-    differing stage, else the first field of one step beyond :data:`STEP_RTOL`. Both with the
-    solver converged (:func:`mjxdiff.noise.converge_solver`): a solver stopped after a few
-    iterations parts MJX from C by truncation, which is no bug to shrink."""
+    differing stage, else the first field of one step beyond :data:`STEP_RTOL`, else contacts
+    lost between C and MJX's data (:func:`transfer_contacts`). Physics with the solver converged
+    (:func:`mjxdiff.noise.converge_solver`): a solver stopped after a few iterations parts MJX
+    from C by truncation, which is no bug to shrink."""
     from mjxdiff.diagnose import drill_down
     from mjxdiff.noise import converge_solver
 
@@ -210,7 +224,10 @@ def probe(m: mujoco.MjModel, state: State) -> Signature | None:
         return Signature("forward", dd.first_stage, str(dd.first_field), _kinds(dd.object))
     errors = step_errors(m, state)
     field = next((f for f in STEP_FIELDS if not errors[f] <= STEP_RTOL), None)
-    return Signature("step", "integration", field) if field else None
+    if field:
+        return Signature("step", "integration", field)
+    c, back = transfer_contacts(m, state)
+    return Signature("transfer", "transfer", "contact") if c != back else None
 
 
 def find_state(m: mujoco.MjModel, steps: int = 200, key: int | None = None,
@@ -276,9 +293,10 @@ def counts(spec: mujoco.MjSpec, steps: int = 1) -> Counts:
     return Counts(m.nbody - 1, m.ngeom, m.njnt, m.nu, m.nsensor, m.ntendon, m.neq, _option_changes(spec), steps)
 
 
-def _named(spec: mujoco.MjSpec) -> mujoco.MjSpec:
+def named(spec: mujoco.MjSpec) -> mujoco.MjSpec:
     """``spec`` with every element of :data:`KINDS` named (``mjxdiff_<kind><i>`` where it had
-    none), so that edits and the state can refer to it."""
+    none), so that edits and the state can refer to it. Name a spec before taking a
+    :class:`State` of its model: a state names each joint as the compiled model does."""
     for kind in KINDS:
         for i, e in enumerate(getattr(spec, kind)):
             if not e.name:
@@ -435,10 +453,13 @@ def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None
 
     Raises ValueError when the model does not show a divergence from ``state``."""
     t0, compiles0 = time.perf_counter(), _compiles()
-    best = _named(spec.copy())
-    target = probe(best.compile(), state) if signature is None else signature
+    best = named(spec.copy())
+    target = probe(best.compile(), state)
     if target is None:
-        raise ValueError("the model shows no divergence from this state: nothing to shrink")
+        raise ValueError("the model shows no divergence from this state: nothing to shrink (a state of an "
+                         "unnamed model names its joints as shrink.named(spec) does)")
+    if signature is not None and target != signature:
+        raise ValueError(f"from this state the model shows '{target.describe()}', not '{signature.describe()}'")
     explicit = _explicit(best)
     if _shows_safely(explicit, state, target):
         best = explicit

@@ -247,6 +247,12 @@ class Entry:
     #: MJX release prefixes (``"3.3."``) this entry is about; it matches nothing on others.
     #: Empty: any release (what the entry describes is not tied to one).
     only_on: tuple[str, ...] = ()
+    #: ``approximation`` (MJX computes it another way on purpose, or a setting parts them), ``bug``
+    #: (MJX computes it wrong in the release measured), ``fixed`` (a bug of older releases only).
+    kind: str = "approximation"
+    #: A bug's minimal reproducer, made by ``mjxdiff shrink --bundle``: a directory of the
+    #: repository (model.xml, state.json, repro.py, signature.json, README.md); else why none.
+    bundle: str = ""
 
     def matches(self, s: dict[str, Any]) -> bool:
         """Whether a failing scenario (a report's scenario dict) fits this entry."""
@@ -273,6 +279,9 @@ def _releases_before(minor: int) -> tuple[str, ...]:
     return tuple(f"3.{m}." for m in range(3, minor))
 
 
+#: Why a fixed bug has no bundle.
+FIXED_SINCE = "none: fixed in later releases, so the installed MJX cannot show it; the versions sweep is its evidence"
+
 #: What mjxdiff has measured of MJX 3.17 against MuJoCo 4.0 (README, "Known C/MJX divergences";
 #: scenario notes). Approximations by design first, then bugs; the first matching entry wins.
 CATALOGUE: tuple[Entry, ...] = (
@@ -284,12 +293,14 @@ CATALOGUE: tuple[Entry, ...] = (
           "mjxdiff versions (2026-11-26), primitives_on_plane at step 0, geoms floor / mesh: C 3, MJX 4 contacts on "
           "3.3.7 and 3.9.0; C 2, MJX 4 on 3.10.0 and 3.12.0 (the one-step check from C's state shows the same); "
           "passes on 3.14.0 to 3.17.0 (3.13 not swept)", stage="collision", pattern=r"\(plane-mesh: C \d+, MJX",
-          versions=("3.3.5", "3.3.7", "3.9.0", "3.10.0", "3.12.0"), only_on=_releases_before(14)),
+          versions=("3.3.5", "3.3.7", "3.9.0", "3.10.0", "3.12.0"), only_on=_releases_before(14),
+          kind="fixed", bundle=FIXED_SINCE),
     Entry("capsule-mesh-before-3.15", "MJX before 3.15: capsule-mesh contacts other than C's",
           "mjxdiff versions (2026-11-26), primitive_pairs at step 0, geoms slab / cap_slab: C 1, MJX 2 contacts on "
           "3.3.7; C 2, MJX 2 with normals 1e-3 apart on 3.9.0, 3.10.0, 3.12.0 and 3.14.0 (the one-step check shows "
           "the same); passes on 3.15.0 to 3.17.0", stage="collision", pattern=r"\(capsule-mesh:",
-          versions=("3.3.5", "3.3.7", "3.9.0", "3.10.0", "3.12.0", "3.14.0"), only_on=_releases_before(15)),
+          versions=("3.3.5", "3.3.7", "3.9.0", "3.10.0", "3.12.0", "3.14.0"), only_on=_releases_before(15),
+          kind="fixed", bundle=FIXED_SINCE),
     Entry("plane-box-corners", "plane-box/mesh: MJX keeps only corners within 1 mm of the deepest",
           "primitives_on_plane notes: a box that lands on a corner or rocks (> 1 mm depth spread) diverges ~1e-3; "
           "a tipped cube in sensing: C 4 corners, MJX 3", stage="collision", pattern=r"\(plane-(box|mesh):",
@@ -323,40 +334,49 @@ CATALOGUE: tuple[Entry, ...] = (
           "on a slope C 3, MJX 4", pattern=r"\(hfield-\w+:"),
     Entry("rk4-sensor-stage", "RK4: MJX's sensordata is from the last Runge-Kutta stage",
           "integrator_rk4 notes: after an RK4 step MJX's sensordata is from the last stage, C's from the state "
-          "before the step", field="sensordata", integrator=("rk4",)),
+          "before the step", field="sensordata", integrator=("rk4",),
+          kind="bug", bundle="tests/data/bundles/rk4-sensor-stage"),
     Entry("implicit-clamped-actuator", "implicit/implicitfast: C leaves a clamped actuator's velocity derivative "
           "out of the implicit update, MJX 3.17 keeps it",
           "Unitree G1 (menagerie scene_mjx.xml: position servos with kv, joint actuatorfrcrange, implicitfast): one "
           "step from the same state 13 rad/s apart in qvel, 1e-13 with the joint clamps removed, with Euler or with "
           "kv = 0; MuJoCo C commit b466829, mirrored in mujoco_warp PR #1149", cause="actuator force clamping",
-          integrator=("implicitfast", "implicit")),
+          integrator=("implicitfast", "implicit"),
+          kind="bug", bundle="tests/data/bundles/implicit-clamped-actuator"),
     Entry("rotation-integration", "implicitfast/RK4: free-body rotation integrated differently (grows like ω²)",
           "integrator_* notes: fast-spinning free bodies", integrator=("implicitfast", "rk4"),
-          pattern=r"integration|free"),
+          pattern=r"integration|free",
+          kind="bug", bundle="tests/data/bundles/rotation-integration"),
     Entry("acceleration-sensors-without-constraints", "MJX skips sensor_acc in a model without constraint rows",
-          "tests/test_known_divergences.py: a spring-loaded slider's accelerometer C -0.0234 m/s², MJX 0",
-          field="sensordata", pattern=r"\((accelerometer|force|torque|framelinacc|frameangacc)\)"),
+          "the bundle: a spring-loaded slider's accelerometer C -0.0234 m/s², MJX 0",
+          field="sensordata", pattern=r"\((accelerometer|force|torque|framelinacc|frameangacc)\)",
+          kind="bug", bundle="tests/data/bundles/acceleration-sensors-without-constraints"),
     Entry("contact-sensor-explicit-pair", "contact sensor reads the explicit pair's contact",
-          "tests/test_known_divergences.py: with a <pair>, a geom-matched contact sensor reads the pair's force",
-          field="sensordata", pattern=r"\(contact\)"),
+          "the bundle: with a <pair>, a geom-matched contact sensor reads the pair's force",
+          field="sensordata", pattern=r"\(contact\)",
+          kind="bug", bundle="tests/data/bundles/contact-sensor-explicit-pair"),
     Entry("truncated-solver", "a solver capped at few iterations: the engines stop at different points",
           "ant at 1000 steps: 4 of 64 members jump 1e-11 -> 5e-6 qvel at a contact; gone with 100 iterations",
           cause="solver convergence"),
     Entry("equality-aref", "connect/weld: other efc_aref (anchor off the body origin, spinning)",
           "equality notes: same efc_pos/efc_J/efc_KBIP, qvel 0.4 rad/s apart after one step; connect off-origin "
-          "on a spinning body z 1.8018 C, 1.7658 MJX", stage="constraint", pattern=r"equality|connect|weld"),
+          "on a spinning body z 1.8018 C, 1.7658 MJX", stage="constraint", pattern=r"equality|connect|weld",
+          kind="bug", bundle="tests/data/bundles/equality-aref"),
     Entry("mesh-mesh-contacts-3.3", "MJX 3.3: mesh-mesh contacts other than C's",
           "mjxdiff versions 3.3.5/0.7.0 (2026-11-26): convex_mesh at step 0, geoms slab / frustum_slab: C 1, MJX 4 "
           "contacts (passes contacts disabled); the same scenario passes on MJX 3.9.0 and 3.17.0", stage="collision",
-          pattern=r"\(mesh-mesh:", versions=("3.3.5",), only_on=("3.3.",)),
+          pattern=r"\(mesh-mesh:", versions=("3.3.5",), only_on=("3.3.",),
+          kind="fixed", bundle=FIXED_SINCE),
     Entry("flex-ignored-3.3", "MJX 3.3.0-3.3.4 accept a flex and make none of its contacts",
           "tests/data/flex_cloth.xml (a 4x4 cloth falling onto a plane), swept on MJX 3.3.0 (2026-11-26): FAIL at "
           "step 0, first field contact, flex 'cloth' / flex 'cloth' C 2, MJX 0 contacts (C 9 at the one-step "
           "check); likely cause contact generation. MJX 3.3.5 and later refuse the model (put_model: 'Flex not "
           "implemented for JAX backend.', unsupported); support.UNSUPPORTED_FEATURES 'flex' refused_since 3.3.5 "
           "(tests/test_supported_versions.py)", stage="collision", pattern=r"flex '",
-          versions=("3.3.0",), only_on=("3.3.0", "3.3.1", "3.3.2", "3.3.3", "3.3.4")),
+          versions=("3.3.0",), only_on=("3.3.0", "3.3.1", "3.3.2", "3.3.3", "3.3.4"),
+          kind="fixed", bundle=FIXED_SINCE),
     Entry("get-data-margin-contacts", "get_data drops contacts inside the margin (dist > 0)",
-          "tests/test_known_divergences.py: a sphere 2 mm above the floor, margin 5 mm: C 1 contact, get_data 0",
-          field="transfer", pattern=r"contact"),
+          "the bundle: a sphere 2 mm above the floor, margin 5 mm: C 1 contact, get_data 0",
+          field="transfer", pattern=r"contact",
+          kind="bug", bundle="tests/data/bundles/get-data-margin-contacts"),
 )

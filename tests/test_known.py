@@ -44,3 +44,45 @@ def test_entries_match_on_what_the_diagnosis_says():
     assert known.match(failing).id == "box-box-manifold"
     assert known.match(dict(failing, status="pass")) is None
     assert known.match(dict(failing, message="qvel of joint 'a' leaves its bound")) is None
+
+
+def test_every_mjx_bug_of_the_catalogue_has_a_minimal_bundle(repo_root):
+    """A bug entry's bundle is in the repository, whole (bundle.FILES), at most 3 bodies and 4
+    geoms, shrunk from tests/data/known/ID.xml to completion; an approximation has none; a bug of
+    older releases says why it has none. (tests/test_known_divergences.py runs each bundle's
+    repro.py as a strict xfail.)"""
+    import mujoco
+
+    from mjxdiff import bundle
+    from mjxdiff.support import FIXED_SINCE
+
+    kinds = {e.kind for e in known.CATALOGUE}
+    assert kinds == {"approximation", "bug", "fixed"}, kinds
+    for e in known.CATALOGUE:
+        if e.kind == "approximation":
+            assert e.bundle == "", e.id
+        elif e.kind == "fixed":
+            assert e.bundle == FIXED_SINCE, e.id
+        else:
+            where = repo_root / e.bundle
+            assert e.bundle == f"tests/data/bundles/{e.id}", e.id
+            assert (repo_root / "tests/data/known" / f"{e.id}.xml").is_file(), e.id
+            assert sorted(p.name for p in where.iterdir() if p.is_file()) == sorted(bundle.FILES), e.id
+            m = mujoco.MjModel.from_xml_path(str(where / "model.xml"))
+            assert m.nbody - 1 <= 3 and m.ngeom <= 4, (e.id, m.nbody - 1, m.ngeom)
+            doc = json.loads((where / "signature.json").read_text())
+            assert doc["complete"] and doc["origin"] == f"tests/data/known/{e.id}.xml", e.id
+
+
+def test_known_list_shows_each_entry_with_its_bundle(capsys, tmp_path):
+    assert main(["known", "--list"]) == 0
+    out = capsys.readouterr().out
+    for e in known.CATALOGUE:
+        assert f"{e.id} " in out and e.title in out, e.id
+    for e in (e for e in known.CATALOGUE if e.kind == "bug"):
+        assert f"bundle: tests/data/bundles/{e.id}\n" in out
+    assert out.splitlines()[-1].startswith(f"{len(known.CATALOGUE)} entries: ")
+    (tmp_path / "bad.toml").write_text("[[known]]\nid = 3\n")
+    assert main(["known", "--known", str(tmp_path / "bad.toml")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("mjxdiff known: error: ") and err.count("\n") == 1, err

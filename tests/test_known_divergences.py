@@ -12,53 +12,33 @@ from mujoco import mjx
 
 from _preconditions import precondition
 from mjxdiff import engines
+from mjxdiff.support import CATALOGUE, Entry
 
-CONTACT_SENSOR_WITH_PAIR = """<mujoco>
-  <worldbody>
-    <geom name="floor" type="plane" size="1 1 .1"/>
-    <body name="a" pos="0 0 0.048"><freejoint/><geom name="a" type="sphere" size="0.05"/></body>
-    <body name="b" pos="0.5 0 0.06"><freejoint/><geom name="b" type="sphere" size="0.07"/></body>
-  </worldbody>
-  <contact><pair geom1="b" geom2="floor"/></contact>
-  <sensor><contact geom1="a" geom2="floor" num="1" data="found force dist"/></sensor>
-</mujoco>"""
+ROOT = Path(__file__).resolve().parent.parent
+#: The catalogue's MJX bugs, each with its bundle (``mjxdiff shrink --bundle`` of tests/data/known/ID.xml).
+BUGS = [e for e in CATALOGUE if e.kind == "bug"]
 
 
-@pytest.mark.xfail(raises=AssertionError, reason="MJX 3.17: with an explicit <pair> in the model, a geom-matched "
-                                       "contact sensor reads the pair's contact (force 49.3, dist -0.01 instead of "
-                                       "7.50, -0.002); found while adding a contact sensor to contact_parameters")
-def test_contact_sensor_reads_its_own_contact_when_the_model_has_an_explicit_pair():
-    m = mujoco.MjModel.from_xml_string(CONTACT_SENSOR_WITH_PAIR)
-    d = mujoco.MjData(m)
-    mujoco.mj_forward(m, d)
-    precondition(d.sensordata[0] == 1 and d.sensordata[-1] < 0, "C: sphere 'a' penetrates the floor")
-    dx = engines.forward(mjx.put_model(m), mjx.put_data(m, d))
-    np.testing.assert_allclose(np.asarray(dx.sensordata), d.sensordata, atol=1e-9,
-                               err_msg="contact sensor 'a'/'floor': found, normal force, dist")
+def run_bundle(entry: Entry) -> int:
+    """The exit code of the entry's bundle's ``repro.py``, run in this process as ``python
+    repro.py`` would (1 while MJX and C differ), its printout kept from the test's output."""
+    import contextlib
+    import io
+    import runpy
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        try:
+            runpy.run_path(str(ROOT / entry.bundle / "repro.py"), run_name="__main__")
+        except SystemExit as e:
+            return int(e.code or 0)
+    return 0
 
 
-ACCELEROMETER_WITHOUT_CONSTRAINTS = """<mujoco>
-  <worldbody>
-    <body pos="0 0 0.5"><joint type="slide" axis="0 0 1" stiffness="4.9"/>
-      <geom type="sphere" size="0.1"/><site name="s"/></body>
-  </worldbody>
-  <sensor><accelerometer site="s"/></sensor>
-</mujoco>"""
-
-
-@pytest.mark.xfail(raises=AssertionError, reason="MJX 3.17: forward() returns right after the smooth dynamics when the "
-                                       "model has no constraint rows (efc_J empty), before sensor_acc, so "
-                                       "accelerometer, force, torque, framelinacc/angacc read 0 (C: -0.0234 "
-                                       "here); found by fuzzing 64 variants per structure")
-def test_acceleration_sensors_are_computed_in_a_model_without_constraints():
-    m = mujoco.MjModel.from_xml_string(ACCELEROMETER_WITHOUT_CONSTRAINTS)
-    d = mujoco.MjData(m)
-    d.qpos[0] = 0.02  # the spring pulls: proper acceleration -k x / m
-    mujoco.mj_forward(m, d)
-    precondition(d.sensordata[2] < -0.02, "C: the spring's acceleration")
-    # fresh data, not put_data: that would carry C's cacc over, which MJX then never recomputes
-    dx = engines.forward(mjx.put_model(m), mjx.make_data(m).replace(qpos=d.qpos.copy()))
-    np.testing.assert_allclose(np.asarray(dx.sensordata), d.sensordata, atol=1e-9, err_msg="accelerometer")
+@pytest.mark.xfail(raises=AssertionError, reason="each an MJX 3.17 bug of the catalogue (its evidence, and the "
+                   "bundle's README.md); the bundle was shrunk from tests/data/known/ID.xml")
+@pytest.mark.parametrize("entry", BUGS, ids=[e.id for e in BUGS])
+def test_the_catalogued_mjx_bug_is_fixed(entry):
+    assert run_bundle(entry) == 0, f"{entry.id}: MJX still differs from C ({entry.bundle}/README.md)"
 
 
 @pytest.mark.xfail(raises=AssertionError, reason="MJX 3.17: a plane-capsule contact has the fixed "
@@ -236,47 +216,12 @@ def test_the_ellipsoid_fluid_model_is_used_where_a_geom_asks_for_it():
     np.testing.assert_allclose(np.asarray(dx.qfrc_passive), d.qfrc_passive, atol=1e-9, err_msg="qfrc_passive")
 
 
-CONNECT_OFF_THE_BODY_ORIGIN = """<mujoco>
-  <option solver="Newton" iterations="50" tolerance="1e-12"/>
-  <worldbody>
-    <body name="bob" pos="0.3 0.8 0.5"><freejoint/>
-      <geom type="sphere" size="0.04" mass="0.2" contype="0" conaffinity="0"/></body>
-  </worldbody>
-  <equality><connect body1="bob" anchor="0 0 0.2" solref="0.02 1"/></equality>
-</mujoco>"""
-
-
-@pytest.mark.xfail(raises=AssertionError, reason="MJX 3.17 vs MuJoCo 4.0: a connect constraint whose anchor is off the "
-                                       "body's origin, on a spinning body, gets a different force: spinning at "
-                                       "1 rad/s about x with the anchor 0.2 m up, qfrc_constraint z is 1.8018 in "
-                                       "C, 1.7658 in MJX (the anchor's centripetal acceleration, m w^2 r = 0.04, "
-                                       "times the impedance); with the anchor at the origin they agree. Found "
-                                       "adding a connect to the sensing scenario, which now anchors at the origin")
-def test_a_connect_anchored_off_the_origin_of_a_spinning_body():
-    _, d, dx = _forward_both(CONNECT_OFF_THE_BODY_ORIGIN, qvel={3: 1.0})
-    np.testing.assert_allclose(np.asarray(dx.qfrc_constraint), d.qfrc_constraint, atol=1e-6,
-                               err_msg="qfrc_constraint")
-
-
 MARGIN_CONTACT = """<mujoco>
   <worldbody>
     <geom name="floor" type="plane" size="1 1 .1"/>
     <body pos="0 0 0.102"><freejoint/><geom type="sphere" size="0.1" margin="0.005"/></body>
   </worldbody>
 </mujoco>"""
-
-
-@pytest.mark.xfail(raises=AssertionError, reason="MJX 3.17: get_data keeps only contacts with dist <= 0 "
-                                       "(io._get_contact), dropping those inside the margin that C holds with "
-                                       "constraint rows of their own (here C 1 contact at dist 0.002, get_data 0); "
-                                       "mjxdiff's transfer check compares penetrating contacts only")
-def test_get_data_gives_back_the_contacts_inside_the_margin():
-    m = mujoco.MjModel.from_xml_string(MARGIN_CONTACT)
-    d = mujoco.MjData(m)
-    mujoco.mj_forward(m, d)
-    precondition(d.ncon == 1 and 0 < d.contact.dist[0] < 0.005 and d.nefc > 0, "C: one contact inside the margin")
-    back = mjx.get_data(m, mjx.put_data(m, d))
-    assert back.ncon == d.ncon, f"get_data(put_data(d)) holds {back.ncon} contacts, C {d.ncon}"
 
 
 @pytest.mark.xfail(raises=ValueError, reason="MJX 3.17 with MuJoCo 4.0: mjx.get_state does not know mjSTATE_PLASTIC "
@@ -348,20 +293,6 @@ def test_cg_solver_gradients_do_not_couple_unconnected_bodies():
     C, *_ = grad.c_jacobians(rep.model, rep.state, 1e-7)
     precondition(abs(C[27, 2]) < 1e-6, "C: the slick's height does not move the pill")
     np.testing.assert_allclose(A[27, 2], C[27, 2], atol=1e-3)
-
-
-@pytest.mark.xfail(raises=AssertionError, reason="MJX 3.17 keeps a clamped actuator's velocity derivative "
-                                       "in the implicit update (MuJoCo C leaves it out since b466829); found sweeping "
-                                       "the Unitree G1 (13 rad/s apart after one step)")
-def test_a_clamped_servo_under_implicitfast_steps_as_in_c(repo_root):
-    m = mujoco.MjModel.from_xml_path(str(repo_root / "tests" / "data" / "clamped_servo_implicitfast.xml"))
-    d = mujoco.MjData(m)
-    d.qvel[:] = [2.0, -3.0]
-    d.ctrl[:] = [1.5, -1.5]  # both servos saturate at their joints' actuatorfrcrange
-    with jax.enable_x64(True):
-        dx = jax.jit(mjx.step)(mjx.put_model(m), mjx.put_data(m, d))
-    mujoco.mj_step(m, d)
-    np.testing.assert_allclose(np.asarray(dx.qvel), d.qvel, atol=1e-9, err_msg="qvel after one implicitfast step")
 
 
 def test_the_sweep_names_the_clamped_servo_and_the_catalogue_knows_it(repo_root):
@@ -449,7 +380,6 @@ TENDON_DAMPING_ACROSS_TREES = """<mujoco>
 def test_implicitfast_damps_a_tendon_across_two_trees_as_c_does():
     d, dx = _step_both(TENDON_DAMPING_ACROSS_TREES, [1.0, -0.5])
     np.testing.assert_allclose(np.asarray(dx.qvel), d.qvel, atol=1e-12, err_msg="qvel after one implicitfast step")
-
 
 
 @pytest.mark.xfail(raises=AssertionError, reason="a fixed tendon with armature coupling two kinematic trees: C 4.0's "

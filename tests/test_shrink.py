@@ -49,7 +49,7 @@ def test_ddmin_finds_the_smallest_subset_that_keeps_the_property():
 
 
 def test_a_welded_joint_leaves_every_geom_where_the_state_holds_it():
-    spec = shrink._explicit(shrink._named(mujoco.MjSpec.from_string(FLOOR_XML)))
+    spec = shrink._explicit(shrink.named(mujoco.MjSpec.from_string(FLOOR_XML)))
     m = spec.compile()
     d = mujoco.MjData(m)
     rng = np.random.default_rng(0)

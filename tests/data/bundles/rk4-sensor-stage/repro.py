@@ -1,0 +1,35 @@
+"""MJX vs MuJoCo C: one mj_step differs first at integration: sensordata. Needs only mujoco and mujoco-mjx: python repro.py (exit 1 while they differ)."""
+import json, pathlib
+import jax
+jax.config.update("jax_enable_x64", True)
+import mujoco, numpy as np
+from mujoco import mjx
+
+HERE, CHECK, FIELD, RTOL = pathlib.Path(__file__).parent, "step", "sensordata", 1e-06
+m = mujoco.MjModel.from_xml_path(str(HERE / "model.xml"))
+s, d = json.loads((HERE / "state.json").read_text()), mujoco.MjData(m)
+d.qpos[:], d.qvel[:], d.ctrl[:], d.act[:], d.time = s["qpos"], s["qvel"], s["ctrl"], s["act"], s["time"]
+# both solvers converged: what differs is not where each stopped
+m.opt.iterations, m.opt.ls_iterations, m.opt.tolerance = 200, 100, 1e-14
+mx, dx = mjx.put_model(m), mjx.put_data(m, d)
+if CHECK == "step":
+    mujoco.mj_step(m, d); dx = jax.jit(mjx.step)(mx, dx)
+else:
+    mujoco.mj_forward(m, d); dx = jax.jit(mjx.forward)(mx, dx)
+if FIELD == "contact":  # active contacts by geom pair: C's, and MJX's with dist below the margin
+    cx = getattr(dx, "_impl", dx).contact
+    on = np.asarray(cx.dist) < np.asarray(cx.includemargin)
+    c = sorted((tuple(sorted(g)), float(x)) for g, x in zip(d.contact.geom[:d.ncon].tolist(), d.contact.dist[:d.ncon]))
+    x = sorted((tuple(sorted(g)), float(y)) for g, y in zip(np.asarray(cx.geom)[on].tolist(), np.asarray(cx.dist)[on]))
+    print("C   contacts (geom pair, dist):", c); print("MJX contacts (geom pair, dist):", x)
+    same = [p for p, _ in c] == [p for p, _ in x]
+    err = max((abs(a[1] - b[1]) for a, b in zip(c, x)), default=0.0) if same else float("inf")
+else:
+    if FIELD == "qM":
+        c = np.zeros((m.nv, m.nv)); mujoco.mj_fullM(m, c, d.qM); x = np.asarray(mjx.full_m(mx, dx))
+    else:
+        c, x = np.ravel(getattr(d, FIELD)), np.ravel(np.asarray(getattr(dx, FIELD)))
+    print(f"C   {FIELD}:", c); print(f"MJX {FIELD}:", x); print("difference:", x - c)
+    err = float(np.max(np.abs(x - c)) / (1 + np.max(np.abs(c))))
+print(f"scaled difference {err:.3g} (differs above {RTOL:g})")
+raise SystemExit(1 if err > RTOL else 0)
