@@ -121,14 +121,14 @@ def magnitude(m: mujoco.MjModel, state: State, sig: Signature) -> dict[str, Any]
 def ablations(shrunk: Shrunk) -> list[dict[str, Any]]:
     """Each remaining element dropped alone and each option changed from its default reset, on
     the minimal model: whether the divergence stays, goes (``None``) or turns into another."""
-    from mjxdiff.shrink import KINDS, changed_options, drop, element_names
+    from mjxdiff.shrink import KINDS, SINGULAR, changed_options, drop, element_names
 
     out = []
     m = shrunk.spec.compile()
     for kind in KINDS:
         for name in element_names(shrunk.spec, kind):
             candidate = drop(shrunk.spec, kind, [name], m, shrunk.state)
-            out.append(dict(edit=f"drop {kind[:-1] if kind != 'bodies' else 'body'} '{name}'",
+            out.append(dict(edit=f"drop {SINGULAR[kind]} '{name}'",
                             **_outcome(candidate, shrunk)))
     default = mujoco.MjSpec().option
     for o in changed_options(shrunk.spec):

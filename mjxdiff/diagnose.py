@@ -243,6 +243,13 @@ def _has_actuator_clamps(m: mujoco.MjModel) -> bool:
                 or getattr(m, "tendon_actfrclimited", np.zeros(0)).any())
 
 
+def _no_equality(m: mujoco.MjModel) -> None:
+    """Equality constraints off (connect, weld, joint, tendon, flex): where MJX and C then agree,
+    what parts them is in those rows (MJX 3.17's connect and weld reference acceleration,
+    known: equality-aref)."""
+    m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_EQUALITY)
+
+
 def _other_integrator(m: mujoco.MjModel) -> None:
     euler = int(mujoco.mjtIntegrator.mjINT_EULER)
     m.opt.integrator = int(mujoco.mjtIntegrator.mjINT_RK4) if m.opt.integrator == euler else euler
@@ -260,6 +267,13 @@ UNCLASSIFIED = "unclassified (no ablation could run)"
 
 #: Cause of a failure that removing the actuator force clamps removes.
 CLAMPED = "actuator force clamping"
+#: Cause of a failure that disabling the equality constraints removes.
+EQUALITY = "equality constraints"
+
+#: Ablations tried only on models that have what they remove (else they would pass or fail as
+#: the model does, and name a cause that is not there).
+_APPLIES: dict[Callable[[mujoco.MjModel], None], Callable[[mujoco.MjModel], bool]] = {
+    _no_actuator_clamps: _has_actuator_clamps, _no_equality: lambda m: m.neq > 0}
 
 #: (cause class, ablation label, model edit) in the order they are tried; after the first (the
 #: converged solver) each also converges the solver, so that on a model whose own settings do
@@ -268,6 +282,7 @@ ABLATIONS: tuple[tuple[str, str, Callable[[mujoco.MjModel], None]], ...] = (
     ("solver convergence", "converged solver (200 iterations, tolerance 1e-14)", converge_solver),
     ("contact generation", "contacts disabled", _no_contacts),
     (CLAMPED, "actuator force clamps removed (forcerange, actuatorfrcrange)", _no_actuator_clamps),
+    (EQUALITY, "equality constraints disabled", _no_equality),
     ("integration", "timestep / 4", _quarter_timestep),
     ("integration", "other integrator (Euler <-> RK4)", _other_integrator),
 )
@@ -320,7 +335,7 @@ def attribute_cause(passes: Callable[[_Inputs, Precision], bool], inputs: _Input
     # BatchedInputs' first model, or closedloop's one step's (pyright does not narrow a protocol by hasattr)
     m = inputs.models[0] if hasattr(inputs, "models") else getattr(inputs, "m", None)  # pyright: ignore[reportAttributeAccessIssue]
     for i, (cause, label, edit) in enumerate(ABLATIONS):
-        if cause in skip or (edit is _no_actuator_clamps and m is not None and not _has_actuator_clamps(m)):
+        if cause in skip or (m is not None and edit in _APPLIES and not _APPLIES[edit](m)):
             continue
         if i:
             edit = functools.partial(_with_converged_solver, edit)

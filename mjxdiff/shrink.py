@@ -203,7 +203,8 @@ def transfer_contacts(m: mujoco.MjModel, state: State) -> tuple[int, int]:
 
     d = state.data(m)
     mujoco.mj_forward(m, d)
-    return d.ncon, mjx.get_data(m, mjx.put_data(m, d)).ncon
+    back = mjx.get_data(m, mjx.put_data(m, d))  # one MjData for unbatched data
+    return d.ncon, back.ncon if isinstance(back, mujoco.MjData) else back[0].ncon
 
 
 def probe(m: mujoco.MjModel, state: State) -> Signature | None:
@@ -309,14 +310,15 @@ def element_names(spec: mujoco.MjSpec, kind: str) -> list[str]:
     return [e.name for e in getattr(spec, kind) if kind != "bodies" or e.name != "world"]
 
 
-_FIND = {"bodies": "body", "joints": "joint", "geoms": "geom", "sites": "site", "actuators": "actuator",
-         "sensors": "sensor", "tendons": "tendon", "equalities": "equality", "pairs": "pair", "excludes": "exclude",
-         "keys": "key"}
+#: Each of :data:`KINDS` in the singular: MjSpec's finder (``spec.body(name)``) and a message's word.
+SINGULAR = {"bodies": "body", "joints": "joint", "geoms": "geom", "sites": "site", "actuators": "actuator",
+            "sensors": "sensor", "tendons": "tendon", "equalities": "equality", "pairs": "pair", "excludes": "exclude",
+            "keys": "key"}
 
 
 def _without(spec: mujoco.MjSpec, kind: str, names: Iterable[str]) -> mujoco.MjSpec:
     out = spec.copy()
-    find = getattr(out, _FIND[kind])
+    find = getattr(out, SINGULAR[kind])
     for n in names:
         e = find(n)
         if e is not None:  # a body's descendants go with it

@@ -116,13 +116,29 @@ GROUPS = {
 }
 
 
-def pytest_collection_modifyitems(config, items):
-    """Groups for ``--dist loadgroup`` (:data:`GROUPS`), on the node id, where xdist's scheduler
-    reads them: a test ``tests/test_coverage.py::test_x`` becomes ``...::test_x@test_coverage.py``.
+#: Files of long tests (a compile each of patched MJX or of generated models, fuzz searches,
+#: a cold cache), scheduled first with the ``slow`` ones and :data:`GROUPS`.
+LONG_FILES = ("test_export_cache_fail_closed.py", "test_fuzz.py", "test_sensing_scenario.py", "test_wider_reach.py",
+              "test_stale_code.py", "test_solver_floor.py")
 
-    Not through xdist's own ``xdist_group`` marker: xdist 3.8 appends the group to
-    ``item._nodeid``, which pytest 9 no longer reads (its node id is ``item._id``), so every
-    test was scheduled alone and a module's fixtures were built on both workers."""
+
+def _long_first(item) -> int:
+    return 0 if (item.get_closest_marker("slow") or item.path.name in GROUPS or item.path.name in LONG_FILES) else 1
+
+
+def pytest_collection_modifyitems(config, items):
+    """Longest first, then groups for ``--dist loadgroup``.
+
+    Order: xdist's scheduler hands out work in collection order and lets a worker queue up to 3
+    tests, so long tests collected last leave one worker idle at the end; the long ones (by
+    :func:`_long_first`) go first, each set in its collection order (the same on every worker).
+
+    Groups (:data:`GROUPS`) on the node id, where xdist's scheduler reads them: a test
+    ``tests/test_coverage.py::test_x`` becomes ``...::test_x@test_coverage.py``. Not through
+    xdist's own ``xdist_group`` marker: xdist 3.8 appends the group to ``item._nodeid``, which
+    pytest 9 no longer reads (its node id is ``item._id``), so every test was scheduled alone
+    and a module's fixtures were built on both workers."""
+    items.sort(key=_long_first)
     if not config.getoption("loadgroup", default=False):
         return
     from _pytest.nodeid import coerce_node_id

@@ -113,7 +113,7 @@ def test_any_sequence_of_code_variants_sharing_a_cache_gets_the_verdicts_of_a_fr
         assert any(status == "fail" for _, status, _ in fresh[v]), v
     assert len({repr(f) for f in fresh.values()}) == len(VARIANTS)
 
-    @settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+    @settings(max_examples=2, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
     @given(runs=st.lists(st.sampled_from(VARIANTS), min_size=2, max_size=4))
     def sequence_matches_fresh(runs):
         exports = tmp_path_factory.mktemp("shared") / "mjxdiff-exports"
