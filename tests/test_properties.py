@@ -39,6 +39,7 @@ from _preconditions import precondition
 from mjxdiff.engines import energy as mjx_energy
 from mjxdiff.fuzz import model_strategy
 from mjxdiff.inputs import quat_mul, rotvec_quat
+from mjxdiff.noise import converge_solver
 from mjxdiff.strategies import UNSUPPORTED_FEATURES, State, control_sequences, initial_states, mjcf_models
 from mjxdiff.testing import compare
 
@@ -297,6 +298,10 @@ def _one_step_property(data, max_bodies: int) -> None:
     note(xml)
     state = c_advance(m, state, ctrl, advance)
     assume(state is not None and not in_spring_dead_zone(m, state.qpos))
+    # The one step with both solvers converged: stopped at the default tolerance (1e-8), each
+    # leaves ~1e-8 of qvel where frictionloss holds a joint still, and they part by 3x ONE_STEP_ATOL
+    # there (a generated slide joint with frictionloss after 400 C steps: 2.07e-8 vs 5.15e-8).
+    converge_solver(m)
     bad = check_one_step(m, state, ctrl)
     assert not bad, ("one MJX step differs from one C step:\n" + "\n".join(bad)
                      + f"\n(after {advance} C steps; contacts only plane-any and sphere-sphere)\n" + xml)
@@ -309,8 +314,8 @@ def test_one_mjx_step_matches_one_c_step(data):
     _one_step_property(data, max_bodies=2)
 
 
-@pytest.mark.slow  # a compile per example: 10 examples cost about 2.5 CI minutes (25 cost 6.7)
-@settings(max_examples=10)
+@pytest.mark.slow  # a compile per example (25 examples cost 6.7 CI minutes, 405 s)
+@settings(max_examples=6)
 @given(st.data())
 def test_one_mjx_step_matches_one_c_step_wide(data):
     _one_step_property(data, max_bodies=3)
@@ -667,8 +672,8 @@ def test_conservative_system_conserves_energy_in_both_engines(states):
     assert not bad, "\n".join(bad) + f"\n(timestep {SPRINGY.opt.timestep:.3g} s)"
 
 
-@pytest.mark.slow  # a compile per example: 10 examples cost 5 CI minutes
-@settings(max_examples=5)
+@pytest.mark.slow  # a compile per example (10 examples cost 5 CI minutes, 296 s)
+@settings(max_examples=4)
 @given(st.data())
 def test_generated_conservative_systems_conserve_energy_in_both_engines(data):
     """As above on generated models made :func:`conservative`, RK4 at ``omega dt <= 0.02``;
