@@ -86,3 +86,18 @@ def test_known_list_shows_each_entry_with_its_bundle(capsys, tmp_path):
     assert main(["known", "--known", str(tmp_path / "bad.toml")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("mjxdiff known: error: ") and err.count("\n") == 1, err
+
+
+def test_a_constraint_failure_the_equality_ablation_removes_is_equality_aref():
+    """The Robotiq 2F-85's sweep (its four-bar connects; README, "shrink and bundles"): the drill-down
+    names a joint, the equality-constraints ablation names the cause, and that is what matches."""
+    from mjxdiff import diagnose
+
+    failing = dict(name="mjx_2f85", status="fail", message="qvel of joint 'right_follower_joint' leaves the envelope "
+                   "at step 0; first field to differ: qfrc_constraint (constraint, joint 'right_follower_joint'); "
+                   f"likely cause: {diagnose.EQUALITY} (passes with equality constraints disabled)",
+                   diagnosis=dict(drill_down=dict(first_stage="constraint", object="joint 'right_follower_joint'")))
+    assert known.match(failing).id == "equality-aref"
+    genuine = dict(failing, message=failing["message"].replace(diagnose.EQUALITY, diagnose.GENUINE))
+    assert known.match(genuine) is None
+    assert any(cause == diagnose.EQUALITY for cause, _, _ in diagnose.ABLATIONS)
