@@ -577,7 +577,7 @@ def _cmd_known(args: argparse.Namespace) -> int:
     from mjxdiff import known
 
     try:
-        entries = (known.load_entries(args.known) if args.known else ()) + known.CATALOGUE
+        entries = known.entries(args.known)
     except known.KnownError as e:
         print(f"mjxdiff known: error: {e}", file=sys.stderr)
         return 2

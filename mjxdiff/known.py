@@ -34,7 +34,7 @@ from typing import Any
 # the catalogue and its Entry live in mjxdiff.support; public here too, as before
 from mjxdiff.support import CATALOGUE, Entry
 
-__all__ = ["Entry", "CATALOGUE", "load_entries", "match", "KnownError"]
+__all__ = ["Entry", "CATALOGUE", "entries", "load_entries", "match", "KnownError"]
 
 
 class KnownError(ValueError):
@@ -60,6 +60,11 @@ def load_entries(path: str | Path) -> tuple[Entry, ...]:
     except (OSError, tomllib.TOMLDecodeError, TypeError, re.error) as e:
         raise KnownError(f"{path}: not a known-divergences file ({type(e).__name__}: {' '.join(str(e).split())}); "
                          "give [[known]] tables with id, title, evidence and match keys") from None
+
+
+def entries(path: str | Path | None = None) -> tuple[Entry, ...]:
+    """What a sweep tries, in order: the user's entries from ``path`` (if given), then the catalogue."""
+    return (load_entries(path) if path else ()) + CATALOGUE
 
 
 def match(s: dict[str, Any], entries: tuple[Entry, ...] = CATALOGUE) -> Entry | None:

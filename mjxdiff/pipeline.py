@@ -119,10 +119,6 @@ class SweepRun:
         return (self.doc.get("baseline") or {}).get("changes")
 
 
-def _entries(options: SweepOptions) -> tuple[known.Entry, ...]:
-    return (known.load_entries(options.known) if options.known else ()) + known.CATALOGUE
-
-
 def _scenarios(options: SweepOptions) -> tuple[list, list[ScenarioResult]]:
     """The scenarios the options name (every bundled one when none), and an ``error`` result
     for each that cannot be read."""
@@ -313,7 +309,7 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
         options = dataclasses.replace(options, out=options.resume)
 
     try:
-        entries = _entries(options)
+        entries = known.entries(options.known)
         base = (baseline.load(options.baseline, None if options.no_history else options.history)
                 if options.baseline else None)
     except (known.KnownError, baseline.BaselineError) as e:
@@ -520,7 +516,7 @@ def merge(out: str | None, dirs: list[str], **changes: Any) -> SweepRun:
     config = {k: v for k, v in headers[0]["config"].items() if k in fields}
     options = SweepOptions(**{**config, "scenarios": tuple(config.get("scenarios") or ()), "out": out, "shard": None,
                               "resume": None, **changes})
-    entries = _entries(options)
+    entries = known.entries(options.known)
     base = (baseline.load(options.baseline, None if options.no_history else options.history)
             if options.baseline else None)
     _, bad = _scenarios(options)
