@@ -29,7 +29,7 @@ def public_modules() -> list[str]:
     :data:`EXTRA_PUBLIC_MODULES`; sorted."""
     import mjxdiff
 
-    names = {(module or f"mjxdiff.{name}").removeprefix("mjxdiff.") for name, module in mjxdiff._PUBLIC.items()}
+    names = {(module or f"mjxdiff.{name}").removeprefix("mjxdiff.") for name, module in mjxdiff._PUBLIC.items()}  # noqa: SLF001
     return sorted(names | set(EXTRA_PUBLIC_MODULES))
 
 

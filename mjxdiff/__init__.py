@@ -33,6 +33,12 @@ detail of its module. Names are imported on first use (PEP 562), so that
 ``import mjxdiff`` and ``import mjxdiff.metrics`` import neither MuJoCo nor MJX
 and change nothing in the process: XLA's flags are set by :func:`configure_jax`
 (the CLI calls it), not by an import.
+
+>>> import mjxdiff
+>>> "run" in mjxdiff.__all__ and "metrics" in mjxdiff.__all__
+True
+>>> mjxdiff.metrics.__name__             # imported on first use
+'mjxdiff.metrics'
 """
 
 import importlib

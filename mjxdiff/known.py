@@ -68,7 +68,15 @@ def entries(path: str | Path | None = None) -> tuple[Entry, ...]:
 
 
 def match(s: dict[str, Any], entries: tuple[Entry, ...] = CATALOGUE) -> Entry | None:
-    """The first entry a failing scenario (a report's scenario dict) matches, or None."""
+    """The first entry a failing scenario (a report's scenario dict) matches, or None.
+
+    >>> failure = {"status": "fail", "name": "my_gripper", "message": "... first field to differ: contact "
+    ...            "(collision, geoms pad / box (box-box: C 2, MJX 4 contacts))"}
+    >>> match(failure).id
+    'box-box-manifold'
+    >>> match({"status": "pass"}) is None
+    True
+    """
     if s.get("status") != "fail":
         return None
     return next((e for e in entries if e.matches(s)), None)

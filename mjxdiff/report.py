@@ -183,7 +183,13 @@ def validate(doc: Any, kind: str | None = None) -> list[str]:
     """What is wrong with ``doc`` as a JSON output (of ``kind``, when given): the
     :data:`ENVELOPE` keys first, in order; a known kind; this :data:`SCHEMA_VERSION`; the
     versions of MuJoCo, MJX and JAX; the MJX code digest (64 hex digits); a config object; an
-    integer seed or null. Empty when it is a valid output."""
+    integer seed or null. Empty when it is a valid output.
+
+    >>> validate([])
+    ['not an object: list']
+    >>> validate({"kind": "sweep"})[1]
+    'schema_version None, not 3'
+    """
     if not isinstance(doc, dict):
         return [f"not an object: {type(doc).__name__}"]
     problems = []
@@ -223,6 +229,11 @@ def safe_filename(name: str, max_len: int = MAX_FILENAME) -> str:
     non-ASCII letters do), leading dots are dropped (no hidden files, no ``.``/``..``),
     an empty result becomes ``_``, and a name longer than ``max_len`` is cut and
     ended with a short hash of the whole name, so long names stay distinct.
+
+    >>> safe_filename("../my robot/ü.xml")
+    '_my_robot__.xml'
+    >>> len(safe_filename("x" * 300))
+    100
     """
     safe = _UNSAFE.sub("_", str(name)).lstrip(".") or "_"
     if len(safe) > max_len:

@@ -92,7 +92,13 @@ class Tolerances:
 
     def for_precision(self, precision: Precision) -> "Tolerances":
         """Tolerances for ``precision``, each raised to its floor there
-        (:data:`mjxdiff.precision.THRESHOLDS`: float64 none, float32 the measured floors)."""
+        (:data:`mjxdiff.precision.THRESHOLDS`: float64 none, float32 the measured floors).
+
+        >>> Tolerances().for_precision("float32").qpos
+        0.001
+        >>> Tolerances(qpos=1e-2).for_precision("float32").qpos   # above its floor: kept
+        0.01
+        """
         floor = THRESHOLDS[precision].tolerance_floor
         return dataclasses.replace(self, **{k: max(getattr(self, k), v) for k, v in floor.items()}) if floor else self
 

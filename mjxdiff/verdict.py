@@ -56,7 +56,11 @@ TRUNCATION = "solver truncation"
 
 def downsample(error: np.ndarray, bound: np.ndarray, most: int = SERIES_POINTS) -> tuple[tuple[int, float, float], ...]:
     """(T,) error and bound series as at most ``most`` rows (first step, max error, max bound)
-    over consecutive windows of steps."""
+    over consecutive windows of steps.
+
+    >>> downsample(np.array([0.0, 1.0, 5.0, 2.0]), np.array([1.0, 1.0, 1.0, 2.0]), most=2)
+    ((0, 1.0, 1.0), (2, 5.0, 2.0))
+    """
     T = len(error)
     if T == 0:
         return ()
