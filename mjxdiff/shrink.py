@@ -3,8 +3,9 @@
 Delta debugging (Zeller and Hildebrandt's ddmin) over :class:`mujoco.MjSpec` edits, coarse to
 fine: drop bodies (with their subtrees), then joints (a body without its joint is welded to its
 parent), geoms, sites, actuators, sensors, tendons, equality constraints, explicit pairs and
-excludes, keyframes; then options and flags back to MuJoCo's defaults; then round the state
-and the geometry. A candidate is kept when it compiles in C and shows the same
+excludes, keyframes; then fuse bodies without joints into their parents (MuJoCo's
+``fusestatic``), replace meshes with boxes; then options and flags back to MuJoCo's defaults;
+then round the model's numbers and the state. A candidate is kept when it compiles in C and shows the same
 :class:`Signature`, checked from one state (:class:`State`, the one-step check's end point:
 one C state, one step):
 
@@ -36,9 +37,9 @@ import numpy as np
 
 from mjxdiff.joints import DOF_WIDTH, QPOS_WIDTH
 
-__all__ = ["KINDS", "OPTIONS", "STEP_RTOL", "Counts", "Shrunk", "Signature", "State", "changed_options", "counts",
-           "ddmin", "drop", "element_names", "find_state", "named", "probe", "scaled_error", "shrink", "step_errors",
-           "transfer_contacts"]
+__all__ = ["KINDS", "OPTIONS", "ROUNDED", "STEP_RTOL", "Counts", "Shrunk", "Signature", "State", "boxed",
+           "changed_options", "counts", "ddmin", "drop", "element_names", "find_state", "fused", "mesh_geoms", "named",
+           "probe", "rounded", "scaled_error", "shrink", "step_errors", "transfer_contacts"]
 
 #: Relative disagreement (|mjx - c| / (1 + max|c|)) of one converged step above which it differs:
 #: far above a step's rounding (1e-15 of the scale) and a converged solver's residue.
@@ -389,6 +390,70 @@ def _welded(spec: mujoco.MjSpec, m: mujoco.MjModel, state: State, names: Iterabl
     return out
 
 
+def fused(spec: mujoco.MjSpec) -> mujoco.MjSpec:
+    """``spec`` with every body that has no joint merged into its parent, as MuJoCo's compiler
+    does with ``fusestatic``: its geoms and sites move into a ``<frame>`` of the parent and its
+    mass into the parent's. Bodies other elements name (an equality's, a sensor's) stay."""
+    out = spec.copy()
+    out.compiler.fusestatic = True
+    out.compile()  # the compiler fuses in the spec itself
+    out.compiler.fusestatic = False
+    return out
+
+
+def mesh_geoms(spec: mujoco.MjSpec) -> list[str]:
+    """The names of ``spec``'s mesh geoms that are not placed in a ``<frame>``."""
+    return [g.name for g in spec.geoms if g.type == mujoco.mjtGeom.mjGEOM_MESH and g.frame is None]
+
+
+def boxed(spec: mujoco.MjSpec, m: mujoco.MjModel, names: Iterable[str]) -> mujoco.MjSpec:
+    """``spec`` with the mesh geoms ``names`` replaced by boxes of their bounding boxes (``m``:
+    ``spec`` compiled: ``geom_aabb``, centre and half sizes in the geom's frame), and mesh assets
+    no geom uses any more dropped. Bodies keep their inertia where it is explicit
+    (:func:`_explicit`)."""
+    out = spec.copy()
+    for n in names:
+        g, i = out.geom(n), m.geom(n).id
+        centre = np.zeros(3)
+        mujoco.mju_rotVecQuat(centre, m.geom_aabb[i][:3], m.geom_quat[i])
+        g.type, g.meshname = mujoco.mjtGeom.mjGEOM_BOX, ""
+        g.pos, g.quat, g.size = m.geom_pos[i] + centre, m.geom_quat[i], m.geom_aabb[i][3:]
+        g.alt.type = mujoco.mjtOrientation.mjORIENTATION_QUAT
+        g.fromto = np.full(6, np.nan)
+    used = {g.meshname for g in out.geoms}
+    for mesh in list(out.meshes):
+        if mesh.name not in used:
+            out.delete(mesh)
+    return out
+
+
+def _significant(x, digits: int):
+    a = np.asarray(x, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(a == 0, 1.0, 10.0 ** (digits - 1 - np.floor(np.log10(np.abs(a)))))
+    return np.round(a * scale) / scale
+
+
+#: Numbers :func:`rounded` rounds, per element list: MjSpec attribute names (orientations are
+#: left alone: a rounded quaternion is another rotation).
+ROUNDED = {"bodies": ("pos", "mass", "ipos", "inertia"), "geoms": ("pos", "size"), "sites": ("pos", "size"),
+           "joints": ("pos", "range", "damping", "stiffness", "armature", "frictionloss", "springref"),
+           "actuators": ("gear", "ctrlrange", "forcerange", "gainprm", "biasprm")}
+
+
+def rounded(spec: mujoco.MjSpec, digits: int) -> mujoco.MjSpec:
+    """``spec`` with the numbers of :data:`ROUNDED` to ``digits`` significant digits."""
+    out = spec.copy()
+    for kind, attrs in ROUNDED.items():
+        for e in getattr(out, kind):
+            if kind == "bodies" and e.name == "world":
+                continue
+            for a in attrs:
+                value = getattr(e, a)
+                setattr(e, a, _significant(value, digits) if np.ndim(value) else float(_significant(value, digits)))
+    return out
+
+
 def drop(spec: mujoco.MjSpec, kind: str, names: Sequence[str], m: mujoco.MjModel, state: State) -> mujoco.MjSpec:
     """``spec`` without its elements of ``kind`` named ``names``; joints welded where ``state``
     holds them (``m``: ``spec`` compiled)."""
@@ -499,6 +564,19 @@ def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None
                 log.append(f"{kind}: {len(names)} -> {len(kept)}")
                 say(f"shrink: {kind} {len(names)} -> {len(kept)} ({tried} candidates, "
                     f"{time.perf_counter() - t0:.0f} s)")
+        if len(best.bodies) > 1:
+            candidate = fused(best)
+            if len(candidate.bodies) < len(best.bodies) and shows(candidate, state):
+                log.append(f"bodies without joints fused: {len(best.bodies) - 1} -> {len(candidate.bodies) - 1}")
+                best = candidate
+        meshes = mesh_geoms(best)
+        if meshes:
+            m = best.compile()
+            kept = ddmin(meshes, lambda keep, b=best, m=m: shows(boxed(b, m, [n for n in meshes if n not in keep]),
+                                                                  state))
+            if len(kept) < len(meshes):
+                best = boxed(best, m, [n for n in meshes if n not in kept])
+                log.append(f"meshes as boxes: {len(meshes) - len(kept)} of {len(meshes)}")
         default = mujoco.MjSpec().option
         for o in changed_options(best):
             candidate = best.copy()
@@ -515,6 +593,11 @@ def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None
                         best = candidate
                         log.append(f"option {flags}: bit {bit} cleared")
         say(f"shrink: options {_option_changes(spec)} -> {_option_changes(best)} changed from the defaults")
+        for digits in (2, 3, 6):
+            if shows(rounded(best, digits), state):
+                best = rounded(best, digits)
+                log.append(f"model: {digits} significant digits")
+                break
         for digits in (2, 3, 6):
             if shows(best, state.rounded(digits)):
                 state = state.rounded(digits)

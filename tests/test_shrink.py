@@ -71,6 +71,51 @@ def test_a_welded_joint_leaves_every_geom_where_the_state_holds_it():
             np.testing.assert_allclose(after.geom_xmat[w.geom(name).id], before.geom_xmat[g], atol=1e-12)
 
 
+#: A free body whose jointless child holds a mesh tetrahedron: fusing, boxing and rounding have
+#: something to do.
+MESH_XML = """
+<mujoco>
+  <asset><mesh name="tet" vertex="0 0 0  1 0 0  0 1 0  0 0 1"/></asset>
+  <worldbody>
+    <body name="a" pos="0 0 1.234567"><freejoint name="free"/><geom name="tet" type="mesh" mesh="tet" pos="0.5 0 0"/>
+      <body name="b" pos="0.1234567 0 0"><geom name="ball" size="0.1234567"/></body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_fusing_boxing_and_rounding_keep_what_they_must():
+    """Fusing a jointless body keeps the mass and the geoms' places; a mesh becomes the box of its
+    bounding box where the mesh was, its asset dropped; rounding rounds lengths and masses only."""
+    spec = shrink._explicit(shrink.named(mujoco.MjSpec.from_string(MESH_XML)))
+    m = spec.compile()
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+
+    f = shrink.fused(spec)
+    mf = f.compile()
+    df = mujoco.MjData(mf)
+    mujoco.mj_kinematics(mf, df)
+    assert (mf.nbody, mf.ngeom) == (m.nbody - 1, m.ngeom)
+    assert mf.body_mass[1] == pytest.approx(m.body_subtreemass[1], rel=1e-12)
+    np.testing.assert_allclose(df.geom_xpos[mf.geom("ball").id], d.geom_xpos[m.geom("ball").id], atol=1e-12)
+
+    b = shrink.boxed(spec, m, shrink.mesh_geoms(spec))
+    mb = b.compile()
+    g = mb.geom("tet").id
+    assert mb.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX and len(b.meshes) == 0
+    np.testing.assert_allclose(mb.geom_size[g], m.geom_aabb[m.geom("tet").id][3:])
+    np.testing.assert_allclose(mb.body_mass, m.body_mass)  # explicit inertia: the mass stays
+    mujoco.mj_kinematics(mb, db := mujoco.MjData(mb))
+    centre = d.geom_xpos[g] + d.geom_xmat[g].reshape(3, 3) @ m.geom_aabb[g][:3]
+    np.testing.assert_allclose(db.geom_xpos[g], centre, atol=1e-12)
+
+    mr = shrink.rounded(spec, 2).compile()
+    assert mr.body_pos[1][2] == 1.2 and mr.geom_size[mr.geom("ball").id][0] == 0.12
+    np.testing.assert_allclose(mr.body_quat, m.body_quat)
+
+
 def test_an_injected_bug_shrinks_to_a_model_that_shows_it_with_the_bug_and_passes_without(fresh_mjx):
     bug = injected_bugs.by_id("contact_distance")
     spec = mujoco.MjSpec.from_string(FLOOR_XML)
