@@ -68,9 +68,9 @@ def cli_command_markdown(name: str, summary: str, sub: argparse.ArgumentParser) 
     """The section of one subcommand: its summary, usage, every argument as a table row, and
     its description and examples as ``--help`` prints them."""
     rows = [_option_row(sub, a) for a in sub._actions if a.help != argparse.SUPPRESS]  # noqa: SLF001
-    usage = " ".join(sub.format_usage().split()).removeprefix("usage: ")
+    usage = sub.format_usage().removeprefix("usage: ").rstrip("\n")
     parts = [f"## `mjxdiff {name}`", "", f"{summary[:1].upper()}{summary[1:]}.", "",
-             "```text", usage, "```", "",
+             "```text", *usage.splitlines(), "```", "",
              "| argument | value | default | what it does |", "|---|---|---|---|", *rows, ""]
     text = "\n".join(x for x in (sub.description, sub.epilog) if x)
     if text:
@@ -92,6 +92,9 @@ def cli_markdown() -> str:
 
 
 # -- the catalogue page ---------------------------------------------------------------------------
+
+#: The heading of each kind of entry.
+KIND_HEADINGS = {"approximation": "Approximations", "bug": "MJX bugs", "fixed": "Bugs of older releases (fixed)"}
 
 def _matching(entry) -> str:
     """What a failing scenario must show to get the entry's label, as one sentence."""
@@ -126,7 +129,7 @@ def catalogue_entry_markdown(entry) -> str:
     releases, matching rule, evidence and reproducer."""
     accepted = " (accepted: `--fail-on new` lets it pass)" if entry.accepted else ""
     return "\n".join([
-        f"### `{entry.id}`", "", f"**{_cell(entry.title)}**", "",
+        f"#### `{entry.id}`", "", f"**{_cell(entry.title)}**", "",
         f"- **Kind**: {entry.kind}{accepted}",
         "- **Seen in MJX**: " + ", ".join(entry.versions),
         f"- **Matched when**: {_matching(entry)}",
@@ -143,9 +146,9 @@ def catalogue_markdown() -> str:
                *(f"| [`{e.id}`](#{e.id.replace('.', '')}) | {e.kind} | {_cell(e.title)} |" for e in CATALOGUE)]
     parts = ["\n".join(summary), ""]
     for kind in kinds:
-        parts += [f"## {kind.capitalize()}", ""]
+        parts += [f"### {KIND_HEADINGS.get(kind, kind)}", ""]
         parts += [catalogue_entry_markdown(e) for e in CATALOGUE if e.kind == kind]
-    parts += ["## Left out of generated models", "",
+    parts += ["### Left out of generated models", "",
               "`mjxdiff fuzz` leaves these features out unless `--include-known` "
               "(`mjxdiff.support.KNOWN_DIVERGENCES`):", "",
               "| feature | why |", "|---|---|",

@@ -64,7 +64,7 @@ def test_every_catalogue_entry_is_on_the_catalogue_page_with_its_evidence():
 
     page = hooks.catalogue_markdown()
     for entry in CATALOGUE:
-        assert f"### `{entry.id}`" in page, entry.id
+        assert f"#### `{entry.id}`" in page, entry.id
         assert hooks._cell(entry.evidence) in page, entry.id
         if entry.kind == "bug":  # a bug's reproducer is on the page
             repro = (ROOT / entry.bundle / "repro.py").read_text().splitlines()
