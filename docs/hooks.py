@@ -4,8 +4,10 @@
   argparse parser (:func:`mjxdiff.cli.build_parser`).
 - ``reference/known-divergences.md``: every entry of the known-divergence catalogue
   (:data:`mjxdiff.support.CATALOGUE`), with its evidence and its bug bundle's reproducer.
+- ``reference/json-schemas.md``: the envelope's keys and the kinds of JSON output
+  (:data:`mjxdiff.report.ENVELOPE`, :data:`mjxdiff.report.KINDS`).
 
-A page holds a marker (``<!-- mjxdiff:cli -->``, ``<!-- mjxdiff:catalogue -->``) that
+A page holds a marker (``<!-- mjxdiff:cli -->``, ``<!-- mjxdiff:catalogue -->``, ...) that
 :func:`on_page_markdown` replaces. ``tests/test_docs.py`` imports this file and calls the same
 functions, so a flag or an entry that the pages would miss fails a test.
 """
@@ -156,9 +158,30 @@ def catalogue_markdown() -> str:
     return "\n".join(parts)
 
 
+# -- the JSON envelope ---------------------------------------------------------------------------
+
+def envelope_markdown() -> str:
+    """The keys every JSON output begins with (:data:`mjxdiff.report.ENVELOPE`) and the kinds
+    of output with their files (:data:`mjxdiff.report.KINDS`), from the code."""
+    from mjxdiff.report import ENVELOPE, KINDS, SCHEMA_VERSION
+
+    what = {"kind": "the kind of output, below",
+            "schema_version": f"{SCHEMA_VERSION} (bumped when a key changes meaning or disappears)",
+            "versions": "python, mjxdiff, jax, jaxlib, mujoco, mujoco-mjx, numpy",
+            "code": "SHA-256 digests of the MJX code tested (`mjx`) and of everything a compiled rollout depends "
+                    "on (`rollout`)",
+            "machine": "cores and the host devices MJX's batch is split over",
+            "config": "what the run was asked (a sweep: every flag)",
+            "seed": "the config's seed (null where there is none)"}
+    rows = ["| key | what |", "|---|---|", *(f"| `{k}` | {what.get(k, '')} |" for k in ENVELOPE), "",
+            "| kind | written to |", "|---|---|", *(f"| `{k}` | `{v}` |" for k, v in KINDS.items())]
+    return "\n".join(rows) + "\n"
+
+
 # -- the hook -------------------------------------------------------------------------------------
 
-MARKERS = {"<!-- mjxdiff:cli -->": cli_markdown, "<!-- mjxdiff:catalogue -->": catalogue_markdown}
+MARKERS = {"<!-- mjxdiff:cli -->": cli_markdown, "<!-- mjxdiff:catalogue -->": catalogue_markdown,
+           "<!-- mjxdiff:envelope -->": envelope_markdown}
 
 
 def on_page_markdown(markdown: str, **_) -> str:

@@ -53,7 +53,8 @@ def test_every_positional_argument_is_on_the_cli_page():
 def test_the_cli_and_catalogue_pages_hold_their_markers():
     """The hook fills these pages; without the marker a page would be built empty."""
     for page, marker in (("reference/cli.md", "<!-- mjxdiff:cli -->"),
-                         ("reference/known-divergences.md", "<!-- mjxdiff:catalogue -->")):
+                         ("reference/known-divergences.md", "<!-- mjxdiff:catalogue -->"),
+                         ("reference/json-schemas.md", "<!-- mjxdiff:envelope -->")):
         text = (ROOT / "docs" / page).read_text()
         assert marker in text, page
         assert marker not in hooks.on_page_markdown(text), page
@@ -69,6 +70,13 @@ def test_every_catalogue_entry_is_on_the_catalogue_page_with_its_evidence():
         if entry.kind == "bug":  # a bug's reproducer is on the page
             repro = (ROOT / entry.bundle / "repro.py").read_text().splitlines()
             assert all("    " + line in page for line in repro if line.strip()), entry.id
+
+
+def test_every_kind_of_json_output_and_envelope_key_is_on_the_schema_page():
+    from mjxdiff.report import ENVELOPE, KINDS
+
+    page = hooks.on_page_markdown((ROOT / "docs" / "reference" / "json-schemas.md").read_text())
+    assert all(f"| `{key}` |" in page for key in (*ENVELOPE, *KINDS)), page
 
 
 def test_every_public_module_has_an_api_page_in_the_nav():
