@@ -3,11 +3,12 @@
 Delta debugging (Zeller and Hildebrandt's ddmin) over :class:`mujoco.MjSpec` edits, coarse to
 fine: drop bodies (with their subtrees), then joints (a body without its joint is welded to its
 parent), geoms, sites, actuators, sensors, tendons, equality constraints, explicit pairs and
-excludes, keyframes; then fuse bodies without joints into their parents (MuJoCo's
-``fusestatic``), replace meshes with boxes; then options and flags back to MuJoCo's defaults;
-then round the model's numbers and the state. A candidate is kept when it compiles in C and shows the same
-:class:`Signature`, checked from one state (:class:`State`, the one-step check's end point:
-one C state, one step):
+excludes, keyframes, cameras, lights, custom data, materials and textures (another pass while
+one drops something: what named an element may be gone); then fuse bodies without joints into
+their parents (MuJoCo's ``fusestatic``) and replace meshes with boxes; then options and flags
+back to MuJoCo's defaults; then round the model's numbers and the state. A candidate is kept
+when it compiles in C and shows the same :class:`Signature`, checked from one state
+(:class:`State`, the one-step check's end point: one C state, one step):
 
 - ``forward``: the first stage of ``mj_forward`` whose fields differ
   (:func:`mjxdiff.diagnose.drill_down`), its first field, and for contacts the geom-type pair;
@@ -48,7 +49,7 @@ STEP_RTOL = 1e-6
 STEP_FIELDS = ("qpos", "qvel", "act", "sensordata")
 #: Element lists delta debugging drops from, coarse to fine (MjSpec attribute names).
 KINDS = ("bodies", "joints", "geoms", "sites", "actuators", "sensors", "tendons", "equalities", "pairs", "excludes",
-         "keys")
+         "keys", "cameras", "lights", "numerics", "texts", "tuples", "materials", "textures")
 #: Options reset one by one to MuJoCo's defaults (``mjOption``), after the elements.
 OPTIONS = ("integrator", "cone", "jacobian", "solver", "iterations", "ls_iterations", "tolerance", "ls_tolerance",
            "noslip_iterations", "impratio", "timestep", "gravity", "wind", "magnetic", "density", "viscosity",
@@ -314,12 +315,17 @@ def element_names(spec: mujoco.MjSpec, kind: str) -> list[str]:
 #: Each of :data:`KINDS` in the singular: MjSpec's finder (``spec.body(name)``) and a message's word.
 SINGULAR = {"bodies": "body", "joints": "joint", "geoms": "geom", "sites": "site", "actuators": "actuator",
             "sensors": "sensor", "tendons": "tendon", "equalities": "equality", "pairs": "pair", "excludes": "exclude",
-            "keys": "key"}
+            "keys": "key", "cameras": "camera", "lights": "light", "numerics": "numeric", "texts": "text",
+            "tuples": "tuple", "materials": "material", "textures": "texture"}
 
 
 def _without(spec: mujoco.MjSpec, kind: str, names: Iterable[str]) -> mujoco.MjSpec:
     out = spec.copy()
     find = getattr(out, SINGULAR[kind])
+    if kind == "materials":  # what wears a dropped material goes plain
+        for e in [*out.geoms, *out.sites]:
+            if e.material in names:
+                e.material = ""
     for n in names:
         e = find(n)
         if e is not None:  # a body's descendants go with it
@@ -550,20 +556,23 @@ def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None
 
     complete = True
     try:
-        for kind in KINDS:
-            names = element_names(best, kind)
-            if not names:
-                continue
-            m = best.compile()
+        dropped_any = True
+        while dropped_any:  # again while a pass drops something: what an element named may go now
+            dropped_any = False
+            for kind in KINDS:
+                names = element_names(best, kind)
+                if not names:
+                    continue
+                m = best.compile()
 
-            def edit(dropped, k=kind, b=best, m=m):
-                return drop(b, k, dropped, m, state)
-            kept = ddmin(names, lambda keep, ns=names: shows(edit([n for n in ns if n not in keep]), state))
-            if len(kept) < len(names):
-                best = edit([n for n in names if n not in kept])
-                log.append(f"{kind}: {len(names)} -> {len(kept)}")
-                say(f"shrink: {kind} {len(names)} -> {len(kept)} ({tried} candidates, "
-                    f"{time.perf_counter() - t0:.0f} s)")
+                def edit(dropped, k=kind, b=best, m=m):
+                    return drop(b, k, dropped, m, state)
+                kept = ddmin(names, lambda keep, ns=names: shows(edit([n for n in ns if n not in keep]), state))
+                if len(kept) < len(names):
+                    best, dropped_any = edit([n for n in names if n not in kept]), True
+                    log.append(f"{kind}: {len(names)} -> {len(kept)}")
+                    say(f"shrink: {kind} {len(names)} -> {len(kept)} ({tried} candidates, "
+                        f"{time.perf_counter() - t0:.0f} s)")
         if len(best.bodies) > 1:
             candidate = fused(best)
             if len(candidate.bodies) < len(best.bodies) and shows(candidate, state):
