@@ -444,7 +444,8 @@ def _significant(x, digits: int):
 #: left alone: a rounded quaternion is another rotation).
 ROUNDED = {"bodies": ("pos", "mass", "ipos", "inertia"), "geoms": ("pos", "size"), "sites": ("pos", "size"),
            "joints": ("pos", "range", "damping", "stiffness", "armature", "frictionloss", "springref"),
-           "actuators": ("gear", "ctrlrange", "forcerange", "gainprm", "biasprm")}
+           "actuators": ("gear", "ctrlrange", "forcerange", "gainprm", "biasprm"),
+           "tendons": ("range", "damping", "stiffness", "armature", "frictionloss", "springlength")}
 
 
 def rounded(spec: mujoco.MjSpec, digits: int) -> mujoco.MjSpec:
