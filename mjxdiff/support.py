@@ -182,15 +182,15 @@ KNOWN_DIVERGENCES = {
     "tendon wrap sidesite": "C 4.0 picks a wrap's side by the winding of the path end0 -> sidesite -> end1 "
                             "around the wrap geom (as MuJoCo Warp 4.0 does); MJX 3.17 by the older rule, the arc "
                             "whose middle is nearest the sidesite's direction: near the sidesite's symmetry plane "
-                            "they wrap opposite sides (tests/test_known_divergences.py)",
+                            "they wrap opposite sides (catalogue tendon-wrap-sidesite and its bundle)",
     "spring or damper flag alone": "MJX 3.17's passive() drops all passive forces (and gravcomp) when either "
                                    "flag is disabled, C 4.0 only the one disabled; with the damper disabled "
                                    "MJX's Euler step still damps implicitly (tests/test_known_divergences.py)",
     "actearly": "MJX 3.17 ignores actearly: its force uses the current activation, C's the next one "
                 "(tests/test_known_divergences.py)",
     "tendon armature across trees": "a tendon with armature coupling two kinematic trees: C 4.0's mass matrix "
-                                    "keeps the trees' sparsity, MJX 3.17's differs (tests/data/"
-                                    "fuzz_tendon_armature_trees.json, tests/test_known_divergences.py)",
+                                    "keeps the trees' sparsity, MJX 3.17's differs (catalogue "
+                                    "tendon-armature-trees and its bundle)",
     "damped tendons across trees under implicitfast": "C 4.0 keeps qDeriv within the mass matrix's sparsity, "
                                                       "MJX 3.17 adds the cross-tree terms "
                                                       "(tests/test_known_divergences.py)",
@@ -253,9 +253,15 @@ class Entry:
     #: A bug's minimal reproducer, made by ``mjxdiff shrink --bundle``: a directory of the
     #: repository (model.xml, state.json, repro.py, signature.json, README.md); else why none.
     bundle: str = ""
+    #: Whether a sweep's failure can be labelled with it. False where the report names nothing
+    #: that tells this divergence from a bug of the same stage (a tendon's armature shows as a
+    #: joint's qM): the entry is evidence and a bundle, never a label.
+    labels: bool = True
 
     def matches(self, s: dict[str, Any]) -> bool:
         """Whether a failing scenario (a report's scenario dict) fits this entry."""
+        if not self.labels:
+            return False
         diag = s.get("diagnosis") or {}
         drill = diag.get("drill_down") or {}
         first = s.get("first_divergence") or {}
@@ -355,6 +361,19 @@ CATALOGUE: tuple[Entry, ...] = (
           "the bundle: with a <pair>, a geom-matched contact sensor reads the pair's force",
           field="sensordata", pattern=r"\(contact\)",
           kind="bug", bundle="tests/data/bundles/contact-sensor-explicit-pair"),
+    Entry("tendon-wrap-sidesite", "a spatial tendon wraps a cylinder on the other side of its sidesite",
+          "fuzz seed 3 (tests/data/fuzz_wrap_sidesite.json), shrunk to one free body, a wrap cylinder and one "
+          "tendon: ten_length C 1.438173, MJX 1.441468 at step 0. C 4.0 picks the side by the winding of end0 -> "
+          "sidesite -> end1 around the wrap geom (MuJoCo Warp 4.0 too), MJX 3.17 by the older rule (the arc "
+          "whose middle is nearest the sidesite's direction): near the sidesite's symmetry plane they part",
+          stage="tendons", pattern=r"tendon '",
+          kind="bug", bundle="tests/data/bundles/tendon-wrap-sidesite"),
+    Entry("tendon-armature-trees", "a fixed tendon with armature coupling two kinematic trees: another qM",
+          "fuzz seed 0 (tests/data/fuzz_tendon_armature_trees.json), shrunk to two bodies with a hinge each and "
+          "one fixed tendon (armature 0.003): qM 0.0044 apart (scaled) at step 0; C 4.0 keeps the trees' "
+          "sparsity, MJX 3.17's mass matrix differs. A sweep names the joint, not the tendon, so the entry "
+          "labels nothing (an armature bug shows the same way)", stage="inertia",
+          kind="bug", bundle="tests/data/bundles/tendon-armature-trees", labels=False),
     Entry("truncated-solver", "a solver capped at few iterations: the engines stop at different points",
           "ant at 1000 steps: 4 of 64 members jump 1e-11 -> 5e-6 qvel at a contact; gone with 100 iterations",
           cause="solver convergence"),

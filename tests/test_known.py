@@ -44,18 +44,27 @@ def test_entries_match_on_what_the_diagnosis_says():
     assert known.match(failing).id == "box-box-manifold"
     assert known.match(dict(failing, status="pass")) is None
     assert known.match(dict(failing, message="qvel of joint 'a' leaves its bound")) is None
+    # a tendon's wrap side shows in the tendons stage, named; a tendon's armature as a joint's qM,
+    # which an armature or mass bug shows too: that entry labels nothing
+    wrap = dict(failing, message="first field to differ: ten_length (tendons, tendon 't0')",
+                diagnosis=dict(drill_down=dict(first_stage="tendons", object="tendon 't0'")))
+    assert known.match(wrap).id == "tendon-wrap-sidesite"
+    inertia = dict(failing, message="first field to differ: qM (inertia, joint 'j1')",
+                   diagnosis=dict(drill_down=dict(first_stage="inertia", object="joint 'j1'")))
+    assert known.match(inertia) is None
 
 
 def test_every_mjx_bug_of_the_catalogue_has_a_minimal_bundle(repo_root):
     """A bug entry's bundle is in the repository, whole (bundle.FILES), at most 3 bodies and 4
-    geoms, shrunk from tests/data/known/ID.xml to completion; an approximation has none; a bug of
-    older releases says why it has none. (tests/test_known_divergences.py runs each bundle's
-    repro.py as a strict xfail.)"""
+    geoms, shrunk to completion from tests/data/known/ID.xml or a committed fuzz find; an
+    approximation has none; a bug of older releases says why it has none.
+    (tests/test_known_divergences.py runs each bundle's repro.py as a strict xfail.)"""
     import mujoco
 
     from mjxdiff import bundle
     from mjxdiff.support import FIXED_SINCE
 
+    fuzz_finds = sorted((repo_root / "tests/data").glob("fuzz_*.json"))
     kinds = {e.kind for e in known.CATALOGUE}
     assert kinds == {"approximation", "bug", "fixed"}, kinds
     for e in known.CATALOGUE:
@@ -66,12 +75,14 @@ def test_every_mjx_bug_of_the_catalogue_has_a_minimal_bundle(repo_root):
         else:
             where = repo_root / e.bundle
             assert e.bundle == f"tests/data/bundles/{e.id}", e.id
-            assert (repo_root / "tests/data/known" / f"{e.id}.xml").is_file(), e.id
             assert sorted(p.name for p in where.iterdir() if p.is_file()) == sorted(bundle.FILES), e.id
             m = mujoco.MjModel.from_xml_path(str(where / "model.xml"))
             assert m.nbody - 1 <= 3 and m.ngeom <= 4, (e.id, m.nbody - 1, m.ngeom)
             doc = json.loads((where / "signature.json").read_text())
-            assert doc["complete"] and doc["origin"] == f"tests/data/known/{e.id}.xml", e.id
+            # shrunk to completion from a model or a fuzz find committed beside it
+            assert doc["complete"] and doc["origin"] in (f"tests/data/known/{e.id}.xml",
+                                                         *(str(f.relative_to(repo_root)) for f in fuzz_finds)), e.id
+            assert (repo_root / doc["origin"]).is_file(), e.id
 
 
 def test_known_list_shows_each_entry_with_its_bundle(capsys, tmp_path):

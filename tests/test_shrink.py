@@ -164,6 +164,20 @@ def test_a_real_divergence_shrinks_to_a_bundle_whose_script_reproduces_it(tmp_pa
     assert "sensor 'imu_acc' (accelerometer)" in readme and "| drop sensor 'imu_acc' | removes it |" in readme
 
 
+def test_a_reproducer_is_shrunk_from_its_failing_member_s_state(repo_root):
+    """A sweep's or the fuzzer's reproducer (JSON) starts the search at the failing member's
+    state with its controls: the committed fuzz find of a tendon's armature across two trees
+    shows the qM divergence at once (the bundle tests/data/bundles/tendon-armature-trees was
+    shrunk from it)."""
+    from mjxdiff.cli import _shrink_input
+
+    spec, found, source = _shrink_input(str(repo_root / "tests/data/fuzz_tendon_armature_trees.json"), None, 1)
+    assert found is not None and source is None
+    state, signature, step = found
+    assert (signature, step) == (shrink.Signature("forward", "inertia", "qM"), 0)
+    assert {n for n, _, _ in state.joints} == {"j0", "j1"} and len(spec.tendons) == 1
+
+
 @pytest.mark.parametrize("text, message", [
     ("<mujoco><worldbody><body><geom size='x'/></body></worldbody></mujoco>", "mjxdiff shrink: error: "),
     ("<mujoco><worldbody><body><joint/><geom size='.1'/></body></worldbody></mujoco>",

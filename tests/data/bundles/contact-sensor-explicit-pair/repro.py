@@ -29,7 +29,8 @@ if FIELD == "contact":  # active contacts by geom pair: C's, and MJX's with dist
     err = max((abs(a[1] - b[1]) for a, b in zip(c, x)), default=0.0) if same else float("inf")
 else:
     if FIELD == "qM":
-        c = np.zeros((m.nv, m.nv)); mujoco.mj_fullM(m, c, d.qM); x = np.asarray(mjx.full_m(mx, dx))
+        c = np.zeros((m.nv, m.nv)); x = np.asarray(mjx.full_m(mx, dx))  # mj_fullM: (m, d, dst) from MuJoCo 3.4
+        mujoco.mj_fullM(m, c, d.qM) if hasattr(d, "qM") else mujoco.mj_fullM(m, d, c)
     else:
         c, x = np.ravel(getattr(d, FIELD)), np.ravel(np.asarray(getattr(dx, FIELD)))
     print(f"C   {FIELD}:", c); print(f"MJX {FIELD}:", x); print("difference:", x - c)

@@ -12,6 +12,9 @@ d.qpos[:], d.qvel[:], d.ctrl[:], d.act[:], d.time = s["qpos"], s["qvel"], s["ctr
 # both solvers converged: what differs is not where each stopped
 m.opt.iterations, m.opt.ls_iterations, m.opt.tolerance = 200, 100, 1e-14
 mx, dx = mjx.put_model(m), mjx.put_data(m, d)
+if CHECK == "transfer":  # C's data into MJX and back: are C's contacts still there?
+    mujoco.mj_forward(m, d); back = mjx.get_data(m, mjx.put_data(m, d))
+    print("C contacts:", d.ncon, " after put_data and get_data:", back.ncon); raise SystemExit(int(back.ncon != d.ncon))
 if CHECK == "step":
     mujoco.mj_step(m, d); dx = jax.jit(mjx.step)(mx, dx)
 else:
@@ -26,7 +29,8 @@ if FIELD == "contact":  # active contacts by geom pair: C's, and MJX's with dist
     err = max((abs(a[1] - b[1]) for a, b in zip(c, x)), default=0.0) if same else float("inf")
 else:
     if FIELD == "qM":
-        c = np.zeros((m.nv, m.nv)); mujoco.mj_fullM(m, c, d.qM); x = np.asarray(mjx.full_m(mx, dx))
+        c = np.zeros((m.nv, m.nv)); x = np.asarray(mjx.full_m(mx, dx))  # mj_fullM: (m, d, dst) from MuJoCo 3.4
+        mujoco.mj_fullM(m, c, d.qM) if hasattr(d, "qM") else mujoco.mj_fullM(m, d, c)
     else:
         c, x = np.ravel(getattr(d, FIELD)), np.ravel(np.asarray(getattr(dx, FIELD)))
     print(f"C   {FIELD}:", c); print(f"MJX {FIELD}:", x); print("difference:", x - c)
