@@ -150,12 +150,12 @@ def draw_sharpness(data: dict, out: Path) -> None:
 
     rows = sorted(data["scenarios"].items(), key=lambda kv: kv[1]["bound_scale"])
     fig, ax = plt.subplots(figsize=(8, 0.27 * len(rows) + 1.6), dpi=110)
-    ax.barh([f"{name} ({r['field']})" for name, r in rows], [r["bound_scale"] for r in rows],
+    ax.barh([f"{name} ({r['field']})" for name, r in rows], [r["bound_scale"] for _, r in rows],
             color=["#e67e22" if r["weak"] else "#2980b9" for _, r in rows])
     ax.axvline(WEAK_BOUND, color="#c0392b", linestyle="--", label=f"weak above {WEAK_BOUND:g} of the scale")
     ax.set_xscale("log")
     ax.set_xlabel("bound at the median step / the field's scale (the loosest field)")
-    ax.set_title(f"Sharpness of each bundled scenario's pass ({data['source']})", fontsize=9)
+    ax.set_title(f"Sharpness of each bundled scenario's pass\n{data['source']}", fontsize=9)
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     fig.savefig(out)
@@ -165,7 +165,7 @@ def draw_sharpness(data: dict, out: Path) -> None:
 
 def sharpness_sweep(work: Path) -> None:
     """The full default sweep; its sharpness refreshes :data:`DATA`."""
-    sweep(["--out", str(work / "full")])
+    sweep(["--out", str(work / "full"), "--compile-workers", "1"])  # one core: leave the other to whoever shares it
     report = json.loads((work / "full" / "report.json").read_text())
     versions = report["versions"]
     data = {"source": f"default sweep, seed {report['seed']}, MuJoCo {versions['mujoco']}, "
