@@ -134,7 +134,7 @@ def catalogue_entry_markdown(entry) -> str:
         f"#### `{entry.id}`", "", f"**{_cell(entry.title)}**", "",
         f"- **Kind**: {entry.kind}{accepted}",
         "- **Seen in MJX**: " + ", ".join(entry.versions),
-        f"- **Matched when**: {_matching(entry)}",
+        f"- **Matched when**: {_matching(entry) if getattr(entry, 'labels', True) else 'never: it labels no report'}",
         f"- **Evidence**: {_cell(entry.evidence)}",
         *_bundle_markdown(entry), ""])
 
