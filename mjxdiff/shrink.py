@@ -39,8 +39,8 @@ import numpy as np
 from mjxdiff.joints import DOF_WIDTH, QPOS_WIDTH
 
 __all__ = ["KINDS", "OPTIONS", "ROUNDED", "STEP_RTOL", "Counts", "Shrunk", "Signature", "State", "boxed",
-           "changed_options", "counts", "ddmin", "drop", "element_names", "find_state", "fused", "mesh_geoms", "named",
-           "probe", "rounded", "scaled_error", "shrink", "step_errors", "transfer_contacts"]
+           "changed_options", "counts", "ddmin", "drop", "element_names", "find_state", "focus_bodies", "fused",
+           "mesh_geoms", "named", "probe", "rounded", "scaled_error", "shrink", "step_errors", "transfer_contacts"]
 
 #: Relative disagreement (|mjx - c| / (1 + max|c|)) of one converged step above which it differs:
 #: far above a step's rounding (1e-15 of the scale) and a converged solver's residue.
@@ -215,14 +215,8 @@ def probe(m: mujoco.MjModel, state: State) -> Signature | None:
     lost between C and MJX's data (:func:`transfer_contacts`). Physics with the solver converged
     (:func:`mjxdiff.noise.converge_solver`): a solver stopped after a few iterations parts MJX
     from C by truncation, which is no bug to shrink."""
-    from mjxdiff.diagnose import drill_down
-    from mjxdiff.noise import converge_solver
 
-    m = copy.copy(m)
-    converge_solver(m)
-    d = state.data(m)
-    dd = drill_down(m, d.qpos.copy(), d.qvel.copy(), d.act.copy(), d.ctrl.copy(), float(d.time),
-                    engine=_Forward())  # pyright: ignore[reportArgumentType]
+    dd = _drill(m, state)
     if dd.first_stage is not None:
         return Signature("forward", dd.first_stage, str(dd.first_field), _kinds(dd.object))
     errors = step_errors(m, state)
@@ -231,6 +225,36 @@ def probe(m: mujoco.MjModel, state: State) -> Signature | None:
         return Signature("step", "integration", field)
     c, back = transfer_contacts(m, state)
     return Signature("transfer", "transfer", "contact") if c != back else None
+
+
+def _drill(m: mujoco.MjModel, state: State):
+    """The forward drill-down from ``state``, both solvers converged."""
+    from mjxdiff.diagnose import drill_down
+    from mjxdiff.noise import converge_solver
+
+    m = copy.copy(m)
+    converge_solver(m)
+    d = state.data(m)
+    return drill_down(m, d.qpos.copy(), d.qvel.copy(), d.act.copy(), d.ctrl.copy(), float(d.time),
+                      engine=_Forward())  # pyright: ignore[reportArgumentType]
+
+
+def focus_bodies(m: mujoco.MjModel, obj: str) -> set[str]:
+    """The bodies holding what a drill-down's ``obj`` names (a geom pair ``geoms a / b``, a
+    ``joint 'j'``, a ``body 'b'``), with their ancestors, by name; empty where it names none
+    of these."""
+    ids: list[int] = []
+    pair = re.match(r"geoms (\S+) / (\S+) \(", obj)
+    if pair:
+        ids = [int(m.geom_bodyid[m.geom(g).id]) for g in pair.groups() if not g.startswith("#")]
+    for kind, name in re.findall(r"(joint|body) '([^']+)'", obj):
+        ids.append(int(m.jnt_bodyid[m.joint(name).id]) if kind == "joint" else m.body(name).id)
+    out: set[str] = set()
+    for b in ids:
+        while b > 0:
+            out.add(m.body(b).name)
+            b = int(m.body_parentid[b])
+    return out
 
 
 def find_state(m: mujoco.MjModel, steps: int = 200, key: int | None = None,
@@ -557,6 +581,15 @@ def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None
 
     complete = True
     try:
+        if target.check == "forward":  # first, only the bodies of what the drill-down names
+            m = best.compile()
+            focus, names = focus_bodies(m, _drill(m, state).object), element_names(best, "bodies")
+            if focus and len(focus) < len(names):
+                candidate = drop(best, "bodies", [n for n in names if n not in focus], m, state)
+                if shows(candidate, state):
+                    best = candidate
+                    log.append(f"bodies: {len(names)} -> {len(focus)} (those of the object named)")
+                    say(f"shrink: bodies {len(names)} -> {len(focus)}, those of the object the drill-down names")
         dropped_any = True
         while dropped_any:  # again while a pass drops something: what an element named may go now
             dropped_any = False
