@@ -45,6 +45,8 @@ __all__ = ["KINDS", "OPTIONS", "ROUNDED", "STEP_RTOL", "Counts", "Shrunk", "Sign
 #: Relative disagreement (|mjx - c| / (1 + max|c|)) of one converged step above which it differs:
 #: far above a step's rounding (1e-15 of the scale) and a converged solver's residue.
 STEP_RTOL = 1e-6
+#: XLA compiles a shrink keeps in JAX's in-memory caches before it clears them.
+KEEP_COMPILED = 16
 #: The fields a step compares, in order.
 STEP_FIELDS = ("qpos", "qvel", "act", "sensordata")
 #: Element lists delta debugging drops from, coarse to fine (MjSpec attribute names).
@@ -565,11 +567,18 @@ def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None
     log: list[str] = []
     tried = 0
 
+    kept_compiles = [_compiles()]
+
     def shows(candidate: mujoco.MjSpec, s: State) -> bool:
         nonlocal tried
         if time.perf_counter() - t0 > budget:
             raise _Budget
         tried += 1
+        if _compiles() - kept_compiles[0] >= KEEP_COMPILED:
+            # each structure's executables stay in JAX's caches: a humanoid's shrink ran LLVM out of
+            # memory ("Cannot allocate memory") after some 60; few structures are ever tried twice
+            jax.clear_caches()
+            kept_compiles[0] = _compiles()
         try:
             m = candidate.compile()
         except Exception:  # noqa: BLE001 - a candidate C cannot compile is not kept
