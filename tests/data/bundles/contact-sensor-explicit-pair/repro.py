@@ -19,14 +19,15 @@ if CHECK == "step":
     mujoco.mj_step(m, d); dx = jax.jit(mjx.step)(mx, dx)
 else:
     mujoco.mj_forward(m, d); dx = jax.jit(mjx.forward)(mx, dx)
-if FIELD == "contact":  # active contacts by geom pair: C's, and MJX's with dist below the margin
+if FIELD == "contact":  # active contacts by geom pair (C's, MJX's with dist below the margin): dist, pos, frame
     cx = getattr(dx, "_impl", dx).contact
     on = np.asarray(cx.dist) < np.asarray(cx.includemargin)
-    c = sorted((tuple(sorted(g)), float(x)) for g, x in zip(d.contact.geom[:d.ncon].tolist(), d.contact.dist[:d.ncon]))
-    x = sorted((tuple(sorted(g)), float(y)) for g, y in zip(np.asarray(cx.geom)[on].tolist(), np.asarray(cx.dist)[on]))
-    print("C   contacts (geom pair, dist):", c); print("MJX contacts (geom pair, dist):", x)
+    def rows(g, x, p, f): return sorted((tuple(sorted(a)), [b, *c, *e]) for a, b, c, e in zip(g, x, p, f.reshape(-1, 9)))
+    c = rows(d.contact.geom[:d.ncon].tolist(), d.contact.dist[:d.ncon], d.contact.pos[:d.ncon], d.contact.frame[:d.ncon])
+    x = rows(np.asarray(cx.geom)[on].tolist(), *(np.asarray(getattr(cx, k))[on] for k in ("dist", "pos", "frame")))
+    print("C   contacts (geom pair, [dist, pos, frame]):", c); print("MJX contacts (geom pair, [dist, pos, frame]):", x)
     same = [p for p, _ in c] == [p for p, _ in x]
-    err = max((abs(a[1] - b[1]) for a, b in zip(c, x)), default=0.0) if same else float("inf")
+    err = max((float(np.max(np.abs(np.subtract(a[1], b[1])))) for a, b in zip(c, x)), default=0.0) if same else np.inf
 else:
     if FIELD == "qM":
         c = np.zeros((m.nv, m.nv)); x = np.asarray(mjx.full_m(mx, dx))  # mj_fullM: (m, d, dst) from MuJoCo 3.4
