@@ -581,6 +581,7 @@ def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None
             kept_compiles[0] = _compiles()
         try:
             m = candidate.compile()
+            mujoco.MjSpec.from_string(candidate.to_xml())  # and one whose MJCF a bundle can write and read
         except Exception:  # noqa: BLE001 - a candidate C cannot compile is not kept
             return False
         try:
@@ -611,8 +612,10 @@ def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None
                 def edit(dropped, k=kind, b=best, m=m):
                     return drop(b, k, dropped, m, state)
                 kept = ddmin(names, lambda keep, ns=names: shows(edit([n for n in ns if n not in keep]), state))
-                if len(kept) < len(names):
-                    best, dropped_any = edit([n for n in names if n not in kept]), True
+                smaller = edit([n for n in names if n not in kept])
+                # an element the compiler adds back (<size nkey="5"/> makes five keyframes) is no progress
+                if len(element_names(smaller, kind)) < len(names):
+                    best, dropped_any = smaller, True
                     log.append(f"{kind}: {len(names)} -> {len(kept)}")
                     say(f"shrink: {kind} {len(names)} -> {len(kept)} ({tried} candidates, "
                         f"{time.perf_counter() - t0:.0f} s)")
