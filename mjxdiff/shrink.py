@@ -582,7 +582,7 @@ def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None
             kept_compiles[0] = _compiles()
         try:
             m = candidate.compile()
-            mujoco.MjSpec.from_string(candidate.to_xml())  # and one whose MJCF a bundle can write and read
+            mujoco.MjSpec.from_string(candidate.to_xml()).compile()  # and one whose MJCF a bundle can write and load
         except Exception:  # noqa: BLE001 - a candidate C cannot compile is not kept
             return False
         try:
