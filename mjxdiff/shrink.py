@@ -41,7 +41,8 @@ from mjxdiff.joints import DOF_WIDTH, QPOS_WIDTH
 
 __all__ = ["KINDS", "OPTIONS", "ROUNDED", "STEP_RTOL", "Counts", "Shrunk", "Signature", "State", "boxed",
            "changed_options", "counts", "ddmin", "drop", "element_names", "find_state", "focus_bodies", "fused",
-           "mesh_geoms", "named", "probe", "rounded", "scaled_error", "shrink", "step_errors", "transfer_contacts"]
+           "mesh_geoms", "named", "probe", "rounded", "scaled_error", "shrink", "significant", "step_errors",
+           "transfer_contacts"]
 
 #: Relative disagreement (|mjx - c| / (1 + max|c|)) of one converged step above which it differs:
 #: far above a step's rounding (1e-15 of the scale) and a converged solver's residue.
@@ -118,10 +119,15 @@ class State:
     def rounded(self, digits: int) -> State:
         """Every number to ``digits`` significant digits."""
         def r(xs):
-            return tuple(float(f"{x:.{digits}g}") for x in xs)
+            return tuple(significant(x, digits) for x in xs)
         return State(tuple((n, r(q), r(v)) for n, q, v in self.joints),
-                     tuple((n, float(f"{c:.{digits}g}"), r(a)) for n, c, a in self.actuators),
-                     float(f"{self.time:.{digits}g}"))
+                     tuple((n, significant(c, digits), r(a)) for n, c, a in self.actuators),
+                     significant(self.time, digits))
+
+
+def significant(x: float, digits: int) -> float:
+    """``x`` to ``digits`` significant digits (the shortest decimal: ``0.12``, not ``0.12000000000000001``)."""
+    return float(f"{x:.{digits}g}")
 
 
 def _name(m: mujoco.MjModel, obj: mujoco.mjtObj, i: int) -> str:
@@ -460,13 +466,6 @@ def boxed(spec: mujoco.MjSpec, m: mujoco.MjModel, names: Iterable[str]) -> mujoc
     return out
 
 
-def _significant(x, digits: int):
-    a = np.asarray(x, float)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scale = np.where(a == 0, 1.0, 10.0 ** (digits - 1 - np.floor(np.log10(np.abs(a)))))
-    return np.round(a * scale) / scale
-
-
 #: Numbers :func:`rounded` rounds, per element list: MjSpec attribute names (orientations are
 #: left alone: a rounded quaternion is another rotation).
 ROUNDED = {"bodies": ("pos", "mass", "ipos", "inertia"), "geoms": ("pos", "size"), "sites": ("pos", "size"),
@@ -484,7 +483,7 @@ def rounded(spec: mujoco.MjSpec, digits: int) -> mujoco.MjSpec:
                 continue
             for a in attrs:
                 value = getattr(e, a)
-                setattr(e, a, _significant(value, digits) if np.ndim(value) else float(_significant(value, digits)))
+                setattr(e, a, [significant(v, digits) for v in value] if np.ndim(value) else significant(value, digits))
     return out
 
 
@@ -651,13 +650,15 @@ def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None
                         log.append(f"option {flags}: bit {bit} cleared")
         say(f"shrink: options {_option_changes(spec)} -> {_option_changes(best)} changed from the defaults")
         for digits in (2, 3, 6):
-            if shows(rounded(best, digits), state):
-                best = rounded(best, digits)
+            candidate = rounded(best, digits)
+            if shows(candidate, state):
+                best = candidate
                 log.append(f"model: {digits} significant digits")
                 break
         for digits in (2, 3, 6):
-            if shows(best, state.rounded(digits)):
-                state = state.rounded(digits)
+            shorter = state.rounded(digits)
+            if shows(best, shorter):
+                state = shorter
                 log.append(f"state: {digits} significant digits")
                 break
     except (_Budget, KeyboardInterrupt):
