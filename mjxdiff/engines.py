@@ -412,7 +412,8 @@ def _traced() -> None:
     export_cache.count("traced")
 
 
-jax.monitoring.register_event_duration_secs_listener(_on_duration)
+# JAX calls it during a trace; it counts, and emits nothing the trace records
+jax.monitoring.register_event_duration_secs_listener(export_cache.untraced(_on_duration))
 
 
 def compile_count() -> int:
@@ -739,6 +740,14 @@ class MJXEngine:
     def _bound(self, inputs: BatchedInputs, chunk: int):
         """The compiled piece function of :meth:`stream`, its first arguments, the placer and the
         padded controls: (run, (mx, dx, ctrl piece), place, ctrl)."""
+        (fn, args, static), place, ctrl = self.piece(inputs, chunk)
+        steps = ctrl.shape[1]  # every piece runs the compiled function: the work it will do
+        run = export_cache.bind(fn, args, static, xla_options(self.compile, steps), (self.compile, steps))
+        return run, args, place, ctrl
+
+    def piece(self, inputs: BatchedInputs, chunk: int):
+        """What :meth:`stream` compiles, uncompiled: ((function, its first arguments, its static
+        arguments), the placer, the padded controls); :func:`export_cache.audit` takes the first."""
         B, T = inputs.batch, inputs.steps
         mx, varying, dx0, place, mesh = self._prepare(inputs)
         dtype = dx0.qpos.dtype
@@ -748,10 +757,7 @@ class MJXEngine:
         ctrl = np.zeros((B, -(-T // chunk) * chunk, inputs.ctrl.shape[2]), dtype)
         ctrl[:, :T] = inputs.ctrl
         args = (mx, dx, place(ctrl[:, :chunk]))
-        steps = ctrl.shape[1]  # every piece runs the compiled function: the work it will do
-        run = export_cache.bind(_rollout, args, dict(varying=varying, with_energy=inputs.energy, mesh=mesh),
-                                xla_options(self.compile, steps), (self.compile, steps))
-        return run, args, place, ctrl
+        return (_rollout, args, dict(varying=varying, with_energy=inputs.energy, mesh=mesh)), place, ctrl
 
     def compile_ahead(self, inputs: BatchedInputs, chunk: int) -> None:
         """Compiles what :meth:`stream` of ``inputs`` in pieces of ``chunk`` steps will run, so

@@ -45,8 +45,9 @@ from jax import export
 
 from mjxdiff.files import atomic_write
 
-__all__ = ["bind", "call", "check", "clear", "code_digest", "count", "events", "events_since", "evict", "export_dir",
-           "fresh_digest", "loaded_count", "rollout_digest", "settings_digest", "tally", "untraced"]
+__all__ = ["audit", "bind", "call", "check", "clear", "code_digest", "count", "events", "events_since", "evict",
+           "export_dir", "fresh_digest", "loaded_count", "rollout_digest", "settings_digest", "tally", "traced_code",
+           "uncovered", "untraced"]
 
 # (arguments' key, whole-code digest, options key) -> (output tree structure, compiled call of an
 # Exported, what the options chose)
@@ -455,13 +456,18 @@ _FUNCTION_DIGESTS: dict[tuple[str, str], str] = {}  # (module, qualname) -> shal
 
 class _Shallow(_Digest):
     """A :class:`_Digest` in which functions of the traced modules met below the top stand for
-    themselves by name."""
+    themselves by name, where that name finds them again (:func:`_resolve`: their own dependency
+    entry digests them). Any other function is digested in full: a second closure of one
+    qualname (each of MJX's ``@collider`` wrappers), or a function of an edited copy of a module
+    bound by hand where MJX holds the original (a dispatch table's entry), whose name finds the
+    installed function instead."""
 
     def feed(self, value: Any, depth: int = 0) -> None:
         if depth > 0:
             fn = _unwrap(value)
-            if isinstance(fn, types.FunctionType) and self._ours(getattr(fn, "__module__", None)):
-                self.h.update(f"fn {fn.__module__}.{fn.__qualname__}".encode())
+            if (isinstance(fn, types.FunctionType) and self._ours(getattr(fn, "__module__", None))
+                    and _resolve(fn.__module__, fn.__code__.co_qualname) is fn):
+                self.h.update(f"fn {fn.__module__}.{fn.__code__.co_qualname}".encode())
                 return
         super().feed(value, depth)
 
@@ -484,6 +490,7 @@ def _functions(module: str) -> dict[str, types.FunctionType]:
     closures (a decorator's wrapper keeps the decorated function there: MJX's colliders)."""
     if module not in _MODULE_FUNCTIONS:
         found: dict[str, types.FunctionType] = {}
+        visited: set[int] = set()
 
         def visit(value: Any, depth: int) -> None:
             fn = _unwrap(value.__func__ if isinstance(value, (staticmethod, classmethod)) else value)
@@ -495,8 +502,12 @@ def _functions(module: str) -> dict[str, types.FunctionType]:
                 return
             if fn.__code__.co_filename.startswith("<"):  # generated (a dataclass's __init__): one qualname for all
                 return
-            if found.setdefault(fn.__code__.co_qualname, fn) is not fn or depth > 3:
+            found.setdefault(fn.__code__.co_qualname, fn)
+            # every wrapper's closure, not only the first of a qualname: each of MJX's colliders is
+            # a `collider.<locals>.wrapper.<locals>.collide` holding its own raw function
+            if id(fn) in visited or depth > 3:
                 return
+            visited.add(id(fn))
             for cell in fn.__closure__ or ():
                 with contextlib.suppress(ValueError):
                     visit(cell.cell_contents, depth + 1)
@@ -589,7 +600,9 @@ def _module_files() -> dict[str, str]:
 @functools.cache
 def _ignored_roots() -> tuple[str, ...]:
     """Directories whose code is left out of dependencies, their versions being in the key
-    (:func:`settings_digest`): jax, jaxlib, numpy and the standard library. Nothing else is."""
+    (:func:`settings_digest`): jax, jaxlib, numpy and the standard library. Nothing else is: in
+    particular not the directories packages are installed in (``site-packages``), which a venv's
+    ``sysconfig`` "platstdlib" and a plain install's standard library both contain (:func:`_ignored`)."""
     import sysconfig
 
     import jaxlib
@@ -598,12 +611,30 @@ def _ignored_roots() -> tuple[str, ...]:
     for m in (jax, jaxlib, np):
         assert m.__file__ is not None  # regular packages, not namespace ones
         roots.add(os.path.dirname(m.__file__))
-    roots |= {sysconfig.get_path(k) for k in ("stdlib", "platstdlib")} | {os.path.dirname(os.__file__)}
+    roots |= {sysconfig.get_path("stdlib"), os.path.dirname(os.__file__)}
     return tuple(sorted(r.rstrip(os.sep) + os.sep for r in roots if r))
 
 
+@functools.cache
+def _ignored_packages() -> tuple[str, ...]:
+    """The package directories among :func:`_ignored_roots` (jax, jaxlib, numpy)."""
+    import jaxlib
+
+    return tuple(os.path.dirname(m.__file__).rstrip(os.sep) + os.sep for m in (jax, jaxlib, np)
+                 if m.__file__ is not None)
+
+
+_INSTALLED = (f"{os.sep}site-packages{os.sep}", f"{os.sep}dist-packages{os.sep}")
+
+
 def _ignored(file: str) -> bool:
-    return file.startswith("<frozen ") or file == __file__ or file.startswith(_ignored_roots())
+    """Whether code from ``file`` is left out of dependencies: jax's, jaxlib's, numpy's, the
+    standard library's and this module's. An installed package other than those three (MJX in a
+    venv's ``lib/python3.X/site-packages``, under the standard library's directory in a plain
+    install) never is, so MJX edited where it is installed changes the key."""
+    if file.startswith("<frozen ") or file == __file__ or file.startswith(_ignored_packages()):
+        return True
+    return file.startswith(_ignored_roots()) and not any(part in file for part in _INSTALLED)
 
 
 def _is_flat(code: types.CodeType) -> bool:
@@ -914,6 +945,49 @@ def dependencies(codes: set[types.CodeType], follow: bool = True) -> dict[str, s
     deps = {f"{m}:{q}": function_digest(m, q) for m, q in sorted(found)}
     deps.update(foreign)
     return dict(sorted(deps.items()))
+
+
+def uncovered(codes: set[types.CodeType], deps: dict[str, str]) -> list[str]:
+    """The code objects among ``codes`` (frames a trace ran, e.g. seen by ``sys.settrace``) that are
+    MJX's or mjxdiff's traced code (:data:`TRACED_MODULES`, and any file under MJX's package
+    directory) but whose edit would leave ``deps`` (an artifact's key) unchanged, as sorted
+    ``file:qualname`` lines; empty when the key is complete for that trace.
+
+    Judged from the code objects alone, independently of how :func:`dependencies` named them: a
+    code object is covered when a dependency's digest is taken over it, i.e. it is nested in the
+    code of the function a ``module:qualname`` resolves to now (:func:`function_digest` hashes
+    that code with every code object in its constants) or of a live function an ``@file:qualname``
+    names, or when its module is a dependency as a whole (``module:*``). Functions marked
+    :func:`untraced` (a JAX event listener that counts compiles) run during a trace but emit
+    nothing into it: they are not asked for."""
+    files = _module_files()
+    whole = {name.rsplit(":", 1)[0] for name in deps if name.endswith(":*")}
+    holders: list[types.FunctionType] = []
+    for name in deps:
+        if not name.startswith("@") and not name.endswith(":*"):
+            fn = _resolve(*name.rsplit(":", 1))
+            if isinstance(fn, types.FunctionType):
+                holders.append(fn)
+    foreign = _live_functions({name for name in deps if name.startswith("@")})
+    holders += [fn for fns in foreign.values() for fn in fns]
+    covered = {id(c) for fn in holders for c in _nested(fn.__code__)}
+    covered |= {id(v.__code__) for v in list(_UNTRACED.values()) if isinstance(v, types.FunctionType)}
+    return sorted({_where(code) for code in traced_code(codes)
+                   if id(code) not in covered and files.get(code.co_filename) not in whole})
+
+
+def _where(code: types.CodeType) -> str:
+    return f"{code.co_filename}:{code.co_qualname}"
+
+
+def traced_code(codes: set[types.CodeType]) -> list[types.CodeType]:
+    """The code objects among ``codes`` that a key must cover: those of the files of
+    :data:`TRACED_MODULES` and of any file under MJX's package directory."""
+    import mujoco.mjx
+
+    mjx_dir = os.path.dirname(mujoco.mjx.__file__ or "") + os.sep
+    ours = set(_module_files())
+    return [c for c in codes if c.co_filename in ours or c.co_filename.startswith(mjx_dir)]
 
 
 def _holds(name: str, digest: str, live: dict[str, list[types.FunctionType]] | None = None) -> bool:
@@ -1266,6 +1340,21 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
     return Bound(*_FUNCTIONS[memo])
 
 
+def audit(fn: Callable, args: tuple, static: dict[str, Any]) -> tuple[list[str], list[str], dict[str, str] | str]:
+    """Traces ``fn`` as :func:`bind` would (no compile, nothing saved) under ``sys.settrace``:
+    (the :func:`traced_code` it ran as ``file:qualname`` lines, those of them :func:`uncovered`,
+    the dependencies its artifact would be saved with or why it would not be saved). The key is
+    complete for this trace when the second is empty; slower than a plain trace (~1.8x)."""
+    leaves, treedef = jax.tree.flatten(args)
+    ran: set[types.CodeType] = set()
+    traced = _export(fn, treedef, leaves, static, ran=ran)
+    if traced is None:
+        raise ValueError(f"{getattr(fn, '__qualname__', fn)} cannot be exported with these arguments")
+    deps = traced[2]
+    ours = sorted({_where(c) for c in traced_code(ran)})
+    return ours, (uncovered(ran, deps) if isinstance(deps, dict) else []), deps
+
+
 #: Values of ``$MJXDIFF_DEPENDENCIES``: what an artifact is recorded to depend on.
 DEPENDENCY_MODES = ("functions", "traced", "code")
 
@@ -1287,9 +1376,10 @@ def dependency_mode() -> str:
     return mode if mode in DEPENDENCY_MODES else "functions"
 
 
-def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
+def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any], ran: set[types.CodeType] | None = None):
     """(output tree structure, Exported, dependencies) of ``fn`` over flat leaves (:func:`dependencies`
-    of the trace), or None if it cannot be exported."""
+    of the trace), or None if it cannot be exported. ``ran``: a set that gains every code object
+    the trace ran (``sys.settrace``), without changing how dependencies are found."""
     out_tree = []
     python = getattr(fn, "__wrapped__", fn)  # traced afresh, never a jitted function's cached trace
 
@@ -1300,8 +1390,8 @@ def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
 
     shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None)) for x in leaves]
     mode = dependency_mode()
-    record = mode == "traced"
-    called: set[types.CodeType] = set()
+    record = mode == "traced" or ran is not None
+    called: set[types.CodeType] = set() if ran is None else ran
     before = sys.gettrace()
 
     def tracer(frame, event, arg):  # frames the trace runs: a 'call' event each, no line events
@@ -1320,7 +1410,7 @@ def _export(fn: Callable, treedef, leaves: list, static: dict[str, Any]):
             sys.settrace(before)
     try:
         # the jaxpr export just traced (JAX's trace cache: ~2 ms), for its operations' call stacks
-        codes = trace_codes(jitted.trace(*shapes).jaxpr) | called
+        codes = trace_codes(jitted.trace(*shapes).jaxpr) | (called if mode == "traced" else set())
         deps: dict[str, str] | str = dependencies(codes, follow=mode == "functions")
         if mode == "code":
             deps = {**{f"{m}:*": code_digest((m,)) for m in TRACED_MODULES},

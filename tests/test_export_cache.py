@@ -98,35 +98,6 @@ def test_dependencies_name_the_functions_a_trace_ran(pendulum):
                 "mujoco.mjx._src.collision_primitive:*"} & set(deps)
 
 
-#: Functions a trace runs that compute nothing it emits: JAX's event listener that counts compiles.
-_NOT_TRACED_CODE = {"mjxdiff.engines:_on_duration"}
-
-
-@pytest.mark.parametrize("name", ["pendulum", "primitives_on_plane", "tendons"])
-def test_dependencies_found_by_name_include_every_function_the_trace_ran(name, monkeypatch, tmp_path):
-    """The default dependencies (operations' call stacks, followed by name) are found without
-    slowing the trace; they must include every function a ``sys.settrace`` of the same trace sees
-    run (``MJXDIFF_DEPENDENCIES=traced``), or an edit of one could leave a stale artifact in use."""
-    scenario = load_scenario(name)
-    m = load_model(scenario)
-    inputs = make_inputs(scenario, m, seed=0, batch=2, steps=5)
-    seen, stacks = [], []
-    real, real_codes = export_cache.dependencies, export_cache.trace_codes
-    monkeypatch.setattr(export_cache, "dependencies",
-                        lambda codes, follow=True: seen.append(set(codes)) or real(codes, follow))
-    monkeypatch.setattr(export_cache, "trace_codes", lambda jaxpr: stacks.append(real_codes(jaxpr)) or stacks[-1])
-    monkeypatch.setattr(export_cache, "export_dir", lambda: tmp_path)  # no artifact: traced here
-    monkeypatch.setenv("MJXDIFF_DEPENDENCIES", "traced")
-    _rollout(inputs)
-    [codes], [on_stacks] = seen, stacks  # everything sys.settrace saw run, and the operations' stacks
-    ran = set(real(codes, follow=False))
-    found = real(on_stacks, follow=True)
-    whole = {n.split(":")[0] for n in found if n.endswith(":*")}
-    missing = {n for n in ran - set(found) if n.split(":")[0] not in whole} - _NOT_TRACED_CODE
-    assert not missing, f"ran, but not found by name: {sorted(missing)}"
-    assert len(ran) > 40
-
-
 def test_a_loaded_rollout_reads_its_cost_analysis_from_beside_the_artifact(pendulum, monkeypatch):
     """``auto``'s estimate needs XLA's cost analysis (the whole module as HLO): computed once per
     artifact and kept beside it, so a warm sweep never converts a rollout to HLO."""

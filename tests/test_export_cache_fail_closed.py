@@ -5,6 +5,7 @@ The code variants (``tests/code_variants.py``) are the ways MJX is changed witho
 installed files: an edited module copy bound by hand, a patch from another module, a module
 whose ``__file__`` is not its code's file, and one workspace file edited twice."""
 
+import functools
 import json
 import subprocess
 import sys
@@ -33,11 +34,14 @@ sys.exit(main(sys.argv[3:]))
 """
 
 
-def _cli_sweep(tmp_path: Path, variant: str, run: int) -> dict:
+def _cli_sweep(tmp_path: Path, variant: str, run: int, scenario: str = "pendulum",
+               python: str = sys.executable) -> dict:
     out = tmp_path / f"{variant}-{run}"
-    args = ["sweep", "pendulum", "--quick", "--diagnose", "none", "--no-history", "--out", str(out),
+    args = ["sweep", scenario, "--quick", "--diagnose", "none", "--no-history", "--out", str(out),
             "--cache-dir", str(tmp_path / "cache")]
-    proc = subprocess.run([sys.executable, "-c", RUN, variant, str(tmp_path / "workspace"), *args],
+    if scenario != "pendulum":  # only the rollout's artifact is asked about
+        args += ["--no-onestep", "--no-transfer"]
+    proc = subprocess.run([python, "-c", RUN, variant, str(tmp_path / "workspace"), *args],
                           capture_output=True, text=True, timeout=600)
     assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
     doc = json.loads((out / "report.json").read_text())
@@ -70,8 +74,53 @@ def test_edited_and_clean_mjx_sharing_one_cache_each_run_their_own_code(tmp_path
     assert checked["artifacts"] == 4 and not checked["ambiguous"] and not checked["unreadable"]
 
 
+def _site_with_mujoco_copy(tmp_path: Path) -> tuple[str, Path]:
+    """A venv whose site-packages holds a copy of the installed ``mujoco`` package (links to its
+    files, ``collision_primitive.py`` a file of its own) ahead of this environment's packages:
+    an install of MJX that can be edited where it lies. (The interpreter, the file to edit.)"""
+    import mujoco
+
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
+    [site] = venv.glob("lib/python3*/site-packages")
+    installed = Path(mujoco.__file__).parent
+    subprocess.run(["cp", "-rs", str(installed), str(site / "mujoco")], check=True, timeout=120)
+    edited = site / "mujoco" / "mjx" / "_src" / "collision_primitive.py"
+    edited.unlink()
+    edited.write_text((installed / "mjx" / "_src" / "collision_primitive.py").read_text())
+    here = [p for p in sys.path if p.endswith("site-packages")]
+    (site / "this_env.pth").write_text("".join(f"import site; site.addsitedir({p!r})\n" for p in here))
+    return str(venv / "bin" / "python"), edited
+
+
+def test_an_edit_inside_a_decorated_collider_or_in_the_installed_file_is_traced_afresh(tmp_path):
+    """The sequence of issue 49, on one cache: unmodified MJX, a hand-bound copy whose plane-sphere
+    contact point is wrong, another whose ``@collider``-decorated ``plane_capsule`` uses the radius
+    for the half-length (before the fix it loaded the clean artifact and passed: the raw function
+    lives only in the wrapper's closure), then the same edit made in the installed file where it
+    lies (before the fix: every file under a venv's lib/python3.X was ignored), then unmodified
+    MJX again, which loads its own artifact and gives its first numbers."""
+    python, installed = _site_with_mujoco_copy(tmp_path)
+    run = functools.partial(_cli_sweep, tmp_path, scenario="primitives_on_plane", python=python)
+    clean = run("clean", 1)
+    assert (clean["exit"], clean["status"], clean["cache"]["traced"]) == (0, "pass", 1), clean["stderr"][-2000:]
+    for variant in code_variants.CONTACT_VARIANTS:
+        edited = run(variant, 1)
+        assert (edited["exit"], edited["status"]) == (1, "fail"), (variant, edited["stderr"][-2000:])
+        assert edited["cache"]["traced"] == 1 and edited["cache"]["loaded"] == 0, (variant, edited["cache"])
+    original = installed.read_text()
+    installed.write_text(original.replace(code_variants._CAPSULE_OLD, "segment = axis * cap.size[0]"))
+    in_place = run("clean", 2)
+    assert (in_place["exit"], in_place["status"]) == (1, "fail"), in_place["stderr"][-2000:]
+    assert in_place["cache"]["traced"] == 1 and in_place["cache"]["loaded"] == 0, in_place["cache"]
+    installed.write_text(original)
+    again = run("clean", 3)
+    assert (again["exit"], again["status"], again["worst"]) == (0, "pass", clean["worst"]), again["stderr"][-2000:]
+    assert again["cache"]["loaded"] == 1 and again["cache"]["traced"] == 0, again["cache"]
+
+
 SCENARIOS = ("pendulum", "cartpole", "double_pendulum")
-VARIANTS = ("clean", "copy", "copy2", "patch", "mismatch")
+VARIANTS = code_variants.VARIANTS
 _FRESH: dict[str, list] = {}
 
 
