@@ -356,6 +356,13 @@ def _bundled_tomls() -> list[Path]:
     return sorted(where.glob("*.toml")) if where is not None else []
 
 
+def is_bundled(scenario: Scenario) -> bool:
+    """Whether ``scenario`` is one mjxdiff ships (its TOML in :func:`bundled_dir`), not the user's."""
+    where = bundled_dir()
+    return (scenario.source is not None and where is not None
+            and scenario.source.resolve().parent == Path(where).resolve())
+
+
 def no_bundled_scenarios_message() -> str:
     """One line for a run that found no bundled scenario: where it looked, what to do."""
     override = os.environ.get("MJXDIFF_SCENARIOS")

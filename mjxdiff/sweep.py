@@ -32,7 +32,7 @@ from mjxdiff import adjust, cost, diagnose, engines, export_cache, onestep, repo
 from mjxdiff.engines import CEngine, MJXEngine, UnsupportedError
 from mjxdiff.trajectory import Engine, Trajectory
 from mjxdiff.inputs import BatchedInputs, make_inputs
-from mjxdiff.scenario import LaterFeatureError, Scenario, ScenarioError, Tolerances, load_model
+from mjxdiff.scenario import LaterFeatureError, Scenario, ScenarioError, Tolerances, is_bundled, load_model
 from mjxdiff.noise import SOLVER_MARGIN, NoiseFloor, combine, converged, has_constraints, perturb
 from mjxdiff.verdict import TRUNCATION, FieldResult, Judge, ScenarioResult, rangefinder_mask
 
@@ -119,7 +119,7 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
     its batched inputs; bad input, or a plan that cannot fit, becomes its result."""
     batch, steps = config.sizes(scenario)
     tol = scenario.tolerance.for_precision(config.precision)
-    info: dict[str, Any] = dict(batch=batch, steps=steps, model=str(scenario.model),
+    info: dict[str, Any] = dict(batch=batch, steps=steps, model=str(scenario.model), bundled=is_bundled(scenario),
                                 exercises=list(scenario.exercises), notes=scenario.notes)
     prepared = _Prepared(scenario, tol, info, config)
     t0 = time.perf_counter()
@@ -761,7 +761,7 @@ def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, co
         result, info["twin"] = _twin(result, m, inputs, tol, config, under_test, c_engine, clock)
         twin = info["twin"]
     if result.status == "pass" and excused:
-        result = _truncation(result, m, info["solver_floor"], found, twin)
+        result = _truncation(result, m, info["solver_floor"], found, twin, bundled=bool(info.get("bundled")))
     return result
 
 
@@ -878,15 +878,24 @@ def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, con
                                                             f"({result.message})", first_divergence=first), found
 
 
-def _truncation(result: ScenarioResult, m, floor: dict, found: dict, twin: dict | None) -> ScenarioResult:
+def _solver_settings(m) -> str:
+    """``CG, 200 iteration(s), 50 line-search steps, tolerance 1e-12``: the model's solver as MJCF names it."""
+    solver = mujoco.mjtSolver(m.opt.solver).name.removeprefix("mjSOL_")
+    return (f"{solver}, {m.opt.iterations} iteration(s), {m.opt.ls_iterations} line-search steps, "
+            f"tolerance {m.opt.tolerance:g}")
+
+
+def _truncation(result: ScenarioResult, m, floor: dict, found: dict, twin: dict | None,
+                bundled: bool = False) -> ScenarioResult:
     """A rollout that parts from C beyond its tolerance and rounding envelope, held only by C's
     freedom under its own solver settings, is not a pass: a ``fail`` whose cause is
     :data:`TRUNCATION` (the ``solver-truncation`` entry of :mod:`mjxdiff.known`, accepted by
     ``--fail-on new``), stating the gap, the converged twin, the one-step check and MJX's truncated
-    step against C's."""
+    step against C's. The settings are "your" settings only on the user's model; on a ``bundled``
+    scenario they are the scenario's, whose pass is meant to be sharp: a defect to report."""
     gap = floor.get("gap") or {}
-    parts = [f"solver truncation: your solver settings ({m.opt.iterations} iteration(s), {m.opt.ls_iterations} "
-             f"line-search steps, tolerance {m.opt.tolerance:g}) make MJX and C differ by "
+    whose = ("this bundled scenario's own solver settings" if bundled else "your solver settings")
+    parts = [f"solver truncation: {whose} ({_solver_settings(m)}) make MJX and C differ by "
              f"{gap.get('error', float('nan')):.3g} in {gap.get('field')} ({gap.get('object') or 'a member'}) over "
              f"{gap.get('steps')} steps, from step {gap.get('step')} "
              f"(tolerance {gap.get('tolerance', float('nan')):.0e}"
@@ -903,6 +912,9 @@ def _truncation(result: ScenarioResult, m, floor: dict, found: dict, twin: dict 
         f = evidence["fields"][evidence["field"]]
         parts.append(f"one step as configured from C's states: MJX vs C {f['error']:.2g}, C vs its converged self "
                      f"{f['truncation']:.2g} ({evidence['field']})")
+    if bundled:
+        parts.append("the scenario's solver does not converge on this draw: a defect of the scenario, not of MJX "
+                     "(please report it with the seed)")
     first = dict(floor["first"], check="rollout") if floor.get("first") else result.first_divergence
     if not (twin and twin.get("status") == "pass"):  # without the twin's agreement, no excuse is proven
         parts[0] = parts[0].replace("solver truncation: ", "", 1)

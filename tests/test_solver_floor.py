@@ -49,8 +49,9 @@ def test_a_loose_solver_is_a_solver_truncation_not_a_pass(tmp_path):
     check = result.info["solver_floor"]
     assert (check["first_stage"], check["first_field"], check["status"]) == ("constraint", "qfrc_constraint", "pass")
     assert result.field("qvel").floor == "solver" and result.field("qvel").envelope > result.field("qvel").tolerance
-    assert result.message.startswith("solver truncation: your solver settings (100 iteration(s), 20 line-search "
-                                     "steps, tolerance 0.0001) make MJX and C differ by "), result.message
+    assert result.message.startswith("solver truncation: your solver settings (NEWTON, 100 iteration(s), 20 "
+                                     "line-search steps, tolerance 0.0001) make MJX and C differ by "), result.message
+    assert "bundled" not in result.message and result.info["bundled"] is False
     assert result.info["twin"]["status"] == "pass" and result.info["onestep"]["status"] == "pass"
     assert "with a converged solver they agree (twin: worst" in result.message
     assert result.first_divergence["check"] == "rollout" and result.first_divergence["step"] >= 0
