@@ -6,6 +6,8 @@
   (:data:`mjxdiff.support.CATALOGUE`), with its evidence and its bug bundle's reproducer.
 - ``reference/json-schemas.md``: the envelope's keys and the kinds of JSON output
   (:data:`mjxdiff.report.ENVELOPE`, :data:`mjxdiff.report.KINDS`).
+- ``index.md``: the margin of each bundled scenario's pass over many seeds, from
+  ``docs/data/margins.json`` (written by ``benchmarks/scripts/margins.py``).
 
 A page holds a marker (``<!-- mjxdiff:cli -->``, ``<!-- mjxdiff:catalogue -->``, ...) that
 :func:`on_page_markdown` replaces. ``tests/test_docs.py`` imports this file and calls the same
@@ -178,10 +180,31 @@ def envelope_markdown() -> str:
     return "\n".join(rows) + "\n"
 
 
+# -- the margin of each pass over seeds ----------------------------------------------------------
+
+def margins_markdown() -> str:
+    """The table of ``docs/data/margins.json`` (``benchmarks/scripts/margins.py``): per bundled
+    scenario and check, the worst ratio to its bound over the seeds swept."""
+    import json
+
+    data = json.loads((ROOT / "docs" / "data" / "margins.json").read_text())
+    first, end = data["seeds"]
+    rows = [f"Unmodified MJX, seeds {first} to {end - 1}{' (--quick)' if data['quick'] else ''}: "
+            f"{len(data['failures'])} failure(s); per-sweep false-alarm estimate "
+            f"{data['per_sweep_false_alarm']:.1e}.", "",
+            "| scenario | check | seeds | median | 99th percentile | max | P(ratio >= 1) per draw |",
+            "|---|---|---|---|---|---|---|"]
+    for key, r in sorted(data["rows"].items()):
+        name, check = key.rsplit(" ", 1)
+        rows.append(f"| {name} | {check} | {r['seeds']} | {r['median']:.2g} | {r['p99']:.2g} | {r['max']:.2g} "
+                    f"| {r['p_exceed']:.1e} |")
+    return "\n".join(rows) + "\n"
+
+
 # -- the hook -------------------------------------------------------------------------------------
 
 MARKERS = {"<!-- mjxdiff:cli -->": cli_markdown, "<!-- mjxdiff:catalogue -->": catalogue_markdown,
-           "<!-- mjxdiff:envelope -->": envelope_markdown}
+           "<!-- mjxdiff:envelope -->": envelope_markdown, "<!-- mjxdiff:margins -->": margins_markdown}
 
 
 def on_page_markdown(markdown: str, **_) -> str:

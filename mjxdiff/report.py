@@ -282,7 +282,8 @@ def format_line(r: ScenarioResult) -> str:
 
 def format_checks(info: dict[str, Any]) -> str:
     """The sharp checks of a scenario (its ``info``) in one line: the one-step check
-    (``info['onestep']``, :func:`mjxdiff.onestep.check`) and the converged twin (``info['twin']``),
+    (``info['onestep']``, :func:`mjxdiff.onestep.check`), the converged twin (``info['twin']``)
+    and, where it could not run, the host-interface check (``info['transfer']``),
     each with its worst ratio to its bound and how large that bound is against the field's scale;
     '' when neither ran."""
     parts = []
@@ -306,6 +307,9 @@ def format_checks(info: dict[str, Any]) -> str:
                      + (f", weak: {', '.join(twin['weak'])}" if twin.get("weak") else ""))
     elif twin:
         parts.append(f"converged twin {twin.get('status')}: {twin.get('message', '')}")
+    host = info.get("transfer")
+    if host and host.get("error"):
+        parts.append(f"host-interface check did not run: {host['error']}")
     return ("checks: " + "; ".join(parts)) if parts else ""
 
 

@@ -124,3 +124,23 @@ def test_the_sweep_fails_a_scenario_whose_trajectories_agree_when_the_host_inter
 
 def test_float32_rounds_once_and_passes():
     assert _check("primitives_on_plane", "float32").mismatches == ()
+
+
+def test_a_named_light_is_listed_as_refused_by_mjx_names_and_the_rest_is_checked():
+    """MJX 3.17's ``name2id`` keeps no table for lights (a KeyError): dm_control's cheetah, which
+    names its light, once ended the whole check with ``KeyError: 8`` and swept as a silent PASS."""
+    m = mujoco.MjModel.from_xml_string(
+        "<mujoco><worldbody><light name='top' pos='0 0 3'/><body name='b'><joint name='j'/>"
+        "<geom name='g' size='.1' pos='0 0 .2'/></body></worldbody></mujoco>")
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    found = transfer.check(m, d)
+    assert found.mismatches == () and found.checked > 10
+    assert "id2name/name2id(mjOBJ_LIGHT): KeyError, no name table in MJX" in found.unsupported, found.unsupported
+
+
+def test_a_host_interface_check_that_could_not_run_says_so_on_the_checks_line():
+    from mjxdiff.report import format_checks
+
+    line = format_checks({"transfer": {"error": "KeyError: 8"}})
+    assert line == "checks: host-interface check did not run: KeyError: 8"
