@@ -1345,6 +1345,7 @@ def audit(fn: Callable, args: tuple, static: dict[str, Any]) -> tuple[list[str],
     (the :func:`traced_code` it ran as ``file:qualname`` lines, those of them :func:`uncovered`,
     the dependencies its artifact would be saved with or why it would not be saved). The key is
     complete for this trace when the second is empty; slower than a plain trace (~1.8x)."""
+    fresh_digest()  # as bind does: memos of code since changed (a test's patch, undone) are dropped
     leaves, treedef = jax.tree.flatten(args)
     ran: set[types.CodeType] = set()
     traced = _export(fn, treedef, leaves, static, ran=ran)

@@ -119,7 +119,7 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
     its batched inputs; bad input, or a plan that cannot fit, becomes its result."""
     batch, steps = config.sizes(scenario)
     tol = scenario.tolerance.for_precision(config.precision)
-    info: dict[str, Any] = dict(batch=batch, steps=steps, model=str(scenario.model), bundled=is_bundled(scenario),
+    info: dict[str, Any] = dict(batch=batch, steps=steps, model=str(scenario.model),
                                 exercises=list(scenario.exercises), notes=scenario.notes)
     prepared = _Prepared(scenario, tol, info, config)
     t0 = time.perf_counter()
@@ -235,7 +235,8 @@ def _finish(prepared: _Prepared, under_test: Engine | None,
         return _advised(prepared.early, advice)
     scenario, m, inputs, tol, config = prepared.scenario, prepared.m, prepared.inputs, prepared.tol, prepared.config
     assert inputs is not None  # a prepared scenario without an early result has its inputs
-    result = _advised(run_inputs(scenario.name, m, inputs, tol, config, under_test, c_engine, prepared.info,
+    result = _advised(run_inputs(scenario.name, m, inputs, tol, config, under_test, c_engine,
+                                 dict(prepared.info, bundled=is_bundled(scenario)),
                                  prepared.ahead), advice)
     if result.status == "fail" and config.reproducers is not None:
         result = _with_reproducer(result, scenario, inputs, tol, config)
@@ -608,6 +609,7 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
                 under_test: Engine | None, c_engine: CEngine | None,
                 info: dict | None) -> ScenarioResult:
     info = dict(info or {}, batch=inputs.batch, steps=inputs.steps)
+    bundled = bool(info.pop("bundled", False))  # how a truncation is worded, not part of the result
     seconds = info.setdefault("seconds", {})
     base: dict[str, Any] = dict(name=name, tolerances=tol.as_dict(), info=info)
     under_test, c_engine = under_test or simulator(config), c_engine or CEngine()
@@ -639,7 +641,7 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     if result.status == "fail" and config.diagnose != "none":
         result = _diagnose(result, m, inputs, tol, config, under_test, c_engine, traj_c, drill)
     if config.reference == "c" and result.status in ("pass", "fail"):
-        result = _sharp(result, m, inputs, tol, config, under_test, c_engine, traj_c, clock, info)
+        result = _sharp(result, m, inputs, tol, config, under_test, c_engine, traj_c, clock, info, bundled)
     seconds.update(c=clock.get("c", 0.0), mjx=clock.get("mjx", 0.0), verdict=clock.get("verdict", 0.0),
                    diagnosis=time.perf_counter() - t)
     if counts.get("xla") is not None:
@@ -739,7 +741,7 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
 
 def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
            under_test: Engine, c_engine: CEngine, traj_c: Trajectory | None,
-           clock: dict[str, float], info: dict) -> ScenarioResult:
+           clock: dict[str, float], info: dict, bundled: bool = False) -> ScenarioResult:
     """The checks that stay sharp where the rollout's verdict cannot: the one-step check
     (:func:`_onestep`, with ``config.onestep``), then, where the rollout's pass was held only by
     the solver floor, or was weak on a model whose solver settings the one-step check found not
@@ -761,7 +763,7 @@ def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, co
         result, info["twin"] = _twin(result, m, inputs, tol, config, under_test, c_engine, clock)
         twin = info["twin"]
     if result.status == "pass" and excused:
-        result = _truncation(result, m, info["solver_floor"], found, twin, bundled=bool(info.get("bundled")))
+        result = _truncation(result, m, info["solver_floor"], found, twin, bundled=bundled)
     return result
 
 
