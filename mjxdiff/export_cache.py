@@ -598,30 +598,27 @@ def _module_files() -> dict[str, str]:
 
 
 @functools.cache
-def _ignored_roots() -> tuple[str, ...]:
-    """Directories whose code is left out of dependencies, their versions being in the key
-    (:func:`settings_digest`): jax, jaxlib, numpy and the standard library. Nothing else is: in
-    particular not the directories packages are installed in (``site-packages``), which a venv's
-    ``sysconfig`` "platstdlib" and a plain install's standard library both contain (:func:`_ignored`)."""
-    import sysconfig
-
+def _ignored_packages() -> tuple[str, ...]:
+    """Directories of the packages whose code is left out of dependencies, their versions being
+    in the key (:func:`settings_digest`): jax, jaxlib and numpy."""
     import jaxlib
 
-    roots = set()
+    dirs = []
     for m in (jax, jaxlib, np):
         assert m.__file__ is not None  # regular packages, not namespace ones
-        roots.add(os.path.dirname(m.__file__))
-    roots |= {sysconfig.get_path("stdlib"), os.path.dirname(os.__file__)}
-    return tuple(sorted(r.rstrip(os.sep) + os.sep for r in roots if r))
+        dirs.append(os.path.dirname(m.__file__).rstrip(os.sep) + os.sep)
+    return tuple(sorted(dirs))
 
 
 @functools.cache
-def _ignored_packages() -> tuple[str, ...]:
-    """The package directories among :func:`_ignored_roots` (jax, jaxlib, numpy)."""
-    import jaxlib
+def _stdlib_roots() -> tuple[str, ...]:
+    """The standard library's directories; not a venv's ``sysconfig`` "platstdlib", which holds
+    only ``site-packages``. In a plain install they hold ``site-packages`` too, which
+    :func:`_ignored` never leaves out."""
+    import sysconfig
 
-    return tuple(os.path.dirname(m.__file__).rstrip(os.sep) + os.sep for m in (jax, jaxlib, np)
-                 if m.__file__ is not None)
+    roots = {sysconfig.get_path("stdlib"), os.path.dirname(os.__file__)}
+    return tuple(sorted(r.rstrip(os.sep) + os.sep for r in roots if r))
 
 
 _INSTALLED = (f"{os.sep}site-packages{os.sep}", f"{os.sep}dist-packages{os.sep}")
@@ -634,7 +631,7 @@ def _ignored(file: str) -> bool:
     install) never is, so MJX edited where it is installed changes the key."""
     if file.startswith("<frozen ") or file == __file__ or file.startswith(_ignored_packages()):
         return True
-    return file.startswith(_ignored_roots()) and not any(part in file for part in _INSTALLED)
+    return file.startswith(_stdlib_roots()) and not any(part in file for part in _INSTALLED)
 
 
 def _is_flat(code: types.CodeType) -> bool:

@@ -914,15 +914,15 @@ def _truncation(result: ScenarioResult, m, floor: dict, found: dict, twin: dict 
         f = evidence["fields"][evidence["field"]]
         parts.append(f"one step as configured from C's states: MJX vs C {f['error']:.2g}, C vs its converged self "
                      f"{f['truncation']:.2g} ({evidence['field']})")
-    if bundled:
-        parts.append("the scenario's solver does not converge on this draw: a defect of the scenario, not of MJX "
-                     "(please report it with the seed)")
     first = dict(floor["first"], check="rollout") if floor.get("first") else result.first_divergence
     if not (twin and twin.get("status") == "pass"):  # without the twin's agreement, no excuse is proven
         parts[0] = parts[0].replace("solver truncation: ", "", 1)
         parts.append(f"the converged twin could not tell truncation from a bug: {(twin or {}).get('status', 'not run')}"
                      f" {(twin or {}).get('message', '')}".rstrip())
         return dataclasses.replace(result, status="fail", message="; ".join(parts), first_divergence=first)
+    if bundled:  # only where the twin proved the engines agree: then the scenario is at fault, not MJX
+        parts.append("the scenario's solver does not converge on this draw: a defect of the scenario, not of MJX "
+                     "(please report it with the seed)")
     diagnosis = dict(result.diagnosis, cause=dict(cause=TRUNCATION, ablation=None, tried=[],
                                                   evidence="; ".join(parts[1:])))
     return dataclasses.replace(result, status="fail", message="; ".join(parts),
