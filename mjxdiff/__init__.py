@@ -42,8 +42,11 @@ True
 """
 
 import importlib
+import time as _time
 
 __version__ = "0.1.0"
+#: perf_counter() when mjxdiff was first imported: the start of a run's "start-up" phase
+_IMPORTED_AT = _time.perf_counter()
 
 #: public name -> module that defines it
 _PUBLIC = {

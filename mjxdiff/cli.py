@@ -13,6 +13,7 @@ import dataclasses
 import json
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -686,13 +687,16 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
             print(f"ANOMALY {a['message']}", flush=True)
         if run.changes is not None:
             print(baseline.format_text(run.changes, args.baseline))
+    t = time.perf_counter()
     files = pipeline.write(run)
+    written = time.perf_counter() - t
     for warning in run.warnings:
         print(f"mjxdiff: warning: {warning}", file=sys.stderr)
     for kind, name in (("report", "report"), ("page", "page")):
         if kind in files:
             print(f"{name} written to {files[kind]}", file=sys.stderr)
     if text:
+        print(f"{report.format_timing(run.doc['timing'])}; writing {written:.1f} s", file=sys.stderr)
         print(report.format_text(run.results, args.threshold, run.seconds).splitlines()[-1])
     else:
         print(json.dumps(run.doc, indent=2))

@@ -28,6 +28,7 @@ import functools
 import io
 import os
 import threading
+import time
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -393,17 +394,24 @@ def put_models(models: tuple[mujoco.MjModel, ...]) -> tuple[mjx.Model, tuple[boo
 
 _COMPILES = export_cache.untraced({"count": 0, "seconds": 0.0, "xla": 0})
 # JAX's own timings of tracing, lowering and XLA compilation (a persistent-cache hit is
-# timed as the load that replaces compilation).
-_COMPILE_EVENTS = frozenset({"/jax/core/compile/jaxpr_trace_duration",
-                             "/jax/core/compile/jaxpr_to_mlir_module_duration",
-                             "/jax/core/compile/backend_compile_duration"})
+# timed as the load that replaces compilation), by the compile phase each counts in.
+_COMPILE_EVENTS = {"/jax/core/compile/jaxpr_trace_duration": "trace",
+                   "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+                   "/jax/core/compile/backend_compile_duration": "xla"}
+# the part of a backend compile that was a persistent-cache hit's load (timed inside it)
+_CACHE_RETRIEVAL = "/jax/compilation_cache/cache_retrieval_time_sec"
 
 
 def _on_duration(event: str, duration_secs: float, **_) -> None:
-    if event in _COMPILE_EVENTS:
+    kind = _COMPILE_EVENTS.get(event)
+    if kind is not None:
         _COMPILES["seconds"] += duration_secs
         export_cache.count("seconds", duration_secs)
-    if event == "/jax/core/compile/backend_compile_duration":
+        export_cache.count(kind, duration_secs)
+    elif event == _CACHE_RETRIEVAL:
+        export_cache.count("xla", -duration_secs)
+        export_cache.count("cache_load", duration_secs)
+    if kind == "xla":
         _COMPILES["xla"] += 1
 
 
@@ -486,18 +494,36 @@ def energy(mx: mjx.Model, dx: mjx.Data, qpos: jax.Array, qvel: jax.Array) -> jax
     return jnp.stack([pot, kin])
 
 
-def _scan_steps(mx, dx, ctrl, with_energy):
-    """One member: scan ``mjx.step`` over ``ctrl`` (T, nu) from ``dx``; returns (last dx, records)."""
+def _scan_steps(mx, dx, ctrl, with_energy, n=None):
+    """One member: scan ``mjx.step`` over ``ctrl`` (T, nu) from ``dx``; returns (last dx, records).
+
+    With ``n`` (a traced integer), only the first ``n`` steps are taken: the others leave ``dx`` as
+    it is (their records repeat it), so one compiled piece of T steps serves every horizon up to T
+    (the one-step check runs the sweep's own rollout with ``n = 1``, at the cost of one step)."""
+    def record(dx, energy_):
+        rec = dict(qpos=dx.qpos, qvel=dx.qvel, act=dx.act, sensordata=dx.sensordata,
+                   time=dx.time, ncon=_contact_count(dx))
+        if with_energy:
+            rec["energy"] = energy_
+        return rec
+
     def step(dx, u):
         qpos_before, qvel_before = dx.qpos, dx.qvel
         dx = mjx.step(mx, dx.replace(ctrl=u))
-        rec = dict(qpos=dx.qpos, qvel=dx.qvel, act=dx.act, sensordata=dx.sensordata,
-                   time=dx.time, ncon=_contact_count(dx))
-        if with_energy:  # dx's kinematics are those of the state before the step
-            rec["energy"] = energy(mx, dx, qpos_before, qvel_before)
-        return dx, rec
+        # dx's kinematics are those of the state before the step
+        return dx, record(dx, energy(mx, dx, qpos_before, qvel_before) if with_energy else None)
 
-    return jax.lax.scan(step, dx, ctrl)
+    if n is None:
+        return jax.lax.scan(step, dx, ctrl)
+
+    def skip(dx, u):
+        return dx, record(dx, jnp.zeros(2, dx.qpos.dtype) if with_energy else None)
+
+    def maybe(dx, xs):
+        u, i = xs
+        return jax.lax.cond(i < n, step, skip, dx, u)
+
+    return jax.lax.scan(maybe, dx, (ctrl, jnp.arange(ctrl.shape[0])))
 
 
 #: ``mjx.forward``, compiled: every stage of one state, for the drill-down.
@@ -527,16 +553,18 @@ def _split(fn, mesh: Mesh | None, mx, varying, batched: tuple[bool, ...]):
 
 
 @functools.partial(jax.jit, static_argnames=("varying", "with_energy", "mesh"))
-def _rollout(mx, dx, ctrl, varying, with_energy=False, mesh=None):
-    """B members stepped from their data ``dx`` (leaves (B, ...)) over ``ctrl`` (B, T, nu):
+def _rollout(mx, dx, ctrl, n, varying, with_energy=False, mesh=None):
+    """B members stepped from their data ``dx`` (leaves (B, ...)) over ``ctrl`` (B, T, nu), the
+    first ``n`` (an int32 scalar, at most T) steps of it (:func:`_scan_steps`):
     (last data, (B, T, ...) records)."""
     _traced()  # runs only while tracing
 
-    def batch(mx, dx, ctrl):
-        member = functools.partial(_scan_steps, with_energy=with_energy)
-        return jax.vmap(member, in_axes=(_model_axes(mx, varying), 0, 0))(mx, dx, ctrl)
+    def batch(mx, dx, ctrl, n):
+        def member(mx, dx, ctrl, n):
+            return _scan_steps(mx, dx, ctrl, with_energy, n)
+        return jax.vmap(member, in_axes=(_model_axes(mx, varying), 0, 0, None))(mx, dx, ctrl, n)
 
-    return _split(batch, mesh, mx, varying, (True, True))(mx, dx, ctrl)
+    return _split(batch, mesh, mx, varying, (True, True, False))(mx, dx, ctrl, n)
 
 
 @functools.partial(jax.jit, static_argnames=("varying", "mesh"))
@@ -721,15 +749,19 @@ class MJXEngine:
         if mesh is None:
             # committed, as _rollout's outputs are: the next piece's call then hits the same compiled function
             device = jax.devices("cpu")[0]
-            return mx, varying, dx0, lambda tree: jax.device_put(jax.tree.map(np.asarray, tree), device), None
+
+            def place_here(tree):
+                return jax.device_put(jax.tree.map(np.asarray, tree), device)
+            return mx, varying, dx0, place_here, None
         split, shared = NamedSharding(mesh, PartitionSpec("batch")), NamedSharding(mesh, PartitionSpec())
         mx = jax.device_put(mx, _per_leaf(mx, varying, split, shared))
 
         def place(tree):
-            leaves, treedef = jax.tree.flatten(jax.tree.map(lambda x: _pad(np.asarray(x), pad), tree))
+            leaves, treedef = jax.tree.flatten(jax.tree.map(
+                lambda x: _pad(np.asarray(x), pad) if np.ndim(x) else np.asarray(x), tree))
             # empty arrays come back from shard_map replicated: give them that sharding from the start,
             # or the next piece's call would lower and compile _rollout again
-            placed = jax.device_put(leaves, [split if x.size else shared for x in leaves])
+            placed = jax.device_put(leaves, [split if x.size and x.ndim else shared for x in leaves])
             return jax.tree.unflatten(treedef, placed)
 
         return mx, varying, dx0, place, mesh
@@ -740,9 +772,14 @@ class MJXEngine:
     def _bound(self, inputs: BatchedInputs, chunk: int):
         """The compiled piece function of :meth:`stream`, its first arguments, the placer and the
         padded controls: (run, (mx, dx, ctrl piece), place, ctrl)."""
+        t, compiled = time.perf_counter(), export_cache.so_far()
         (fn, args, static), place, ctrl = self.piece(inputs, chunk)
         steps = ctrl.shape[1]  # every piece runs the compiled function: the work it will do
         run = export_cache.bind(fn, args, static, xla_options(self.compile, steps), (self.compile, steps))
+        # the model and state put on the devices, the code and key digested: a compile phase, not stepping
+        prepared = time.perf_counter() - t - (export_cache.so_far() - compiled)
+        export_cache.count("seconds", prepared)
+        export_cache.count("prepare", prepared)
         return run, args, place, ctrl
 
     def piece(self, inputs: BatchedInputs, chunk: int):
@@ -756,7 +793,7 @@ class MJXEngine:
         dx = place(dx.replace(**{k: np.asarray(v, dtype) for k, v in state.items()}))
         ctrl = np.zeros((B, -(-T // chunk) * chunk, inputs.ctrl.shape[2]), dtype)
         ctrl[:, :T] = inputs.ctrl
-        args = (mx, dx, place(ctrl[:, :chunk]))
+        args = (mx, dx, *place((ctrl[:, :chunk], np.int32(min(chunk, T)))))
         return (_rollout, args, dict(varying=varying, with_energy=inputs.energy, mesh=mesh)), place, ctrl
 
     def compile_ahead(self, inputs: BatchedInputs, chunk: int) -> None:
@@ -766,14 +803,16 @@ class MJXEngine:
         with contextlib.suppress(Exception), _unsupported():
             self._bound(inputs, chunk)
 
-    def first_piece(self, inputs: BatchedInputs, chunk: int) -> Trajectory:
-        """The first ``min(chunk, steps)`` steps of :meth:`stream` of ``inputs``, and nothing after:
-        the compiled function of a stream of the same batch, horizon and piece length (a sweep's
-        own rollout), so it costs stepping, never a compile."""
+    def first_piece(self, inputs: BatchedInputs, chunk: int, steps: int | None = None) -> Trajectory:
+        """The first ``steps`` (default and at most ``min(chunk, inputs.steps)``) steps of
+        :meth:`stream` of ``inputs``, and nothing after: the compiled function of a stream of the
+        same batch, horizon and piece length (a sweep's own rollout), so it costs those steps'
+        stepping, never a compile."""
+        steps = min(chunk, inputs.steps, steps or chunk)
         with _unsupported():
-            run, args, _, _ = self._bound(inputs, chunk)
-            _, rec = run(*args)
-        return _host_piece(rec, inputs.batch, min(chunk, inputs.steps))
+            run, (mx, dx, ctrl, _), place, _ = self._bound(inputs, chunk)
+            _, rec = run(mx, dx, ctrl, place(np.int32(steps)))
+        return _host_piece(rec, inputs.batch, steps)
 
     def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
         """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
@@ -782,7 +821,8 @@ class MJXEngine:
         (solver warm start included), so the pieces concatenate to
         :meth:`rollout`'s result bit for bit; only one piece of records is
         held at a time. Every piece runs the same compiled function: the last
-        one is padded with zero controls and its extra records dropped.
+        one is padded with zero controls, steps only up to the horizon
+        (:func:`_scan_steps`' ``n``) and its extra records are dropped.
 
         This call prepares the model and data and dispatches the first piece
         (so errors of preparation, e.g. :class:`UnsupportedError`, are raised
@@ -803,7 +843,7 @@ class MJXEngine:
         def pieces(dx, rec):
             for start in range(chunk, T, chunk):
                 with _unsupported():  # dispatched, not awaited: it runs while the caller handles the last piece
-                    dx, following = run(mx, dx, place(ctrl[:, start:start + chunk]))
+                    dx, following = run(mx, dx, *place((ctrl[:, start:start + chunk], np.int32(min(chunk, T - start)))))
                 yield piece(rec, start - chunk)
                 rec = following
             yield piece(rec, (T - 1) // chunk * chunk)

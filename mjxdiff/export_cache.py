@@ -34,6 +34,7 @@ import os
 import pickle
 import sys
 import threading
+import time
 import types
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
@@ -59,10 +60,21 @@ _LOCAL = threading.local()
 
 
 def count(kind: str, amount: float = 1) -> None:
-    """Adds ``amount`` to this thread's open :func:`tally` (if any) under ``kind``."""
+    """Adds ``amount`` to this thread's open :func:`tally` (if any) under ``kind``, and to the
+    thread's running total (:func:`so_far`)."""
     ledger = getattr(_LOCAL, "tally", None)
     if ledger is not None:
         ledger[kind] = ledger.get(kind, 0) + amount
+    totals = getattr(_LOCAL, "totals", None)
+    if totals is None:
+        totals = _LOCAL.totals = {}
+    totals[kind] = totals.get(kind, 0) + amount
+
+
+def so_far(kind: str = "seconds") -> float:
+    """This thread's running total of ``kind`` (:func:`count`) since it started: a phase's
+    compile seconds are the difference of two readings, whatever tallies are open."""
+    return float(getattr(_LOCAL, "totals", {}).get(kind, 0))
 
 
 @contextlib.contextmanager
@@ -1303,7 +1315,12 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
     memo = key, code, repr(options_key)
     with _key_lock(memo):
         if memo not in _FUNCTIONS:
+            t = time.perf_counter()
             found = _load_matching(directory / key) if directory is not None else None
+            if found is not None:  # a compile phase: reading the artifact replaces the trace
+                t = time.perf_counter() - t
+                count("seconds", t)
+                count("cache_load", t)
             if found is None:
                 traced = _export(fn, treedef, leaves, static)
                 if traced is None:

@@ -121,7 +121,7 @@ def _through_rollout(inputs: BatchedInputs, configured: BatchedInputs, engine, r
     ctrl[:, 0] = np.asarray(configured.ctrl)[rows, 0]
     pairs = dataclasses.replace(base, qpos=np.asarray(configured.qpos)[rows], qvel=np.asarray(configured.qvel)[rows],
                                 act=np.asarray(configured.act)[rows], ctrl=ctrl)
-    return rows, _first_record(engine.first_piece(pairs, chunk))
+    return rows, _first_record(engine.first_piece(pairs, chunk, steps=1))
 
 
 def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine: Engine, c_engine: Engine,

@@ -299,6 +299,9 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
 
     ``on_result(result, known_entry)`` is called as each scenario's verdict arrives (the
     results of ``impl="both"``'s other pairs renamed ``NAME@warp``, ``NAME@mjx-warp``)."""
+    import mjxdiff
+
+    entered = _clocks()
     from mjxdiff import compat, engines, guard
     from mjxdiff.sweep import sweep
 
@@ -340,6 +343,7 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
              if shard is None or u.index % shard[1] == shard[0] - 1]
 
     t0 = time.perf_counter()
+    started = _clocks()
     cache_before = export_cache.events()
     done, book = _resumed(options, units)
     resumed = set(done)
@@ -367,6 +371,7 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
             writer.close()
     results = list(bad) + [done[i] for i in sorted(done)]
     seconds = time.perf_counter() - t0
+    swept = _clocks()
 
     doc = report.to_json(results, dict(options.as_config(), seconds=seconds, mjx_compiles=engines.compile_count()))
     doc["code"]["cache"] = cache = export_cache.events_since(cache_before)
@@ -376,7 +381,33 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
                      traced=sum(i.get("mjx_compiles", 0) for i in fresh), where="Ray's workers")
     if book is not None:
         doc["journal"] = book
-    return _finish(options, results, bad, seconds, doc, entries, base)
+    out = _finish(options, results, bad, seconds, doc, entries, base)
+    # start-up: the interpreter and the imports, once per process (a later run in it has none)
+    startup = (dict(wall=entered[0] - mjxdiff._IMPORTED_AT, cpu=entered[1])  # noqa: SLF001
+               if not _STARTED.get("done") else dict(wall=0.0, cpu=0.0))
+    _STARTED["done"] = True
+    process = dict(startup=startup, prepare=_between(entered, started), sweep=_between(started, swept),
+                   finish=_between(swept, _clocks()))
+    doc["timing"] = report.timing(doc["scenarios"], process)
+    return out
+
+
+_STARTED: dict[str, bool] = {}
+
+
+def _clocks() -> tuple[float, float]:
+    """(wall seconds, CPU seconds of this process and of its children waited for so far: a
+    guard's child process counts once it has ended)."""
+    try:
+        import resource
+    except ImportError:  # not on Windows: this process alone
+        return time.perf_counter(), time.process_time()
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.perf_counter(), own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def _between(a: tuple[float, float], b: tuple[float, float]) -> dict[str, float]:
+    return dict(wall=b[0] - a[0], cpu=b[1] - a[1])
 
 
 def _finish(options: SweepOptions, results: list[ScenarioResult], bad: list[ScenarioResult], seconds: float,

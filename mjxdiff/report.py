@@ -166,6 +166,65 @@ def format_cache(cache: dict[str, Any]) -> str:
     return line
 
 
+#: A scenario's phases, in the order it runs them: ``info['seconds']`` holds their wall seconds,
+#: which do not overlap (compiling is taken out of every other phase and counted in ``compile``),
+#: so they sum to the scenario's time. ``mjx`` and ``c`` are the rollouts' stepping and nothing
+#: else (the twin's and the solver floor's reruns count in their own phases).
+PHASES = {"inputs": "inputs", "compile": "compile", "mjx": "MJX stepping", "c": "C stepping",
+          "verdict": "verdict", "solver_floor": "solver floor", "diagnosis": "drill-down and ablations",
+          "onestep": "one-step check", "twin": "converged twin", "transfer": "host interface"}
+#: The parts of ``compile`` (``info['compile_seconds']``): MJX's model and initial state put on
+#: the devices with the cache key digested, JAX's trace and lowering, XLA's own compile, and
+#: loads from the caches (an artifact instead of a trace, XLA's persistent cache instead of a compile).
+COMPILE_PARTS = {"prepare": "model to device and key", "trace": "trace", "lower": "lowering",
+                 "xla": "XLA compile", "cache_load": "cache load"}
+#: ``info['cpu_seconds']``: the process's CPU seconds over a phase's windows, other threads' work
+#: and compiling included; the engines and the verdict run at once, so they share one window.
+CPU_WINDOWS = ("inputs", "stepping", "solver_floor", "diagnosis", "onestep", "twin", "transfer")
+
+
+def timing(scenarios: Sequence[dict[str, Any]], process: dict[str, dict[str, float]]) -> dict[str, Any]:
+    """Where a sweep's time went: ``process`` (wall and CPU seconds of the process-level phases:
+    ``startup`` (interpreter, imports), ``prepare`` (options, scenarios, keys), ``sweep`` (the
+    scenarios, a guard's child process included), ``finish``), and summed over ``scenarios``
+    (report.json's): ``phases`` (wall seconds, :data:`PHASES`), ``compile`` (:data:`COMPILE_PARTS`),
+    ``cpu`` (:data:`CPU_WINDOWS`); ``stepping`` = the summed ``mjx`` + ``c``, and ``ratio`` = the
+    process's wall seconds / ``stepping`` (1.0: the verdict cost what stepping the engines cost).
+    Scenarios that compiled ahead overlap: their summed phases may exceed the sweep's wall time."""
+    def total(key: str, names) -> dict[str, float]:
+        return {n: round(sum(float(((sc.get("info") or {}).get(key) or {}).get(n) or 0.0) for sc in scenarios), 3)
+                for n in names}
+
+    phases = total("seconds", PHASES)
+    wall = sum(p.get("wall", 0.0) for p in process.values())
+    cpu = sum(p.get("cpu", 0.0) for p in process.values())
+    stepping = phases["mjx"] + phases["c"]
+    return dict(process={k: {x: round(y, 3) for x, y in v.items()} for k, v in process.items()},
+                wall=round(wall, 3), cpu=round(cpu, 3), phases=phases,
+                compile=total("compile_seconds", COMPILE_PARTS), cpu_phases=total("cpu_seconds", CPU_WINDOWS),
+                stepping=round(stepping, 3), ratio=round(wall / stepping, 2) if stepping > 0 else None)
+
+
+def format_timing(t: dict[str, Any]) -> str:
+    """One line of :func:`timing`: the process's wall and CPU seconds, start-up, the scenarios'
+    phases summed (compile's parts in brackets; phases under 0.05 s left out, but never the
+    engines' stepping) and the ratio of wall time to the engines' own stepping."""
+    def part(names: dict[str, str], values: dict[str, float]) -> str:
+        return ", ".join(f"{label} {values[k]:.3g}" for k, label in names.items()
+                         if values.get(k, 0.0) >= 0.05 or k in ("mjx", "c"))
+
+    compile_ = part(COMPILE_PARTS, t["compile"])
+    phases = part(PHASES, t["phases"]).replace(f"compile {t['phases']['compile']:.3g}",
+                                               f"compile {t['phases']['compile']:.3g} [{compile_}]" if compile_
+                                               else f"compile {t['phases']['compile']:.3g}", 1)
+    start = t["process"].get("startup", {})
+    line = (f"time: {t['wall']:.0f} s wall, {t['cpu']:.0f} CPU-s; start-up {start.get('wall', 0.0):.1f} s; "
+            f"scenarios (s, summed): {phases or 'none ran'}")
+    if t.get("ratio") is not None:
+        line += f"; wall / engines' stepping {t['ratio']:.2g}x"
+    return line
+
+
 def envelope(kind: str, config: dict[str, Any], **body: Any) -> dict[str, Any]:
     """A JSON output of ``kind`` (:data:`KINDS`) in the one shape every output has: ``kind``,
     ``schema_version``, ``versions`` (:func:`versions`), ``code`` (digests of the MJX code

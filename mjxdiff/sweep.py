@@ -122,7 +122,7 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
     info: dict[str, Any] = dict(batch=batch, steps=steps, model=str(scenario.model),
                                 exercises=list(scenario.exercises), notes=scenario.notes)
     prepared = _Prepared(scenario, tol, info, config)
-    t0 = time.perf_counter()
+    t0, cpu0 = _now(), time.process_time()
     try:
         m = load_model(scenario)
     except ScenarioError as e:
@@ -149,7 +149,7 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
                                         info=info, tolerances=tol.as_dict())
         return prepared
     info.update(batch=batch, steps=steps, factors=sorted(inputs.factors),
-                seconds=dict(inputs=time.perf_counter() - t0))
+                seconds=dict(inputs=_now() - t0), cpu_seconds=dict(inputs=time.process_time() - cpu0))
     if scenario.randomize.values:
         info["set"] = {k: list(v) for k, v in sorted(scenario.randomize.values.items())}
     prepared.inputs = inputs
@@ -275,7 +275,7 @@ def _advised(result: ScenarioResult, advice: str | None) -> ScenarioResult:
 def _with_transfer(result: ScenarioResult, inputs: BatchedInputs, model_path, precision: Precision) -> ScenarioResult:
     """``result`` with :func:`mjxdiff.transfer.check_scenario_states` of member 0 in its ``info``
     and, when MJX's host interface disagrees with C, a failing ``transfer`` field."""
-    t = time.perf_counter()
+    t, cpu = _now(), time.process_time()
     try:
         with _precision(precision):
             found = transfer.check_scenario_states(inputs.models[0], inputs.qpos[0], inputs.qvel[0], inputs.act[0],
@@ -284,7 +284,8 @@ def _with_transfer(result: ScenarioResult, inputs: BatchedInputs, model_path, pr
         info = {**result.info, "transfer": dict(error=one_line(e))}
         return dataclasses.replace(result, info=info)
     info = {**result.info, "transfer": found.as_dict()}
-    info["seconds"] = {**info.get("seconds", {}), "transfer": time.perf_counter() - t}
+    info["seconds"] = {**info.get("seconds", {}), "transfer": _now() - t}
+    info["cpu_seconds"] = {**info.get("cpu_seconds", {}), "transfer": time.process_time() - cpu}
     if not found.mismatches:
         return dataclasses.replace(result, info=info)
     worst = max(found.mismatches, key=lambda x: x.error)
@@ -356,19 +357,39 @@ class _EngineFailed(Exception):
         self.engine = engine
 
 
+def _now() -> float:
+    """Wall seconds that stand still while this thread compiles (JAX's compile events and
+    artifact loads, :func:`export_cache.so_far`): the difference of two readings is a phase's
+    time without its compiling, which the scenario's ``compile`` phase counts."""
+    return time.perf_counter() - export_cache.so_far()
+
+
 @contextlib.contextmanager
-def _engine_call(engine: str, seconds: dict[str, float]):
-    """Wall time added to ``seconds[engine]``; a crash becomes :class:`_EngineFailed`
-    (MJX's :class:`UnsupportedError` passes through)."""
-    t = time.perf_counter()
+def _clock(seconds: dict[str, Any], key: str, cpu: dict[str, float] | None = None):
+    """Adds the block's wall seconds less its compiling (:func:`_now`) to ``seconds[key]``, so
+    that a scenario's phases do not overlap; with ``cpu``, adds the process's CPU seconds over
+    the block (compiling and other threads' work included) to ``cpu[key]``."""
+    t, used = _now(), time.process_time()
     try:
         yield
-    except UnsupportedError:
-        raise
-    except Exception as e:  # reported as this scenario's error, the sweep goes on
-        raise _EngineFailed(engine, e) from e
     finally:
-        seconds[engine] = seconds.get(engine, 0.0) + time.perf_counter() - t
+        seconds[key] = seconds.get(key, 0.0) + max(_now() - t, 0.0)
+        if cpu is not None:
+            cpu[key] = cpu.get(key, 0.0) + time.process_time() - used
+
+
+@contextlib.contextmanager
+def _engine_call(engine: str, seconds: dict[str, float]):
+    """Wall time of the stepping added to ``seconds[engine]`` (:func:`_clock`: a compile in it
+    is not stepping); a crash becomes :class:`_EngineFailed` (MJX's :class:`UnsupportedError`
+    passes through)."""
+    with _clock(seconds, engine):
+        try:
+            yield
+        except UnsupportedError:
+            raise
+        except Exception as e:  # reported as this scenario's error, the sweep goes on
+            raise _EngineFailed(engine, e) from e
 
 
 def _timed(stream: Callable[[], Iterable[Trajectory]], engine: str,
@@ -486,7 +507,7 @@ class _CPieces:
         """Restarts with the reruns; ``feed(reference, perturbed, converged, start)`` gets the
         pieces before step ``until``, and the next piece is the one starting there.
         Returns the seconds it took (C's time, mostly)."""
-        t = time.perf_counter()
+        t = _now()
         self.close()
         self._pieces, self.floor, start = self._open(True), True, 0
         while start < until:
@@ -494,7 +515,7 @@ class _CPieces:
             assert perturbed is not None  # opened with the floor just above
             feed(reference, perturbed, solved, start)
             start += reference.time.shape[1]
-        return time.perf_counter() - t
+        return _now() - t
 
     def close(self) -> None:
         self._pieces.close()
@@ -557,7 +578,7 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
                     raise BudgetSpent()
                 piece_c, piece_p, piece_s = next(c)
                 piece_ref = next(ref) if ref is not None else piece_c
-                t = time.perf_counter()
+                t = _now()
                 reference, simulated = _rows(piece_ref, n), _rows(piece_mjx, n)
                 series = judge.errors(reference, simulated)
                 if floor and not c.floor and judge.exceeds_tolerance(series):
@@ -568,12 +589,11 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
                 start += piece_c.time.shape[1]
                 if floor and not c.floor and judge.contacts_exceed_tolerance(members):
                     t += c.start_floor(start, feed)
-                seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
+                seconds["verdict"] = seconds.get("verdict", 0.0) + _now() - t
         done.append(idx)
-    t = time.perf_counter()
-    noise = floor if floor is not None and floor.fed.any() else None
-    result = judge.result(name, config.threshold, noise, solver_floor if noise is not None else None)
-    seconds["verdict"] = seconds.get("verdict", 0.0) + time.perf_counter() - t
+    with _clock(seconds, "verdict"):
+        noise = floor if floor is not None and floor.fed.any() else None
+        result = judge.result(name, config.threshold, noise, solver_floor if noise is not None else None)
     counts = dict(groups=len(groups), pieces=len(groups) * -(-T // chunk), xla=engines.last_choice(),
                   noise_floor_members=int(floor.fed.sum()) if floor is not None else 0)
     return result, counts
@@ -597,6 +617,7 @@ def run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Swe
     ahead = ahead or {}
     info = result.info
     info["seconds"]["compile"] = work.get("seconds", 0.0) + ahead.get("seconds", 0.0)
+    info["compile_seconds"] = {k: work.get(k, 0.0) + ahead.get(k, 0.0) for k in report.COMPILE_PARTS}
     if ahead:
         info["seconds"]["compiled_ahead"] = ahead.get("wall", 0.0)
     if result.status != "error" or result.error_kind != "input":
@@ -615,9 +636,11 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     under_test, c_engine = under_test or simulator(config), c_engine or CEngine()
     info["impl"] = under_test.name
     clock: dict[str, Any] = {}  # seconds per engine and for the verdict, and how far the stepping got
+    cpu = info.setdefault("cpu_seconds", {})
     t0 = time.monotonic()
     try:
-        result, counts = _verdict(name, m, inputs, tol, config, under_test, c_engine, clock)
+        with _clock({}, "stepping", cpu):  # the engines and the verdict run at once: one CPU window
+            result, counts = _verdict(name, m, inputs, tol, config, under_test, c_engine, clock)
     except UnsupportedError as e:
         return ScenarioResult(status="unsupported", message=f"MJX does not support: {e.feature}", **base)
     except _EngineFailed as e:
@@ -631,19 +654,19 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     # a rerun costs what this verdict took (measured, whatever the machine's load) and a compile
     _SCENARIO.rerun_s = max(getattr(_SCENARIO, "rerun_s", 0.0),
                             time.monotonic() - t0 + info.get("estimate", {}).get("compile_s", 0.0))
+    seconds.update(c=clock.get("c", 0.0), mjx=clock.get("mjx", 0.0), verdict=clock.get("verdict", 0.0))
     _phase("verdict", result=dataclasses.replace(result, info=dict(info)))  # the guard keeps it, should a check overrun
-    t = time.perf_counter()
     traj_c = drill = None
     if result.status == "fail" and config.envelope and has_constraints(m) and not any(
             d["engine"] == "mjx" for d in result.diverged_members):
-        result, traj_c, drill, info["solver_floor"] = _solver_floor(result, m, inputs, tol, config, under_test,
-                                                                     c_engine, clock)
+        with _clock(seconds, "solver_floor", cpu):
+            result, traj_c, drill, info["solver_floor"] = _solver_floor(result, m, inputs, tol, config,
+                                                                         under_test, c_engine, {})
     if result.status == "fail" and config.diagnose != "none":
-        result = _diagnose(result, m, inputs, tol, config, under_test, c_engine, traj_c, drill)
+        with _clock(seconds, "diagnosis", cpu):
+            result = _diagnose(result, m, inputs, tol, config, under_test, c_engine, traj_c, drill)
     if config.reference == "c" and result.status in ("pass", "fail"):
-        result = _sharp(result, m, inputs, tol, config, under_test, c_engine, traj_c, clock, info, bundled)
-    seconds.update(c=clock.get("c", 0.0), mjx=clock.get("mjx", 0.0), verdict=clock.get("verdict", 0.0),
-                   diagnosis=time.perf_counter() - t)
+        result = _sharp(result, m, inputs, tol, config, under_test, c_engine, traj_c, info, bundled)
     if counts.get("xla") is not None:
         info["xla"] = counts.pop("xla")
     info.update(mjx_code=export_cache.code_digest(),
@@ -741,7 +764,7 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
 
 def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
            under_test: Engine, c_engine: CEngine, traj_c: Trajectory | None,
-           clock: dict[str, float], info: dict, bundled: bool = False) -> ScenarioResult:
+           info: dict, bundled: bool = False) -> ScenarioResult:
     """The checks that stay sharp where the rollout's verdict cannot: the one-step check
     (:func:`_onestep`, with ``config.onestep``), then, where the rollout's pass was held only by
     the solver floor, or was weak on a model whose solver settings the one-step check found not
@@ -754,13 +777,15 @@ def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, co
     found: dict = {}
     if config.onestep:
         _phase("one-step check")
-        result, found, traj_c = _onestep(result, m, inputs, tol, config, under_test, c_engine, traj_c,
-                                         evidence=excused or bool(result.weak))
+        with _clock(info["seconds"], "onestep", info["cpu_seconds"]):
+            result, found, traj_c = _onestep(result, m, inputs, tol, config, under_test, c_engine, traj_c,
+                                             evidence=excused or bool(result.weak))
         info["onestep"] = found
     converged_ = found.get("solver", {}).get("converged", True)
     twin = None
     if result.status == "pass" and (excused or (result.weak and not converged_)):
-        result, info["twin"] = _twin(result, m, inputs, tol, config, under_test, c_engine, clock)
+        with _clock(info["seconds"], "twin", info["cpu_seconds"]):
+            result, info["twin"] = _twin(result, m, inputs, tol, config, under_test, c_engine, {})
         twin = info["twin"]
     if result.status == "pass" and excused:
         result = _truncation(result, m, info["solver_floor"], found, twin, bundled=bundled)

@@ -14,7 +14,8 @@ from tests.conftest import REPORT_SCENARIOS
 #: compiled or loaded (the second run reuses the first's) and the cost model's estimates (it
 #: learns from each compile).
 _VOLATILE_CONFIG = {"seconds", "mjx_compiles", "out", "history"}
-_VOLATILE = {"seconds", "compile_seconds", "reproducer", "memory", "mjx_loaded", "mjx_compiles", "estimate", "xla"}
+_VOLATILE = {"seconds", "compile_seconds", "cpu_seconds", "reproducer", "memory", "mjx_loaded", "mjx_compiles",
+             "estimate", "xla"}
 
 
 def _scenario(s: dict) -> dict:

@@ -199,3 +199,26 @@ def test_scenarios_side_by_side_judge_as_one_after_another_each_in_its_own_preci
         assert a.status == b.status == "pass", (a.name, a.message)
         assert [f.max_error for f in a.fields] == [f.max_error for f in b.fields], a.name
         assert a.tolerances == b.tolerances and a.tolerances["qpos"] > 1e-5, "float32 tolerances"
+
+
+def test_a_scenarios_phases_do_not_overlap_and_stepping_is_only_stepping(fresh_mjx):
+    """The rollout is compiled (or loaded) inside MJX's first call: that time is ``compile``'s, not
+    ``mjx``'s, so ``mjx + c`` is the engines' own stepping; the phases sum to no more than the
+    scenario's wall time, and the report's table sums them per phase."""
+    from mjxdiff import report
+    from mjxdiff.sweep import run_scenario
+
+    t = time.perf_counter()
+    r = run_scenario(load_scenario("pendulum"), SweepConfig(batch=4, steps=50))
+    wall = time.perf_counter() - t
+    seconds = r.info["seconds"]
+    assert r.status == "pass" and set(seconds) <= set(report.PHASES), seconds
+    assert min(seconds.values()) >= 0.0 and sum(seconds.values()) <= wall, (seconds, wall)
+    assert seconds["compile"] > 10 * seconds["mjx"] > 0, seconds  # 4 members x 50 steps of a pendulum: ms
+    assert sum(r.info["compile_seconds"].values()) == pytest.approx(seconds["compile"], abs=1e-6)
+    assert {"stepping", "onestep", "transfer"} <= set(r.info["cpu_seconds"]), r.info["cpu_seconds"]
+    table = report.timing([report.result_dict(r)], dict(sweep=dict(wall=wall, cpu=wall)))
+    assert table["stepping"] == pytest.approx(seconds["mjx"] + seconds["c"], abs=1e-3)
+    assert table["ratio"] == pytest.approx(wall / table["stepping"], rel=0.01)
+    line = report.format_timing(table)
+    assert line.startswith(f"time: {wall:.0f} s wall") and "MJX stepping" in line and "compile" in line, line
