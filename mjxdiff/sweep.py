@@ -1085,6 +1085,12 @@ def release_compiled_if_crowded(budget: float = MAP_BUDGET) -> bool:
     return True
 
 
+def _holding(engine: Engine):
+    """``engine.holding()`` (one prepared, compiled piece per model set within a scenario) where
+    the engine has it (MJX), else nothing."""
+    return engine.holding() if isinstance(engine, MJXEngine) else contextlib.nullcontext()
+
+
 def default_compile_workers() -> int:
     """Scenario workers of a sweep: one per core (XLA compiles a module, and steps a rollout,
     on about one core), at most :data:`MAX_COMPILE_WORKERS` (each compile holds up to ~1 GiB)."""
@@ -1127,7 +1133,7 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
 
     def run(i: int, scenario: Scenario) -> ScenarioResult:
         hook = functools.partial(on_event, i) if on_event is not None else None
-        with _precision(config.precision), _running(config, hook):
+        with _precision(config.precision), _running(config, hook), _holding(under_test):
             _phase("preparing")
             prepared = _compile_ahead(scenario, config, under_test) if pool is not None else _prepare(scenario, config)
             result = _finish(prepared, under_test, c_engine)

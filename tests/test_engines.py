@@ -197,3 +197,30 @@ def test_c_members_do_not_depend_on_their_batch_neighbours():
     for part, rows in ((CEngine().rollout(inputs), slice(0, 3)), (CEngine().rollout(moved), slice(3, 6))):
         for field in ("qpos", "qvel", "act", "sensordata", "time", "ncon", "diverged_at"):
             np.testing.assert_array_equal(getattr(both, field)[rows], getattr(part, field), err_msg=field)
+
+
+def test_a_held_piece_is_bound_once_and_steps_as_a_fresh_one(monkeypatch):
+    """Within ``holding()``, the stream and the one-step check's first piece of the same models
+    share one bind (the code digested and the models put on the devices once); outside it every
+    call binds afresh. Either way the records are the same, and ``first_piece(steps=1)`` is the
+    stream's first step."""
+    from mjxdiff import export_cache
+
+    scenario = load_scenario("cartpole")
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, seed=0, batch=2, steps=30)
+    engine = MJXEngine()
+    binds = []
+    bind = export_cache.bind
+    monkeypatch.setattr(export_cache, "bind", lambda *a, **k: binds.append(1) or bind(*a, **k))
+    fresh = np.concatenate([p.qpos for p in engine.stream(inputs, 10)], axis=1)
+    assert len(binds) == 1
+    with engine.holding():
+        held = np.concatenate([p.qpos for p in engine.stream(inputs, 10)], axis=1)
+        first = engine.first_piece(inputs, 10, steps=1)
+    assert len(binds) == 2, "the held stream bound once, its first piece reused it"
+    np.testing.assert_array_equal(held, fresh)
+    assert first.qpos.shape == (2, 1, m.nq)
+    np.testing.assert_array_equal(first.qpos[:, 0], fresh[:, 0])
+    engine.first_piece(inputs, 10, steps=1)
+    assert len(binds) == 3, "outside the block: bound afresh"
