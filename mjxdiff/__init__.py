@@ -10,7 +10,8 @@ Code map, by stage (data flows down):
   ``mjwarp`` (MuJoCo Warp), ``export_cache`` (compiled MJX rollouts across processes),
   ``compat`` (every difference between the supported MuJoCo/MJX/JAX releases).
 - Comparison: ``metrics`` (errors and behaviour statistics in jax.numpy), ``noise`` (C's own
-  rounding envelope), ``verdict`` (trajectories -> a verdict per scenario), ``onestep`` (one
+  rounding envelope), ``verdict`` (trajectories -> a verdict per scenario; its data, without
+  JAX, in ``result``), ``onestep`` (one
   step from C's states), ``transfer`` (MJX's host interface), ``diagnose`` (drill-down, causes),
   ``segments`` (MJX's regularized capsule contacts, in NumPy).
 - Running: ``sweep`` (scenarios end to end), ``guard`` (a sweep in a watched child process),

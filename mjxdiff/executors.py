@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from mjxdiff.errors import one_line
-from mjxdiff.verdict import ScenarioResult
+from mjxdiff.result import ScenarioResult
 
 __all__ = ["EXECUTORS", "MAX_SHIPPED_BYTES", "RETRIES", "Payload", "payload", "ray_missing", "ray_sweep",
            "run_payload"]

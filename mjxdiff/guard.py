@@ -42,7 +42,7 @@ import time
 from typing import Callable, Sequence
 
 from mjxdiff.scenario import Scenario
-from mjxdiff.verdict import ScenarioResult
+from mjxdiff.result import ScenarioResult
 
 __all__ = ["Limits", "sweep", "default_memory", "parse_size"]
 

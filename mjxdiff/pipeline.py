@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import Any, Callable, Literal, Sequence
 
 from mjxdiff.errors import one_line
-from mjxdiff import baseline, export_cache, journal, known, report
-from mjxdiff.verdict import ScenarioResult
+from mjxdiff import baseline, journal, known, report
+from mjxdiff.result import ScenarioResult
 
 __all__ = ["OptionsError", "SweepOptions", "SweepRun", "Unit", "compute", "merge", "run", "write"]
 
@@ -189,7 +189,7 @@ def _units(config, scenarios: list, impl: str, journaled: bool) -> list[Unit]:
     """The canonical unit list, keyed where a journal is written or read."""
     units = []
     if journaled:
-        from mjxdiff import compat
+        from mjxdiff import compat, export_cache
 
         mjx, own, versions = export_cache.code_digest(), journal.mjxdiff_digest(), compat.installed()
         digests = [journal.scenario_digest(s) for s in scenarios]
@@ -302,8 +302,7 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
     import mjxdiff
 
     entered = _clocks()
-    from mjxdiff import compat, engines, guard
-    from mjxdiff.sweep import sweep
+    from mjxdiff import compat
 
     why = compat.gate(options.allow_untested_versions)
     if why:
@@ -335,10 +334,15 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
     if options.resume and not (Path(options.resume) / journal.FILE).is_file():
         raise OptionsError(f"--resume {options.resume}: no {journal.FILE} there (a sweep run with --out "
                            f"{options.resume} writes one)")
+    scenarios, bad = _scenarios(options)
+    if bad and not scenarios and not options.resume:  # nothing to run: said in a second, MJX never imported
+        raise OptionsError("; ".join(r.message for r in bad))
+    from mjxdiff import engines, export_cache, guard  # JAX and MJX: imported once there is something to run
+    from mjxdiff.sweep import sweep
+
     engines.configure_jax(options.precision, options.cache_dir)
     config = sweep_config(options)
     limits = guard.Limits(options.max_memory or guard.default_memory(), options.budget, options.sweep_budget)
-    scenarios, bad = _scenarios(options)
     units = [u for u in _units(config, scenarios, options.impl, journaled=bool(options.out or options.resume))
              if shard is None or u.index % shard[1] == shard[0] - 1]
 

@@ -19,7 +19,7 @@ from typing import Any, Sequence
 
 from mjxdiff.errors import one_line
 from mjxdiff.files import atomic_write
-from mjxdiff.verdict import TRUNCATION, WEAK_BOUND, FieldResult, ScenarioResult
+from mjxdiff.result import TRUNCATION, WEAK_BOUND, FieldResult, ScenarioResult
 
 __all__ = ["ENVELOPE", "KINDS", "SCHEMA_VERSION", "code", "envelope", "summary", "to_json", "format_text",
            "validate", "write_report", "write_pending", "versions", "safe_filename", "path_under"]

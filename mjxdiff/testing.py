@@ -20,7 +20,7 @@ import mujoco
 
 from mjxdiff.inputs import BatchedInputs
 from mjxdiff.scenario import Tolerances
-from mjxdiff.verdict import ScenarioResult
+from mjxdiff.result import ScenarioResult
 
 __all__ = ["assert_mjx_matches_c", "compare", "MJXMismatch"]
 

@@ -38,6 +38,16 @@ def test_bad_flags_exit_2_with_one_line(args, message):
     assert "Traceback" not in proc.stderr
 
 
+def test_a_sweep_of_nothing_but_bad_scenarios_is_one_line_without_jax_or_mjx():
+    """Every named scenario unreadable: exit 2 with one line naming each, before JAX or MJX is
+    imported (the same check in a sweep with a good scenario beside reports them and runs it)."""
+    code = ("import sys; from mjxdiff.cli import main; rc = main(['sweep', 'pendulm', '/no/such.xml']); "
+            "print([m for m in ('jax', 'mujoco.mjx') if m in sys.modules]); sys.exit(rc)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 2 and proc.stdout.strip() == "[]", proc.stdout + proc.stderr
+    assert proc.stderr.count("\n") == 1 and "did you mean 'pendulum'" in proc.stderr and "/no/such.xml" in proc.stderr
+
+
 def test_help_teaches_statuses_and_exit_codes():
     proc = _run("sweep", "--help")
     assert proc.returncode == 0
