@@ -27,7 +27,8 @@ class SweepConfig:
       batch: overrides each scenario's batch size when set.
       steps: overrides each scenario's horizon when set.
       precision: ``float64`` or ``float32`` (MJX side; C is always float64).
-      quick: a smoke run: batch <= 4 and steps <= 50.
+      quick: a smoke run: batch <= 4 and steps <= 50, without the converged twin and the
+        diagnosis's ablations (each a compile of its own; the verdict says what was skipped).
       threshold: least fraction of batch members within tolerance for a scenario to pass.
       envelope: judge against the chaos envelope from C's self-divergence
         (:mod:`mjxdiff.noise`); False holds errors to the fixed tolerances only.

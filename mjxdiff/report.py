@@ -364,6 +364,8 @@ def format_checks(info: dict[str, Any]) -> str:
         parts.append(f"converged twin {twin['status']}: {w['field']} {_num(w['ratio']):.2g} of its bound"
                      + (f" (bound {scale[1]:.1g} of the field's scale)" if scale else "")
                      + (f", weak: {', '.join(twin['weak'])}" if twin.get("weak") else ""))
+    elif twin and twin.get("status") == "skipped":
+        parts.append(twin.get("message", "converged twin not run"))
     elif twin:
         parts.append(f"converged twin {twin.get('status')}: {twin.get('message', '')}")
     host = info.get("transfer")

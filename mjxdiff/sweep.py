@@ -783,7 +783,10 @@ def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, co
         info["onestep"] = found
     converged_ = found.get("solver", {}).get("converged", True)
     twin = None
-    if result.status == "pass" and (excused or (result.weak and not converged_)):
+    if result.status == "pass" and (excused or (result.weak and not converged_)) and config.quick:
+        info["twin"] = twin = dict(status="skipped", message=QUICK_SKIPS["twin"])
+        result = dataclasses.replace(result, message=f"{result.message}; {QUICK_SKIPS['twin']}")
+    elif result.status == "pass" and (excused or (result.weak and not converged_)):
         with _clock(info["seconds"], "twin", info["cpu_seconds"]):
             result, info["twin"] = _twin(result, m, inputs, tol, config, under_test, c_engine, {})
         twin = info["twin"]
@@ -905,6 +908,15 @@ def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, con
                                                             f"({result.message})", first_divergence=first), found
 
 
+#: What ``--quick`` leaves out, each a compile of its own, as the verdict's line says it.
+QUICK_SKIPS = {
+    "twin": "converged twin not run (--quick: a compile of its own); without --quick it tells solver truncation "
+            "from a bug",
+    "ablations": "likely cause not sought (--quick: each ablation compiles and steps again); without --quick the "
+                 "ablations name it",
+}
+
+
 def _solver_settings(m) -> str:
     """``CG, 200 iteration(s), 50 line-search steps, tolerance 1e-12``: the model's solver as MJCF names it."""
     solver = mujoco.mjtSolver(m.opt.solver).name.removeprefix("mjSOL_")
@@ -942,7 +954,8 @@ def _truncation(result: ScenarioResult, m, floor: dict, found: dict, twin: dict 
     first = dict(floor["first"], check="rollout") if floor.get("first") else result.first_divergence
     if not (twin and twin.get("status") == "pass"):  # without the twin's agreement, no excuse is proven
         parts[0] = parts[0].replace("solver truncation: ", "", 1)
-        parts.append(f"the converged twin could not tell truncation from a bug: {(twin or {}).get('status', 'not run')}"
+        parts.append(twin["message"] if (twin or {}).get("status") == "skipped" else
+                     f"the converged twin could not tell truncation from a bug: {(twin or {}).get('status', 'not run')}"
                      f" {(twin or {}).get('message', '')}".rstrip())
         return dataclasses.replace(result, status="fail", message="; ".join(parts), first_divergence=first)
     if bundled:  # only where the twin proved the engines agree: then the scenario is at fault, not MJX
@@ -997,7 +1010,9 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
         else:
             message += "; every stage agrees at that state (an accumulation of small differences)"
         diagnosis["drill_down"] = dataclasses.asdict(drill)
-    if config.diagnose == "full":
+    if config.diagnose == "full" and config.quick:
+        notes.append(QUICK_SKIPS["ablations"])
+    elif config.diagnose == "full":
         _phase("diagnosing")
 
         def passes(ablated: BatchedInputs, precision: Precision) -> bool:

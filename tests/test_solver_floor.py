@@ -3,6 +3,7 @@ own freedom under the model's solver settings (C against C with a converged solv
 amplifying where a loose solver stopped is a solver truncation (a known, accepted failure whose
 converged twin passes), never a pass; a constraint MJX gets wrong still fails."""
 
+import dataclasses
 import json
 
 
@@ -56,6 +57,10 @@ def test_a_loose_solver_is_a_solver_truncation_not_a_pass(tmp_path):
     assert "with a converged solver they agree (twin: worst" in result.message
     assert result.first_divergence["check"] == "rollout" and result.first_divergence["step"] >= 0
     assert known.match(report.result_dict(result)).id == "solver-truncation"
+    quick = run_scenario(scenario, dataclasses.replace(CONFIG, quick=True))
+    assert quick.status == "fail" and quick.info["twin"]["status"] == "skipped", quick.message
+    assert "converged twin not run (--quick" in quick.message and "seconds" not in quick.info["twin"]
+    assert quick.diagnosis.get("cause", {}).get("cause") != TRUNCATION, "unproven without the twin"
 
 
 #: The constraint solver's force comes out 1% too large (and the acceleration follows it).
