@@ -495,11 +495,12 @@ def energy(mx: mjx.Model, dx: mjx.Data, qpos: jax.Array, qvel: jax.Array) -> jax
 
 
 def _scan_steps(mx, dx, ctrl, with_energy, n=None):
-    """One member: scan ``mjx.step`` over ``ctrl`` (T, nu) from ``dx``; returns (last dx, records).
+    """One member: ``mjx.step`` over ``ctrl`` (T, nu) from ``dx``; returns (last dx, (T, ...) records).
 
-    With ``n`` (a traced integer), only the first ``n`` steps are taken: the others leave ``dx`` as
-    it is (their records repeat it), so one compiled piece of T steps serves every horizon up to T
-    (the one-step check runs the sweep's own rollout with ``n = 1``, at the cost of one step)."""
+    With ``n`` (a traced integer, at most T), only the first ``n`` steps are taken (a loop with
+    a run-time trip count: ``mjx.step`` is traced once, and steps past ``n`` cost nothing; their
+    records are zeros), so one compiled piece of T steps serves every horizon up to T: the
+    one-step check runs the sweep's own rollout with ``n = 1``."""
     def record(dx, energy_):
         rec = dict(qpos=dx.qpos, qvel=dx.qvel, act=dx.act, sensordata=dx.sensordata,
                    time=dx.time, ncon=_contact_count(dx))
@@ -516,14 +517,14 @@ def _scan_steps(mx, dx, ctrl, with_energy, n=None):
     if n is None:
         return jax.lax.scan(step, dx, ctrl)
 
-    def skip(dx, u):
-        return dx, record(dx, jnp.zeros(2, dx.qpos.dtype) if with_energy else None)
+    def body(i, carry):
+        dx, records = carry
+        dx, rec = step(dx, ctrl[i])
+        return dx, jax.tree.map(lambda buffer, x: buffer.at[i].set(x), records, rec)
 
-    def maybe(dx, xs):
-        u, i = xs
-        return jax.lax.cond(i < n, step, skip, dx, u)
-
-    return jax.lax.scan(maybe, dx, (ctrl, jnp.arange(ctrl.shape[0])))
+    empty = jax.tree.map(lambda x: jnp.zeros((ctrl.shape[0], *jnp.shape(x)), jnp.result_type(x)),
+                         record(dx, jnp.zeros(2, dx.qpos.dtype)))
+    return jax.lax.fori_loop(0, n, body, (dx, empty))
 
 
 #: ``mjx.forward``, compiled: every stage of one state, for the drill-down.
