@@ -954,9 +954,10 @@ def _truncation(result: ScenarioResult, m, floor: dict, found: dict, twin: dict 
     first = dict(floor["first"], check="rollout") if floor.get("first") else result.first_divergence
     if not (twin and twin.get("status") == "pass"):  # without the twin's agreement, no excuse is proven
         parts[0] = parts[0].replace("solver truncation: ", "", 1)
-        parts.append(twin["message"] if (twin or {}).get("status") == "skipped" else
-                     f"the converged twin could not tell truncation from a bug: {(twin or {}).get('status', 'not run')}"
-                     f" {(twin or {}).get('message', '')}".rstrip())
+        said = twin or {}
+        parts.append(said["message"] if said.get("status") == "skipped" else
+                     f"the converged twin could not tell truncation from a bug: {said.get('status', 'not run')}"
+                     f" {said.get('message', '')}".rstrip())
         return dataclasses.replace(result, status="fail", message="; ".join(parts), first_divergence=first)
     if bundled:  # only where the twin proved the engines agree: then the scenario is at fault, not MJX
         parts.append("the scenario's solver does not converge on this draw: a defect of the scenario, not of MJX "
