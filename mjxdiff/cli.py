@@ -198,10 +198,58 @@ batch. MJXDIFF_DEVICES=N (in the environment) sets the number of devices."""
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse with a one-line error and exit code 2, no usage dump."""
+    """argparse with a one-line error and exit code 2, no usage dump; a mistyped flag gets the
+    flag it most likely meant."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
+        if message.startswith("unrecognized arguments: "):
+            message += _did_you_mean(message.removeprefix("unrecognized arguments: ").split(), self._flags())
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+    def _flags(self) -> list[str]:
+        """Every option string of this parser and of its commands' parsers."""
+        # argparse keeps no public list of a parser's actions
+        flags = [o for a in self._actions for o in a.option_strings]
+        for action in self._actions:
+            if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
+                flags += [o for p in action.choices.values() for a in p._actions  # noqa: SLF001
+                          for o in a.option_strings]
+        return sorted(set(flags))
+
+
+def _did_you_mean(given: list[str], flags: list[str]) -> str:
+    """``"; did you mean --quick?"`` for the first unrecognized flag close to a known one, else ''."""
+    import difflib
+
+    for word in given:
+        if word.startswith("--"):
+            close = difflib.get_close_matches(word.split("=")[0], flags, n=1, cutoff=0.7)
+            if close:
+                return f"; did you mean {close[0]}?"
+    return ""
+
+
+class _Version(argparse.Action):
+    """``--version``: mjxdiff's version and those of the MuJoCo, MJX and JAX installed (read from
+    the installed packages' metadata: nothing is imported)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, help="print mjxdiff's, MuJoCo's, MJX's and JAX's versions")
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from importlib import metadata
+
+        from mjxdiff import __version__
+
+        def version(dist: str) -> str:
+            try:
+                return metadata.version(dist)
+            except metadata.PackageNotFoundError:
+                return "not installed"
+
+        print(f"mjxdiff {__version__}; " + ", ".join(
+            f"{dist} {version(dist)}" for dist in ("mujoco", "mujoco-mjx", "jax", "jaxlib")))
+        parser.exit(0)
 
 
 def _integer(text: str, least: int, kind: str) -> int:
@@ -279,6 +327,7 @@ def _shared(p: argparse.ArgumentParser, *dests: str, **helps: str) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mjxdiff", description=_DESCRIPTION,
                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action=_Version)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     for add, handler in _COMMANDS:

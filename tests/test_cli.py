@@ -21,7 +21,8 @@ def _run(*args):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["sweep", "--bogus"], "unrecognized arguments: --bogus"),
+    (["sweep", "--bogus"], "unrecognized arguments: --bogus (see"),
+    (["sweep", "--quik"], "unrecognized arguments: --quik; did you mean --quick?"),
     (["sweep", "--batch", "0"], "expected a positive integer"),
     (["sweep", "--precision", "float16"], "invalid choice"),
     (["sweep", "--noise-floor", "sometimes"], "invalid choice"),
@@ -46,6 +47,15 @@ def test_a_sweep_of_nothing_but_bad_scenarios_is_one_line_without_jax_or_mjx():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 2 and proc.stdout.strip() == "[]", proc.stdout + proc.stderr
     assert proc.stderr.count("\n") == 1 and "did you mean 'pendulum'" in proc.stderr and "/no/such.xml" in proc.stderr
+
+
+def test_version_names_mjxdiff_and_the_engines_it_would_test():
+    from importlib import metadata
+
+    proc = _run("--version")
+    assert proc.returncode == 0 and proc.stdout.count("\n") == 1, proc.stdout + proc.stderr
+    assert proc.stdout.startswith("mjxdiff ") and f"mujoco-mjx {metadata.version('mujoco-mjx')}" in proc.stdout
+    assert f"jax {metadata.version('jax')}" in proc.stdout
 
 
 def test_help_teaches_statuses_and_exit_codes():
