@@ -234,7 +234,8 @@ class _Version(argparse.Action):
     the installed packages' metadata: nothing is imported)."""
 
     def __init__(self, option_strings, dest, **kwargs):
-        super().__init__(option_strings, dest, nargs=0, help="print mjxdiff's, MuJoCo's, MJX's and JAX's versions")
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS,
+                         help="print mjxdiff's, MuJoCo's, MJX's and JAX's versions")
 
     def __call__(self, parser, namespace, values, option_string=None):
         from importlib import metadata
