@@ -28,7 +28,6 @@ import functools
 import io
 import os
 import threading
-import time
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -751,10 +750,7 @@ class MJXEngine:
         if mesh is None:
             # committed, as _rollout's outputs are: the next piece's call then hits the same compiled function
             device = jax.devices("cpu")[0]
-
-            def place_here(tree):
-                return jax.device_put(jax.tree.map(np.asarray, tree), device)
-            return mx, varying, dx0, place_here, None
+            return mx, varying, dx0, lambda tree: jax.device_put(jax.tree.map(np.asarray, tree), device), None
         split, shared = NamedSharding(mesh, PartitionSpec("batch")), NamedSharding(mesh, PartitionSpec())
         mx = jax.device_put(mx, _per_leaf(mx, varying, split, shared))
 
@@ -788,7 +784,7 @@ class MJXEngine:
     def _bound(self, inputs: BatchedInputs, chunk: int):
         """The compiled piece function of :meth:`stream`, its first arguments, the placer and the
         padded controls: (run, (mx, dx, ctrl piece, steps), place, ctrl)."""
-        t, compiled = time.perf_counter(), export_cache.so_far()
+        t = export_cache.clock()
         T = -(-inputs.steps // chunk) * chunk  # every piece runs the compiled function: the work it will do
         held = getattr(_HELD, "pieces", None)
         key = (id(self), tuple(map(id, inputs.models)), inputs.batch, chunk, T, inputs.energy)
@@ -802,7 +798,7 @@ class MJXEngine:
             if held is not None:
                 held[key] = inputs.models, run, prepared  # the models kept: their ids stay theirs
         # the model and state put on the devices, the code and key digested: a compile phase, not stepping
-        spent = time.perf_counter() - t - (export_cache.so_far() - compiled)
+        spent = export_cache.clock() - t
         export_cache.count("seconds", spent)
         export_cache.count("prepare", spent)
         return run, args, place, ctrl

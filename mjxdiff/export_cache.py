@@ -77,6 +77,13 @@ def so_far(kind: str = "seconds") -> float:
     return float(getattr(_LOCAL, "totals", {}).get(kind, 0))
 
 
+def clock() -> float:
+    """Wall seconds that stand still while this thread compiles (the ``seconds`` it counted:
+    JAX's compile events, artifact loads, binds): the difference of two readings is a phase's
+    time without its compiling."""
+    return time.perf_counter() - so_far()
+
+
 @contextlib.contextmanager
 def tally():
     """Counts what this thread compiles while the block runs: yields a dict that gains

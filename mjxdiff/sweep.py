@@ -122,7 +122,7 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
     info: dict[str, Any] = dict(batch=batch, steps=steps, model=str(scenario.model),
                                 exercises=list(scenario.exercises), notes=scenario.notes)
     prepared = _Prepared(scenario, tol, info, config)
-    t0, cpu0 = _now(), time.process_time()
+    t0, cpu0 = export_cache.clock(), time.process_time()
     try:
         m = load_model(scenario)
     except ScenarioError as e:
@@ -149,7 +149,7 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
                                         info=info, tolerances=tol.as_dict())
         return prepared
     info.update(batch=batch, steps=steps, factors=sorted(inputs.factors),
-                seconds=dict(inputs=_now() - t0), cpu_seconds=dict(inputs=time.process_time() - cpu0))
+                seconds=dict(inputs=export_cache.clock() - t0), cpu_seconds=dict(inputs=time.process_time() - cpu0))
     if scenario.randomize.values:
         info["set"] = {k: list(v) for k, v in sorted(scenario.randomize.values.items())}
     prepared.inputs = inputs
@@ -275,7 +275,7 @@ def _advised(result: ScenarioResult, advice: str | None) -> ScenarioResult:
 def _with_transfer(result: ScenarioResult, inputs: BatchedInputs, model_path, precision: Precision) -> ScenarioResult:
     """``result`` with :func:`mjxdiff.transfer.check_scenario_states` of member 0 in its ``info``
     and, when MJX's host interface disagrees with C, a failing ``transfer`` field."""
-    t, cpu = _now(), time.process_time()
+    t, cpu = export_cache.clock(), time.process_time()
     try:
         with _precision(precision):
             found = transfer.check_scenario_states(inputs.models[0], inputs.qpos[0], inputs.qvel[0], inputs.act[0],
@@ -284,7 +284,7 @@ def _with_transfer(result: ScenarioResult, inputs: BatchedInputs, model_path, pr
         info = {**result.info, "transfer": dict(error=one_line(e))}
         return dataclasses.replace(result, info=info)
     info = {**result.info, "transfer": found.as_dict()}
-    info["seconds"] = {**info.get("seconds", {}), "transfer": _now() - t}
+    info["seconds"] = {**info.get("seconds", {}), "transfer": export_cache.clock() - t}
     info["cpu_seconds"] = {**info.get("cpu_seconds", {}), "transfer": time.process_time() - cpu}
     if not found.mismatches:
         return dataclasses.replace(result, info=info)
@@ -357,23 +357,16 @@ class _EngineFailed(Exception):
         self.engine = engine
 
 
-def _now() -> float:
-    """Wall seconds that stand still while this thread compiles (JAX's compile events and
-    artifact loads, :func:`export_cache.so_far`): the difference of two readings is a phase's
-    time without its compiling, which the scenario's ``compile`` phase counts."""
-    return time.perf_counter() - export_cache.so_far()
-
-
 @contextlib.contextmanager
 def _clock(seconds: dict[str, Any], key: str, cpu: dict[str, float] | None = None):
-    """Adds the block's wall seconds less its compiling (:func:`_now`) to ``seconds[key]``, so
+    """Adds the block's wall seconds less its compiling (:func:`export_cache.clock`) to ``seconds[key]``, so
     that a scenario's phases do not overlap; with ``cpu``, adds the process's CPU seconds over
     the block (compiling and other threads' work included) to ``cpu[key]``."""
-    t, used = _now(), time.process_time()
+    t, used = export_cache.clock(), time.process_time()
     try:
         yield
     finally:
-        seconds[key] = seconds.get(key, 0.0) + max(_now() - t, 0.0)
+        seconds[key] = seconds.get(key, 0.0) + max(export_cache.clock() - t, 0.0)
         if cpu is not None:
             cpu[key] = cpu.get(key, 0.0) + time.process_time() - used
 
@@ -507,7 +500,7 @@ class _CPieces:
         """Restarts with the reruns; ``feed(reference, perturbed, converged, start)`` gets the
         pieces before step ``until``, and the next piece is the one starting there.
         Returns the seconds it took (C's time, mostly)."""
-        t = _now()
+        t = export_cache.clock()
         self.close()
         self._pieces, self.floor, start = self._open(True), True, 0
         while start < until:
@@ -515,7 +508,7 @@ class _CPieces:
             assert perturbed is not None  # opened with the floor just above
             feed(reference, perturbed, solved, start)
             start += reference.time.shape[1]
-        return _now() - t
+        return export_cache.clock() - t
 
     def close(self) -> None:
         self._pieces.close()
@@ -578,7 +571,7 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
                     raise BudgetSpent()
                 piece_c, piece_p, piece_s = next(c)
                 piece_ref = next(ref) if ref is not None else piece_c
-                t = _now()
+                t = export_cache.clock()
                 reference, simulated = _rows(piece_ref, n), _rows(piece_mjx, n)
                 series = judge.errors(reference, simulated)
                 if floor and not c.floor and judge.exceeds_tolerance(series):
@@ -589,7 +582,7 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
                 start += piece_c.time.shape[1]
                 if floor and not c.floor and judge.contacts_exceed_tolerance(members):
                     t += c.start_floor(start, feed)
-                seconds["verdict"] = seconds.get("verdict", 0.0) + _now() - t
+                seconds["verdict"] = seconds.get("verdict", 0.0) + export_cache.clock() - t
         done.append(idx)
     with _clock(seconds, "verdict"):
         noise = floor if floor is not None and floor.fed.any() else None
