@@ -451,12 +451,16 @@ def clear_compiled() -> None:
     forward.clear_cache()  # pyright: ignore[reportAttributeAccessIssue]
 
 
-def _contact_count(dx: mjx.Data) -> jax.Array:
+def _contact_count(mx: mjx.Model, dx: mjx.Data) -> jax.Array:
+    """C's ``d.ncon`` from MJX's contacts: those with ``dist < includemargin + gap``
+    (:func:`mjxdiff.stages.contact_gap`; C keeps a gap's inactive contacts, MJX does not)."""
     impl = data_impl(dx)  # MJX's contacts
     c = impl.contact  # pyright: ignore[reportAttributeAccessIssue] - the JAX implementation's Data
     if c.dist.shape[0] == 0:
         return jnp.zeros((), jnp.int32)
-    return jnp.sum(c.dist < c.includemargin)
+    pair_geom = np.stack([np.asarray(mx.pair_geom1), np.asarray(mx.pair_geom2)], -1).reshape(-1, 2)
+    gap = stages.contact_gap(jnp.stack([c.geom1, c.geom2], -1), mx.geom_gap, pair_geom, mx.pair_gap, jnp)
+    return jnp.sum(c.dist < c.includemargin + gap)
 
 
 def energy(mx: mjx.Model, dx: mjx.Data, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
@@ -502,7 +506,7 @@ def _scan_steps(mx, dx, ctrl, with_energy, n=None):
     one-step check runs the sweep's own rollout with ``n = 1``."""
     def record(dx, energy_):
         rec = dict(qpos=dx.qpos, qvel=dx.qvel, act=dx.act, sensordata=dx.sensordata,
-                   time=dx.time, ncon=_contact_count(dx))
+                   time=dx.time, ncon=_contact_count(mx, dx))
         if with_energy:
             rec["energy"] = energy_
         return rec

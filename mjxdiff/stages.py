@@ -12,7 +12,7 @@ import numpy as np
 
 from mjxdiff.compat import data_impl, full_inertia
 
-__all__ = ["Contacts", "Forward", "contacts_c", "contacts_mjx", "frame", "read"]
+__all__ = ["Contacts", "Forward", "contact_gap", "contacts_c", "contacts_mjx", "frame", "read"]
 
 
 Contacts = dict[tuple[int, ...], list[tuple[float, ...]]]
@@ -36,8 +36,9 @@ def frame(m: mujoco.MjModel, nine: np.ndarray, friction: np.ndarray, geom: np.nd
 
 
 def contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> Contacts:
-    """Active contacts by geom pair: (dist, pos x, y, z, friction[0], friction[1], frame (9,),
-    :func:`frame`) each. A flex side of a contact (geom -1) is keyed ``-1 - flex id``."""
+    """Contacts by geom pair, the ``d.ncon`` of them (a gap's inactive ones too): (dist, pos x, y, z,
+    friction[0], friction[1], frame (9,), :func:`frame`) each. A flex side of a contact (geom -1) is
+    keyed ``-1 - flex id``."""
     out: Contacts = {}
     for c in d.contact[:d.ncon]:
         # geom1/geom2 are not filled by mujoco_warp.get_data_into
@@ -47,10 +48,36 @@ def contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> Contacts:
     return out
 
 
+def contact_gap(geom: Any, geom_gap: Any, pair_geom: Any, pair_gap: Any, xp: Any = np) -> Any:
+    """(C,) the gap, m, that C gives each of C contacts (``engine_collision_driver.c``): an explicit
+    pair's ``pair_gap``, else the larger ``geom_gap`` of its two geoms.
+
+    C keeps a contact whose ``dist`` lies in ``[includemargin, includemargin + gap)`` in ``d.contact``
+    (and ``d.ncon``) with ``exclude = 1`` and no constraint; MJX drops it. Counting MJX's contacts
+    with ``dist < includemargin + gap`` counts what ``d.ncon`` counts.
+
+    Args:
+      geom: (C, 2) int geom ids of each contact.
+      geom_gap: (ngeom,) ``m.geom_gap``.
+      pair_geom: (npair, 2) int ``pair_geom1``, ``pair_geom2``.
+      pair_gap: (npair,) ``m.pair_gap``.
+      xp: ``numpy``, or ``jax.numpy`` inside a trace.
+    """
+    gap = xp.maximum(geom_gap[geom[:, 0]], geom_gap[geom[:, 1]])
+    if pair_geom.shape[0] == 0:
+        return gap
+    a, b = geom[:, 0, None], geom[:, 1, None]
+    match = ((a == pair_geom[:, 0]) & (b == pair_geom[:, 1])) | ((a == pair_geom[:, 1]) & (b == pair_geom[:, 0]))
+    return xp.where(match.any(axis=1), pair_gap[xp.argmax(match, axis=1)], gap)
+
+
 def contacts_mjx(m: mujoco.MjModel, dx: Any) -> Contacts:
+    """:func:`contacts_c` of MJX's data: its contacts closer than C's margin (``includemargin +``
+    :func:`contact_gap`), the ones ``d.contact[:d.ncon]`` holds."""
     c = data_impl(dx).contact  # MJX's contacts
     dist, margin, geom, pos, friction, frames = map(np.asarray, (c.dist, c.includemargin, c.geom, c.pos, c.friction,
                                                                  c.frame))
+    margin = margin + contact_gap(geom, m.geom_gap, np.stack([m.pair_geom1, m.pair_geom2], -1), m.pair_gap)
     out: Contacts = {}
     for i in np.flatnonzero(dist < margin):
         key = tuple(sorted(int(g) for g in geom[i]))

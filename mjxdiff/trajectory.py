@@ -37,7 +37,8 @@ class Trajectory:
       act: (B, T, na) actuator activations after each step.
       sensordata: (B, T, nsensordata) sensors, evaluated before each step.
       time: (B, T) simulated time after each step, s.
-      ncon: (B, T) number of active contacts, evaluated before each step.
+      ncon: (B, T) number of contacts, C's ``d.ncon`` (a gap's inactive ones included), evaluated
+        before each step.
       energy: (B, T, 2) potential and kinetic energy (J) before each step, as
         MuJoCo's ``d.energy``; (B, T, 0) unless the inputs ask for energy.
         Exact for Euler and implicitfast. Under RK4 neither record is the

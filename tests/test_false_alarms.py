@@ -14,22 +14,6 @@ from mjxdiff.cli import main
 #: Seeds swept per run; the first costs the compiles, the others only stepping.
 SEEDS_PER_RUN = 3
 
-#: False alarms known and open, each tolerated only as itself: scenario -> (the one field allowed
-#: to fail, every other within its bound; why). contact_parameters: C 1, MJX 0 contacts on pairs
-#: with a margin and a gap (seeds 17, 20, 27 of the default sweep; 1990 and 1992 quick), likely
-#: C's d.ncon counting contacts in the gap zone that MJX's count leaves out (issue 54, open).
-OPEN = {"contact_parameters": ("contacts", "issue 54: contact counts in the gap zone")}
-
-
-def _unexplained(scenario: dict) -> bool:
-    if scenario["status"] in ("pass", "unsupported"):
-        return False
-    field, _ = OPEN.get(scenario["name"], (None, None))
-    others = [f for name, f in scenario["fields"].items() if name != field]
-    return not (scenario["status"] == "fail" and (scenario.get("first_divergence") or {}).get("field") == field
-                and all((f.get("ratio") or 0) <= 1 for f in others))
-
-
 def seeds_of(day: datetime.date) -> list[int]:
     """``SEEDS_PER_RUN`` seeds for ``day``: 1000 + 3 x (days since 2026-01-01) onwards, so no two
     days share one and none falls in 0-999."""
@@ -48,7 +32,7 @@ def test_unmodified_mjx_passes_the_quick_default_sweep_on_seeds_drawn_from_the_d
         out = tmp_path / str(seed)
         code = main(["sweep", "--quick", "--seed", str(seed), "--no-history", "--no-progress", "--out", str(out)])
         doc = json.loads((out / "report.json").read_text())
-        bad = [f"{s['name']}: {s['status']}: {s['message'][:300]}" for s in doc["scenarios"] if _unexplained(s)]
-        assert code in (0, 1) and not bad, (f"unmodified MJX, seed {seed}: exit {code}; reproduce with "
-                                            f"`python -m mjxdiff sweep --quick --seed {seed}`:\n" + "\n".join(bad))
-        assert code == 0 or any(s["name"] in OPEN for s in doc["scenarios"] if s["status"] == "fail"), code
+        bad = [f"{s['name']}: {s['status']}: {s['message'][:300]}" for s in doc["scenarios"]
+               if s["status"] not in ("pass", "unsupported")]
+        assert code == 0 and not bad, (f"unmodified MJX, seed {seed}: exit {code}; reproduce with "
+                                       f"`python -m mjxdiff sweep --quick --seed {seed}`:\n" + "\n".join(bad))
