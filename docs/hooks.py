@@ -130,7 +130,9 @@ def _bundle_markdown(entry) -> list[str]:
 
 def catalogue_entry_markdown(entry) -> str:
     """One catalogue entry: its id as a heading (the anchor users link to), title, kind,
-    releases, matching rule, evidence and reproducer."""
+    releases, matching rule, evidence, what to do and reproducer."""
+    from mjxdiff.known import advice
+
     accepted = " (accepted: `--fail-on new` lets it pass)" if entry.accepted else ""
     return "\n".join([
         f"#### `{entry.id}`", "", f"**{_cell(entry.title)}**", "",
@@ -138,6 +140,7 @@ def catalogue_entry_markdown(entry) -> str:
         "- **Seen in MJX**: " + ", ".join(entry.versions),
         f"- **Matched when**: {_matching(entry) if getattr(entry, 'labels', True) else 'never: it labels no report'}",
         f"- **Evidence**: {_cell(entry.evidence)}",
+        f"- **What to do**: {_cell(advice(entry))}",
         *_bundle_markdown(entry), ""])
 
 

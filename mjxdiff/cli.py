@@ -637,6 +637,7 @@ def _cmd_known(args: argparse.Namespace) -> int:
         return 2
     for e in entries:
         print(f"{e.id:<42} {e.kind:<13} {e.title}")
+        print(f"{'':<42} what to do: {known.advice(e)}")
         print(f"{'':<42} bundle: {e.bundle or 'none: not an MJX bug'}")
     kinds = [e.kind for e in entries]
     print(f"{len(entries)} entries: " + ", ".join(f"{kinds.count(k)} {k}" for k in dict.fromkeys(kinds)))
@@ -718,7 +719,7 @@ def _cmd_list(args: argparse.Namespace) -> int:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from mjxdiff import baseline, pipeline, report
+    from mjxdiff import baseline, known, pipeline, report
 
     options = pipeline.SweepOptions(**{f.name: getattr(args, f.name) for f in dataclasses.fields(pipeline.SweepOptions)
                                        if f.name != "scenarios"}, scenarios=tuple(args.scenarios))
@@ -726,7 +727,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
 
     def show(r, entry) -> None:
         if text:
-            print(report.format_line(r) + (f" [known: {entry.id}]" if entry else ""), flush=True)
+            print(report.format_line(r) + (f" [known: {entry.id}]\n{'':<6} {'':<28} what to do: {known.advice(entry)}"
+                                           if entry else ""), flush=True)
     try:
         run = pipeline.compute(options, show)
     except pipeline.OptionsError as e:

@@ -156,6 +156,8 @@ def render(doc: dict[str, Any], out_dir: str | Path | None = None, plots: str = 
         if sc.get("known"):
             k = sc["known"]
             parts.append(f"<p><b>known: {_e(k['id'])}</b> ({_e(k['title'])}). Evidence: {_e(k['evidence'])}</p>")
+            if k.get("advice"):
+                parts.append(f"<p><b>What to do</b>: {_e(k['advice'])}</p>")
         parts.append(f"<pre>{_e(sc.get('message', ''))}</pre>")
         if plots != "none":
             for field, f in (sc.get("fields") or {}).items():

@@ -34,7 +34,10 @@ from typing import Any
 # the catalogue and its Entry live in mjxdiff.support; public here too, as before
 from mjxdiff.support import CATALOGUE, Entry
 
-__all__ = ["Entry", "CATALOGUE", "entries", "load_entries", "match", "KnownError"]
+__all__ = ["Entry", "CATALOGUE", "advice", "entries", "load_entries", "match", "KnownError"]
+
+#: Where MJX bugs are reported (MJX lives in the MuJoCo repository).
+UPSTREAM = "https://github.com/google-deepmind/mujoco/issues"
 
 
 class KnownError(ValueError):
@@ -80,3 +83,22 @@ def match(s: dict[str, Any], entries: tuple[Entry, ...] = CATALOGUE) -> Entry | 
     if s.get("status") != "fail":
         return None
     return next((e for e in entries if e.matches(s)), None)
+
+
+def advice(entry: Entry) -> str:
+    """What to do about a failure labelled ``entry``, in one line: its remedy, what
+    ``--fail-on new`` does with it and, for a bug with a bundle, where to report it.
+
+    >>> advice(CATALOGUE[0]).endswith("--fail-on new accepts it, a baseline or not")
+    True
+    """
+    parts = [entry.remedy] if entry.remedy else []
+    if entry.accepted:
+        parts.append("--fail-on new accepts it, a baseline or not")
+    else:
+        parts.append("to fail only on what is new, sweep with --baseline REF --fail-on new (or accept it: "
+                     "accepted = true in your --known file)")
+    if entry.kind == "bug" and entry.bundle.startswith("tests/"):
+        parts.append(f"an MJX bug: report it at {UPSTREAM} with the reproducer in {entry.bundle} of mjxdiff's "
+                     "repository, or your own from mjxdiff shrink --bundle")
+    return "; ".join(parts)

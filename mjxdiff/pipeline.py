@@ -424,7 +424,7 @@ def _finish(options: SweepOptions, results: list[ScenarioResult], bad: list[Scen
     for sc in doc["scenarios"]:
         entry = known.match(sc, entries)
         if entry:
-            sc["known"] = dataclasses.asdict(entry)
+            sc["known"] = dict(dataclasses.asdict(entry), advice=known.advice(entry))
             if entry.accepted:
                 accepted.add(sc["name"])
     out = SweepRun(options, results, doc, 0, seconds, input_errors=[r.message for r in bad])

@@ -257,6 +257,10 @@ class Entry:
     #: that tells this divergence from a bug of the same stage (a tendon's armature shows as a
     #: joint's qM): the entry is evidence and a bundle, never a label.
     labels: bool = True
+    #: What the user can do about it: the setting or modelling change that removes or reduces the
+    #: gap, or the release that fixed it. :func:`advice` adds what ``--fail-on new`` does with it and,
+    #: for a bug with a bundle, where to report it.
+    remedy: str = ""
 
     def matches(self, s: dict[str, Any]) -> bool:
         """Whether a failing scenario (a report's scenario dict) fits this entry."""
@@ -294,98 +298,138 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("solver-truncation", "solver settings capped short of convergence: MJX and C part where each stops",
           "tests/test_solver_floor.py: a 1-iteration quadruped parts by radians over 200 steps; with a converged "
           "solver (the twin) and one step from C's states the engines agree to rounding", cause="solver truncation",
-          accepted=True, versions=(MEASURED_ON, "3.3.5", "3.9.0")),
+          accepted=True, versions=(MEASURED_ON, "3.3.5", "3.9.0"),
+          remedy="raise the solver's iterations and ls_iterations (with a tolerance of 1e-8 or below) "
+                 "until the converged twin's verdict and the rollout's agree; keeping your settings is a choice: "
+                 "MJX and C then part by the amount the verdict prints, which a policy trained in MJX meets as "
+                 "model error"),
     Entry("plane-mesh-before-3.14", "MJX before 3.14: a plane-mesh manifold of more contacts than C's",
           "mjxdiff versions (2026-11-26), primitives_on_plane at step 0, geoms floor / mesh: C 3, MJX 4 contacts on "
           "3.3.7 and 3.9.0; C 2, MJX 4 on 3.10.0 and 3.12.0 (the one-step check from C's state shows the same); "
           "passes on 3.14.0 to 3.17.0 (3.13 not swept)", stage="collision", pattern=r"\(plane-mesh: C \d+, MJX",
           versions=("3.3.5", "3.3.7", "3.9.0", "3.10.0", "3.12.0"), only_on=_releases_before(14),
-          kind="fixed", bundle=FIXED_SINCE),
+          kind="fixed", bundle=FIXED_SINCE,
+          remedy="upgrade mujoco-mjx to 3.14 or later, where it is fixed"),
     Entry("capsule-mesh-before-3.15", "MJX before 3.15: capsule-mesh contacts other than C's",
           "mjxdiff versions (2026-11-26), primitive_pairs at step 0, geoms slab / cap_slab: C 1, MJX 2 contacts on "
           "3.3.7; C 2, MJX 2 with normals 1e-3 apart on 3.9.0, 3.10.0, 3.12.0 and 3.14.0 (the one-step check shows "
           "the same); passes on 3.15.0 to 3.17.0", stage="collision", pattern=r"\(capsule-mesh:",
           versions=("3.3.5", "3.3.7", "3.9.0", "3.10.0", "3.12.0", "3.14.0"), only_on=_releases_before(15),
-          kind="fixed", bundle=FIXED_SINCE),
+          kind="fixed", bundle=FIXED_SINCE,
+          remedy="upgrade mujoco-mjx to 3.15 or later, where it is fixed"),
     Entry("plane-box-corners", "plane-box/mesh: MJX keeps only corners within 1 mm of the deepest",
           "primitives_on_plane notes: a box that lands on a corner or rocks (> 1 mm depth spread) diverges ~1e-3; "
           "a tipped cube in sensing: C 4 corners, MJX 3", stage="collision", pattern=r"\(plane-(box|mesh):",
-          versions=(MEASURED_ON, "3.3.5", "3.3.0", "3.9.0")),
+          versions=(MEASURED_ON, "3.3.5", "3.3.0", "3.9.0"),
+          remedy="nothing to set: MJX drops corners more than 1 mm above the deepest; where contact forces on a "
+                 "tipping box or mesh foot matter, use sphere or capsule collision geoms, or judge the task's "
+                 "behaviour (mjxdiff closedloop) instead of the trajectory"),
     Entry("plane-cylinder-rim", "plane-cylinder: MJX adds the second rim point only near parallel",
           "primitives_on_plane notes: the second rim point only when the axis is within ~1e-3 of parallel; a "
-          "cylinder sunk into a plane: C 4 contacts, MJX 3", stage="collision", pattern=r"\(plane-cylinder:"),
+          "cylinder sunk into a plane: C 4 contacts, MJX 3", stage="collision", pattern=r"\(plane-cylinder:",
+          remedy="use a capsule (or a sphere) for a cylinder's collision geom where its shape allows; a tilted "
+                 "cylinder on a plane otherwise gets other contact forces"),
     Entry("contact-tangent-frame", "contact tangent frames: MJX's plane-capsule (and other) frames differ from C's, "
           "which turns a pyramidal friction cone",
           "tests/test_known_divergences.py: a plane-capsule contact's first tangent is (0, 1, 0) in MJX, along the "
           "capsule's axis in C; Unitree H1 (playground scene_mjx_feetonly.xml, pyramidal): one step from the same "
           "state with converged solvers, qfrc_constraint 52 apart, same contacts, other efc_aref",
-          stage="collision", pattern=r"tangent frame differs"),
+          stage="collision", pattern=r"tangent frame differs",
+          remedy="use the elliptic friction cone (<option cone=\"elliptic\"/>): with isotropic friction its forces "
+                 "do not depend on the tangent frame; a pyramidal cone turns with the frame"),
     Entry("box-box-manifold", "box-box: MJX pads the manifold and places points on a surface",
           "primitive_pairs / box_stack notes: edge-first landings C 2, MJX 4 contacts; contact points on a surface "
           "(C halfway): friction arms differ by dist/2", pattern=r"\(box-box:",
-          versions=(MEASURED_ON, "3.3.5", "3.3.0")),
+          versions=(MEASURED_ON, "3.3.5", "3.3.0"),
+          remedy="nothing to set: MJX's box-box contacts differ at edge landings by design; where stacking or "
+                 "grasping boxes matters, judge the task's behaviour (mjxdiff closedloop) instead of the "
+                 "trajectory"),
     Entry("ellipsoid-cylinder-pairs", "sphere/capsule/ellipsoid/cylinder against ellipsoid/cylinder: MJX's "
           "10-step SDF descent vs C's exact collision",
           "tests/data/fuzz_ellipsoid_cylinder_contact.json: at its first contact an ellipsoid-cylinder pair is "
           "2.882 mm deep in C (GJK/EPA; 2.883 mm exactly), 1.354 mm in MJX (collision_sdf.py), normals 0.037 rad "
           "and points 9.7 mm apart, qacc 99 apart; MJX given C's contacts agrees to 7e-13 (tests/test_fuzz.py); "
           "scenarios/wip/sdf_pairs.toml notes", stage="collision",
-          pattern=r"\(((sphere|capsule|ellipsoid)-(ellipsoid|cylinder)|cylinder-cylinder):"),
+          pattern=r"\(((sphere|capsule|ellipsoid)-(ellipsoid|cylinder)|cylinder-cylinder):",
+          remedy="use sphere, capsule or box collision geoms for these pairs (MJX collides them exactly); MJX's "
+                 "SDF descent for ellipsoids and cylinders gives other depths and normals"),
     Entry("capsule-regularisation", "capsule pairs: MJX's +1e-6 segment regularisation tilts normals",
           "primitive_pairs notes: closest_segment_point divides by |ab|^2 + 1e-6; a sphere rolling along a 1 m "
           "capsule rail drifts 2e-3 qvel in 300 steps", pattern=r"\((sphere-capsule|capsule-capsule|capsule-\w+):",
-          versions=(MEASURED_ON, "3.3.5", "3.9.0")),
+          versions=(MEASURED_ON, "3.3.5", "3.9.0"),
+          remedy="split long capsules into shorter ones (the tilt grows with the contact's distance from the "
+                 "segment's origin), or use sphere geoms for rolling contacts along a capsule"),
     Entry("heightfield-pairs", "heightfield pairs: MJX keeps other contacts than C",
           "tests/test_known_divergences.py: a sphere across a valley C 2, MJX 1 contact (qacc 16.4 apart); a box "
-          "on a slope C 3, MJX 4", pattern=r"\(hfield-\w+:"),
+          "on a slope C 3, MJX 4", pattern=r"\(hfield-\w+:",
+          remedy="nothing to set: MJX keeps other heightfield contacts; for terrain, judge the task's behaviour "
+                 "(mjxdiff closedloop), or use a mesh or boxes where the terrain allows"),
     Entry("rk4-sensor-stage", "RK4: MJX's sensordata is from the last Runge-Kutta stage",
           "integrator_rk4 notes: after an RK4 step MJX's sensordata is from the last stage, C's from the state "
           "before the step", field="sensordata", integrator=("rk4",),
-          kind="bug", bundle="tests/data/bundles/rk4-sensor-stage"),
+          kind="bug", bundle="tests/data/bundles/rk4-sensor-stage",
+          remedy="use the Euler or implicitfast integrator where you read sensors, or recompute sensordata with "
+                 "mjx.forward after mjx.step"),
     Entry("implicit-clamped-actuator", "implicit/implicitfast: C leaves a clamped actuator's velocity derivative "
           "out of the implicit update, MJX 3.17 keeps it",
           "Unitree G1 (menagerie scene_mjx.xml: position servos with kv, joint actuatorfrcrange, implicitfast): one "
           "step from the same state 13 rad/s apart in qvel, 1e-13 with the joint clamps removed, with Euler or with "
           "kv = 0; MuJoCo C commit b466829, mirrored in mujoco_warp PR #1149", cause="actuator force clamping",
           integrator=("implicitfast", "implicit"),
-          kind="bug", bundle="tests/data/bundles/implicit-clamped-actuator"),
+          kind="bug", bundle="tests/data/bundles/implicit-clamped-actuator",
+          remedy="use the Euler integrator, or remove actuatorfrcrange (the joint's force clamp) on actuated "
+                 "joints, or set the actuators' kv to 0: each removes the gap (13 rad/s -> 1e-13 on the G1)"),
     Entry("rotation-integration", "implicitfast/RK4: free-body rotation integrated differently (grows like ω²)",
           "integrator_* notes: fast-spinning free bodies", integrator=("implicitfast", "rk4"),
           pattern=r"integration|free",
-          kind="bug", bundle="tests/data/bundles/rotation-integration"),
+          kind="bug", bundle="tests/data/bundles/rotation-integration",
+          remedy="use the Euler integrator for fast-spinning free bodies, or a smaller timestep (the gap grows "
+                 "like the angular velocity squared times the timestep)"),
     Entry("acceleration-sensors-without-constraints", "MJX skips sensor_acc in a model without constraint rows",
           "the bundle: a spring-loaded slider's accelerometer C -0.0234 m/s², MJX 0",
           field="sensordata", pattern=r"\((accelerometer|force|torque|framelinacc|frameangacc)\)",
-          kind="bug", bundle="tests/data/bundles/acceleration-sensors-without-constraints"),
+          kind="bug", bundle="tests/data/bundles/acceleration-sensors-without-constraints",
+          remedy="compute accelerations from qacc yourself, or give the model a constraint (a joint limit or "
+                 "contact) so that MJX evaluates sensor_acc"),
     Entry("contact-sensor-explicit-pair", "contact sensor reads the explicit pair's contact",
           "the bundle: with a <pair>, a geom-matched contact sensor reads the pair's force",
           field="sensordata", pattern=r"\(contact\)",
-          kind="bug", bundle="tests/data/bundles/contact-sensor-explicit-pair"),
+          kind="bug", bundle="tests/data/bundles/contact-sensor-explicit-pair",
+          remedy="match the contact sensor by body or site rather than by geom, or drop the explicit <pair> for "
+                 "those geoms"),
     Entry("tendon-wrap-sidesite", "a spatial tendon wraps a cylinder on the other side of its sidesite",
           "fuzz seed 3 (tests/data/fuzz_wrap_sidesite.json), shrunk to one free body, a wrap cylinder and one "
           "tendon: ten_length C 1.438173, MJX 1.441468 at step 0. C 4.0 picks the side by the winding of end0 -> "
           "sidesite -> end1 around the wrap geom (MuJoCo Warp 4.0 too), MJX 3.17 by the older rule (the arc "
           "whose middle is nearest the sidesite's direction): near the sidesite's symmetry plane they part",
           stage="tendons", pattern=r"tendon '",
-          kind="bug", bundle="tests/data/bundles/tendon-wrap-sidesite"),
+          kind="bug", bundle="tests/data/bundles/tendon-wrap-sidesite",
+          remedy="move the tendon's sidesite away from the plane of symmetry between the tendon's ends (the "
+                 "engines agree away from it)"),
     Entry("tendon-armature-trees", "a fixed tendon with armature coupling two kinematic trees: another qM",
           "fuzz seed 0 (tests/data/fuzz_tendon_armature_trees.json), shrunk to two bodies with a hinge each and "
           "one fixed tendon (armature 0.003): qM 0.0044 apart (scaled) at step 0; C 4.0 keeps the trees' "
           "sparsity, MJX 3.17's mass matrix differs. A sweep names the joint, not the tendon, so the entry "
           "labels nothing (an armature bug shows the same way)", stage="inertia",
-          kind="bug", bundle="tests/data/bundles/tendon-armature-trees", labels=False),
+          kind="bug", bundle="tests/data/bundles/tendon-armature-trees", labels=False,
+          remedy="set the tendon's armature to 0, or keep a tendon with armature within one kinematic tree"),
     Entry("truncated-solver", "a solver capped at few iterations: the engines stop at different points",
           "ant at 1000 steps: 4 of 64 members jump 1e-11 -> 5e-6 qvel at a contact; gone with 100 iterations",
-          cause="solver convergence"),
+          cause="solver convergence",
+          remedy="raise the solver's iterations (the bundled ant passes with 100 where 4 of 64 members parted at "
+                 "1000 steps)"),
     Entry("equality-aref", "connect/weld: other efc_aref (anchor off the body origin, spinning)",
           "equality notes: same efc_pos/efc_J/efc_KBIP, qvel 0.4 rad/s apart after one step; connect off-origin "
           "on a spinning body z 1.8018 C, 1.7658 MJX", stage="constraint", pattern=r"equality|connect|weld",
-          kind="bug", bundle="tests/data/bundles/equality-aref"),
+          kind="bug", bundle="tests/data/bundles/equality-aref",
+          remedy="put connect and weld anchors at the body's origin where you can (the off-origin anchor on a "
+                 "spinning body is where the engines part)"),
     Entry("mesh-mesh-contacts-3.3", "MJX 3.3: mesh-mesh contacts other than C's",
           "mjxdiff versions 3.3.5/0.7.0 (2026-11-26): convex_mesh at step 0, geoms slab / frustum_slab: C 1, MJX 4 "
           "contacts (passes contacts disabled); the same scenario passes on MJX 3.9.0 and 3.17.0", stage="collision",
           pattern=r"\(mesh-mesh:", versions=("3.3.5",), only_on=("3.3.",),
-          kind="fixed", bundle=FIXED_SINCE),
+          kind="fixed", bundle=FIXED_SINCE,
+          remedy="upgrade mujoco-mjx to 3.9 or later, where it is fixed"),
     Entry("flex-ignored-3.3", "MJX 3.3.0-3.3.4 accept a flex and make none of its contacts",
           "tests/data/flex_cloth.xml (a 4x4 cloth falling onto a plane), swept on MJX 3.3.0 (2026-11-26): FAIL at "
           "step 0, first field contact, flex 'cloth' / flex 'cloth' C 2, MJX 0 contacts (C 9 at the one-step "
@@ -393,9 +437,13 @@ CATALOGUE: tuple[Entry, ...] = (
           "implemented for JAX backend.', unsupported); support.UNSUPPORTED_FEATURES 'flex' refused_since 3.3.5 "
           "(tests/test_supported_versions.py)", stage="collision", pattern=r"flex '",
           versions=("3.3.0",), only_on=("3.3.0", "3.3.1", "3.3.2", "3.3.3", "3.3.4"),
-          kind="fixed", bundle=FIXED_SINCE),
+          kind="fixed", bundle=FIXED_SINCE,
+          remedy="upgrade mujoco-mjx to 3.3.5 or later, which refuses flex (MJX has no flex contacts); test flex "
+                 "models in MuJoCo C or MuJoCo Warp"),
     Entry("get-data-margin-contacts", "get_data drops contacts inside the margin (dist > 0)",
           "the bundle: a sphere 2 mm above the floor, margin 5 mm: C 1 contact, get_data 0",
           field="transfer", pattern=r"contact",
-          kind="bug", bundle="tests/data/bundles/get-data-margin-contacts"),
+          kind="bug", bundle="tests/data/bundles/get-data-margin-contacts",
+          remedy="read contacts from MJX's own data (dx._impl.contact, dist < includemargin) rather than "
+                 "mjx.get_data where geoms have a margin"),
 )

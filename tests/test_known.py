@@ -20,10 +20,14 @@ def test_a_tilted_box_on_a_plane_is_labelled_known(box, tmp_path, capsys):
                  "--out", str(tmp_path)]) == 1
     out = capsys.readouterr().out
     assert "[known: plane-box-corners]" in out, out
+    advice = known.advice(next(e for e in known.CATALOGUE if e.id == "plane-box-corners"))
+    assert f"what to do: {advice}" in out and "use sphere or capsule collision geoms" in advice, out
     doc = json.loads((tmp_path / "report.json").read_text())
     assert doc["scenarios"][0]["known"]["id"] == "plane-box-corners"
+    assert doc["scenarios"][0]["known"]["advice"] == advice
     html = (tmp_path / "report.html").read_text()
     assert "<td>plane-box-corners" in html and "<b>known: plane-box-corners</b>" in html
+    assert "<b>What to do</b>: nothing to set: MJX drops corners" in html
 
 
 def test_an_accepted_entry_of_the_user_passes_fail_on_new(box, tmp_path, capsys):
@@ -90,6 +94,9 @@ def test_known_list_shows_each_entry_with_its_bundle(capsys, tmp_path):
     out = capsys.readouterr().out
     for e in known.CATALOGUE:
         assert f"{e.id} " in out and e.title in out, e.id
+        assert e.remedy and f"what to do: {known.advice(e)}\n" in out, e.id
+        assert ("report it at https://github.com/google-deepmind/mujoco/issues" in known.advice(e)) == (
+            e.kind == "bug" and e.bundle.startswith("tests/")), e.id
     for e in (e for e in known.CATALOGUE if e.kind == "bug"):
         assert f"bundle: tests/data/bundles/{e.id}\n" in out
     assert out.splitlines()[-1].startswith(f"{len(known.CATALOGUE)} entries: ")
