@@ -21,6 +21,7 @@ with it). A scenario that cannot be read is an ``error`` result, and the others 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import time
@@ -122,7 +123,8 @@ class SweepRun:
 def _scenarios(options: SweepOptions) -> tuple[list, list[ScenarioResult]]:
     """The scenarios the options name (every bundled one when none), and an ``error`` result
     for each that cannot be read."""
-    from mjxdiff.scenario import ScenarioError, bundled_scenarios, load_scenario, no_bundled_scenarios_message
+    from mjxdiff.scenario import (LaterFeatureError, ScenarioError, bundled_scenarios, load_model, load_scenario,
+                                  no_bundled_scenarios_message)
 
     try:
         refs = list(options.scenarios) or [s.name for s in bundled_scenarios()]
@@ -133,7 +135,11 @@ def _scenarios(options: SweepOptions) -> tuple[list, list[ScenarioResult]]:
     scenarios, bad = [], []
     for ref in refs:
         try:
-            scenarios.append(load_scenario(ref))
+            scenario = load_scenario(ref)
+            if options.scenarios:  # the user's: an MJCF MuJoCo cannot compile is said now, before MJX's import
+                with contextlib.suppress(LaterFeatureError):  # a newer MuJoCo's feature: the sweep's unsupported
+                    load_model(scenario)
+            scenarios.append(scenario)
         except ScenarioError as e:
             bad.append(ScenarioResult(name=str(ref), status="error", error_kind="input", message=str(e)))
     return scenarios, bad

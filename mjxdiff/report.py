@@ -402,5 +402,6 @@ def format_text(results: Sequence[ScenarioResult], threshold: float, seconds: fl
     truncation = f" ({s['truncation']} solver truncation)" if s["truncation"] else ""
     lines.append(f"{s['total']} scenarios{tail}: {s['pass']} pass{weak}, {s['fail']} fail{truncation}, "
                  f"{s['unsupported']} unsupported, {s['error']} error{inputs}; "
-                 f"pass rate {s['pass_rate']:.0%} -> {verdict}")
+                 + (f"pass rate {s['pass_rate']:.0%}" if s["pass"] + s["fail"] + s["error"] else "nothing judged")
+                 + f" -> {verdict}")
     return "\n".join(lines)

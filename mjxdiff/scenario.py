@@ -415,6 +415,24 @@ def load_scenario(ref: str | os.PathLike) -> Scenario:
                         "or pass a path to a .toml scenario or .xml model")
 
 
+def _xml_error(path: Path) -> str | None:
+    """Where ``path`` stops being well-formed XML, from Python's parser, or None if it is.
+
+    MuJoCo's parser reports an element never closed at the element's opening line (line 1 for a
+    file cut short), Python's where the text ends."""
+    import xml.etree.ElementTree as ET
+    from xml.parsers import expat
+
+    try:
+        ET.parse(path)
+    except ET.ParseError as e:
+        line, column = e.position
+        if e.code == expat.errors.codes[expat.errors.XML_ERROR_NO_ELEMENTS]:
+            return f"not well-formed XML: the file ends at line {line} with elements still open (cut short?)"
+        return f"not well-formed XML: {expat.ErrorString(e.code)} at line {line}, column {column + 1}"
+    return None
+
+
 def load_model(scenario: Scenario) -> mujoco.MjModel:
     """Compiles the scenario's MJCF with MuJoCo C; one-line :class:`ScenarioError` on failure."""
     path = scenario.model_path
@@ -422,7 +440,7 @@ def load_model(scenario: Scenario) -> mujoco.MjModel:
     try:
         m = mujoco.MjModel.from_xml_path(str(path))
     except ValueError as e:
-        first = " ".join(str(e).split())
+        first = _xml_error(path) or " ".join(str(e).split())
         message = f"{scenario.name}: MuJoCo cannot compile {path.name}: {first}"
         later = later_feature(message)
         raise (LaterFeatureError(later) if later else ScenarioError(message)) from None

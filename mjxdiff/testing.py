@@ -14,6 +14,8 @@ mjxdiff's pytest plugin.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 import mujoco
@@ -26,11 +28,13 @@ __all__ = ["assert_mjx_matches_c", "compare", "MJXMismatch"]
 
 
 class MJXMismatch(AssertionError):
-    """MJX and MuJoCo C disagree; ``result`` holds the full verdict."""
+    """MJX and MuJoCo C disagree; ``result`` holds the full verdict, ``known`` the catalogue entry
+    that explains it (:mod:`mjxdiff.known`; its id and what to do are in the message), or None."""
 
-    def __init__(self, message: str, result: ScenarioResult):
+    def __init__(self, message: str, result: ScenarioResult, known: Any = None):
         super().__init__(message)
         self.result = result
+        self.known = known
 
 
 def _batch(x: np.ndarray | None, default: np.ndarray | None, ndim: int) -> np.ndarray:
@@ -73,9 +77,14 @@ def assert_mjx_matches_c(m: mujoco.MjModel, qpos=None, qvel=None, act=None, ctrl
     """Asserts MJX follows C from the given state and controls; see :func:`compare` for arguments.
 
     Raises:
-      MJXMismatch: an AssertionError whose message is the localised diagnosis.
+      MJXMismatch: an AssertionError whose message is the localised diagnosis and, where the
+        known-divergence catalogue explains it, ``[known: <id>; what to do: ...]``.
     """
+    from mjxdiff import known, report
+
     result = compare(m, qpos, qvel, act, ctrl, steps, **kwargs)
     if result.status != "pass":
-        raise MJXMismatch(f"MJX does not match MuJoCo C ({result.status}): {result.message}", result)
+        entry = known.match(report.result_dict(result))
+        label = f" [known: {entry.id}; what to do: {known.advice(entry)}]" if entry else ""
+        raise MJXMismatch(f"MJX does not match MuJoCo C ({result.status}): {result.message}{label}", result, entry)
     return result

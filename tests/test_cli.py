@@ -39,14 +39,19 @@ def test_bad_flags_exit_2_with_one_line(args, message):
     assert "Traceback" not in proc.stderr
 
 
-def test_a_sweep_of_nothing_but_bad_scenarios_is_one_line_without_jax_or_mjx():
-    """Every named scenario unreadable: exit 2 with one line naming each, before JAX or MJX is
-    imported (the same check in a sweep with a good scenario beside reports them and runs it)."""
-    code = ("import sys; from mjxdiff.cli import main; rc = main(['sweep', 'pendulm', '/no/such.xml']); "
+def test_a_sweep_of_nothing_but_bad_scenarios_is_one_line_without_jax_or_mjx(tmp_path, repo_root):
+    """Every named scenario unreadable (a typo, a missing file, an MJCF cut short): exit 2 with one
+    line naming each, before JAX or MJX is imported (the same check in a sweep with a good
+    scenario beside reports them and runs it)."""
+    cut = tmp_path / "cut.xml"  # cut short after line 16: MuJoCo's parser blames line 1, where <mujoco> opens
+    cut.write_text("".join((repo_root / "scenarios" / "models" / "cg_frictionless.xml").read_text()
+                           .splitlines(keepends=True)[:16]))
+    code = (f"import sys; from mjxdiff.cli import main; rc = main(['sweep', 'pendulm', '/no/such.xml', '{cut}']); "
             "print([m for m in ('jax', 'mujoco.mjx') if m in sys.modules]); sys.exit(rc)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 2 and proc.stdout.strip() == "[]", proc.stdout + proc.stderr
     assert proc.stderr.count("\n") == 1 and "did you mean 'pendulum'" in proc.stderr and "/no/such.xml" in proc.stderr
+    assert "cut.xml: not well-formed XML: the file ends at line 17 with elements still open" in proc.stderr
 
 
 def test_version_names_mjxdiff_and_the_engines_it_would_test():

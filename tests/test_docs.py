@@ -101,3 +101,26 @@ def test_the_docstring_examples_run(name):
     module = importlib.import_module("mjxdiff" if name == "__init__" else f"mjxdiff.{name}")
     result = doctest.testmod(module, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE, report=True)
     assert result.failed == 0, f"{result.failed} of {result.attempted} examples of mjxdiff.{name} failed"
+
+
+def _python_blocks(page: str) -> list[str]:
+    """The ```python blocks of a docs page, in order, as written."""
+    text = (ROOT / "docs" / page).read_text()
+    return [block.split("\n", 1)[1] for block in text.split("```python")[1:] for block in [block.split("```")[0]]]
+
+
+@pytest.mark.slow
+def test_the_pytest_guides_examples_pass_as_written_in_a_fresh_project(tmp_path):
+    """The first two examples of the pytest guide (the user's model, then the property test),
+    pasted into files of an empty directory and run by pytest there: they pass, with no
+    deadline error (issue 51: the property test failed on Hypothesis's 200 ms deadline)."""
+    import subprocess
+    import sys
+
+    own, props = _python_blocks("how-to/own-tests.md")[:2]
+    assert "assert_mjx_matches_c(ROBOT" in own and "@settings(max_examples=3, deadline=None, derandomize=True)" in props
+    (tmp_path / "test_mjx.py").write_text(own)
+    (tmp_path / "test_mjx_properties.py").write_text(props)
+    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "test_mjx.py",
+                           "test_mjx_properties.py"], cwd=tmp_path, capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0 and "2 passed" in done.stdout, done.stdout[-3000:] + done.stderr[-2000:]
