@@ -4,6 +4,7 @@ episodes as C; a 2% actuator gain slip in MJX fails, with the first separation n
 three policy forms load; a bad spec is one line and exit 2."""
 
 import json
+from pathlib import Path
 import textwrap
 
 import jax
@@ -240,25 +241,17 @@ def test_observations_from_c_s_derived_fields(x64):
     assert c.obs0[0, 0] > 1.0  # the torso's height
 
 
-@pytest.mark.slow
-def test_a_policy_brax_trained_passes_and_a_gain_slip_fails(tmp_path, monkeypatch):
-    """brax's PPO trains inverted_pendulum on MJX (benchmarks/scripts/train_policy.py; 100,000
-    steps: 178 s here, last evaluation 189 of 200) and writes the checkpoint; unmodified MJX
-    passes, a 2% gain slip fails at step 0."""
-    import subprocess
-    import sys
+#: A policy brax's own PPO trained on inverted_pendulum with the MJX backend, as brax's training
+#: loop wrote its last checkpoint: ``python benchmarks/scripts/train_policy.py --out DIR
+#: --timesteps 100000`` (seed 0; 396 s on this machine, last evaluation 189 of 200: the README
+#: of the directory). Committed, so that CI loads a trained policy instead of training one.
+TRAINED = Path(__file__).resolve().parent / "data" / "policies" / "inverted_pendulum_ppo"
 
-    from pathlib import Path
 
-    root = Path(__file__).resolve().parent.parent
-    import os
-
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "PJRT_NPROC")}  # one device
-    done = subprocess.run([sys.executable, str(root / "benchmarks/scripts/train_policy.py"), "--out",
-                           str(tmp_path), "--timesteps", "100000"], capture_output=True, text=True, env=env)
-    assert done.returncode == 0, done.stderr[-2000:]
-    trained = json.loads(done.stdout.strip().splitlines()[-1])
-    assert trained["evals"][-1][1] > 150, trained  # it learned to balance
-    assert main(["policy", "inverted_pendulum", "--policy", trained["checkpoint"], "--episodes", "8"]) == 0
+def test_a_policy_brax_trained_passes_and_a_gain_slip_fails(monkeypatch):
+    """A policy that balances (brax-trained, :data:`TRAINED`), over 8 episodes: unmodified MJX
+    passes, a 2% gain slip fails."""
+    assert (TRAINED / "ppo_network_config.json").is_file()
+    assert main(["policy", "inverted_pendulum", "--policy", str(TRAINED), "--episodes", "8"]) == 0
     _slip(monkeypatch)
-    assert main(["policy", "inverted_pendulum", "--policy", trained["checkpoint"], "--episodes", "8"]) == 1
+    assert main(["policy", "inverted_pendulum", "--policy", str(TRAINED), "--episodes", "8"]) == 1
