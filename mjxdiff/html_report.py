@@ -98,6 +98,34 @@ td,th{border:1px solid #ccc;padding:3px 6px;text-align:left}th{background:#eee}.
 padding:.5em;font-size:85%}img{max-width:100%}"""
 
 
+
+def _has_section(sc: dict, plots: str) -> bool:
+    """Whether the page gives the scenario a section of its own (a failure, or every one with
+    ``--plots all``)."""
+    return sc["status"] == "fail" or plots == "all"
+
+
+def tested(info: dict) -> str:
+    """What a scenario's verdict covered, from its ``info``: members x steps, what was randomized
+    beyond the initial state and controls, and the checks that ran.
+
+    >>> tested(dict(batch=4, steps=50, onestep={"status": "pass"}, twin={"status": "skipped"}))
+    '4 members x 50 steps; randomized: state, controls; checks: one-step; did not run: converged twin (skipped)'
+    """
+    parts = [f"{info.get('batch', '?')} members x {info.get('steps', '?')} steps",
+             "randomized: " + ", ".join(["state", "controls", *info.get("factors", [])])]
+    ran, not_run = [], []
+    for name, key in (("one-step", "onestep"), ("converged twin", "twin"), ("host interface", "transfer")):
+        check = info.get(key)
+        if not isinstance(check, dict):
+            continue
+        if check.get("status") in ("pass", "fail") or "checked" in check:  # the host interface has no status
+            ran.append(name)
+        else:
+            not_run.append(f"{name} ({check.get('status') or 'error'})")
+    return "; ".join(parts + ([f"checks: {', '.join(ran)}"] if ran else [])
+                     + ([f"did not run: {', '.join(not_run)}"] if not_run else []))
+
 def _e(x: Any) -> str:
     return html.escape(str(x))
 
@@ -123,8 +151,8 @@ def render(doc: dict[str, Any], out_dir: str | Path | None = None, plots: str = 
     if scenarios:
         parts.append(f"<h2>Pass rate per scenario</h2><img alt='pass rate per scenario' "
                      f"src='{pass_rate_chart(scenarios, threshold)}'>")
-    parts.append("<h2>Scenarios</h2><table><tr><th>scenario</th><th>status</th><th>known</th><th>baseline</th>"
-                 "<th>worst field</th><th>ratio to bound</th><th>first step</th><th>seconds</th>"
+    parts.append("<h2>Scenarios</h2><table><tr><th>scenario</th><th>status</th><th>tested</th><th>known</th>"
+                 "<th>baseline</th><th>worst field</th><th>ratio to bound</th><th>first step out</th><th>seconds</th>"
                  "<th>compile s</th><th>sharp checks (one-step, converged twin)</th></tr>")
     for sc in scenarios:
         fields = sc.get("fields") or {}
@@ -132,11 +160,16 @@ def render(doc: dict[str, Any], out_dir: str | Path | None = None, plots: str = 
         secs = (sc.get("info") or {}).get("seconds", {})
         total = sum(x for k, x in secs.items() if k != "compiled_ahead" and isinstance(x, (int, float)))
         ch = changes.get(sc["name"], {})
-        parts.append(f"<tr><td><a href='#{_e(sc['name'])}'>{_e(sc['name'])}</a></td>"
+        first = worst[1].get("first_step")
+        name = (f"<a href='#{_e(sc['name'])}'>{_e(sc['name'])}</a>" if _has_section(sc, plots)
+                else _e(sc["name"]))
+        parts.append(f"<tr><td>{name}</td>"
                      f"<td class='{_e(sc['status'])}'>{_e(sc['status'])}{' (weak)' if sc.get('weak') else ''}</td>"
+                     f"<td>{_e(tested(sc.get('info') or {}))}</td>"
                      f"<td>{_e(sc.get('known', {}).get('id', ''))}"
                      f"</td><td>{_e(ch.get('change', ''))}</td><td>{_e(worst[0] or '')}</td>"
-                     f"<td>{_num(worst[1].get('ratio')):.3g}</td><td>{_e(worst[1].get('first_step', ''))}</td>"
+                     f"<td>{_num(worst[1].get('ratio')):.3g}</td>"
+                     f"<td>{_e(first if isinstance(first, int) and first >= 0 else 'none')}</td>"
                      f"<td>{total:.2f}</td><td>{_num(secs.get('compile')):.2f}</td>"
                      f"<td>{_e(report.format_checks(sc.get('info') or {}).removeprefix('checks: '))}</td></tr>")
     parts.append("</table>")
@@ -150,7 +183,7 @@ def render(doc: dict[str, Any], out_dir: str | Path | None = None, plots: str = 
             for c in changes.values() if c["change"] != "same") + "</ul>")
     for sc in scenarios:
         failing = sc["status"] == "fail"
-        if not failing and plots != "all":
+        if not _has_section(sc, plots):
             continue
         parts.append(f"<h2 id='{_e(sc['name'])}'>{_e(sc['name'])}: {_e(sc['status'])}</h2>")
         if sc.get("known"):

@@ -10,6 +10,7 @@ import matplotlib.image
 import numpy as np
 import pytest
 
+from conftest import REPORT_SCENARIOS
 from mjxdiff import verdict
 
 
@@ -51,6 +52,23 @@ def test_each_failing_field_has_its_error_vs_time_plot(two_sweeps):
         assert f"{name} qpos error vs time" in alts and f"{name} qvel error vs time" in alts
         assert name in page.ids
     assert not any(a.startswith("double_pendulum ") for a in alts)  # passing: plots only on request
+
+
+def test_a_passing_page_says_what_was_tested_and_links_only_to_what_it_holds(two_sweeps):
+    """issue 51: the page of a clean sweep said 'first step -1', linked each scenario to a
+    section it did not have, and said nothing of the batch, the steps or what was randomized."""
+    root, _ = two_sweeps
+    html = (root / "clean" / "report.html").read_text()
+    page = _Page()
+    page.feed(html)
+    anchors = [href[1:] for href in page.links if href.startswith("#")]
+    assert all(a in page.ids for a in anchors), (anchors, page.ids)
+    rows = re.findall(r"<tr><td>(?:<a [^>]*>)?([^<]+)(?:</a>)?</td><td class='pass'>pass</td><td>([^<]*)</td>", html)
+    assert len(rows) == len(REPORT_SCENARIOS), rows
+    for name, tested in rows:
+        assert re.match(r"\d+ members x \d+ steps; randomized: state, controls", tested), (name, tested)
+        assert "checks: one-step" in tested and "did not run: converged twin (skipped)" in tested, tested
+    assert "<td>-1</td>" not in html
 
 
 def test_the_kept_series_is_the_batch_max_error_with_its_bound():
