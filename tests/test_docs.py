@@ -124,3 +124,18 @@ def test_the_pytest_guides_examples_pass_as_written_in_a_fresh_project(tmp_path)
     done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "test_mjx.py",
                            "test_mjx_properties.py"], cwd=tmp_path, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0 and "2 passed" in done.stdout, done.stdout[-3000:] + done.stderr[-2000:]
+
+
+def test_the_pytest_guides_python_api_and_metrics_snippets_run_as_written(tmp_path):
+    """The guide's other two blocks, each run as a script in an empty directory: a whole sweep
+    from Python (exit code 0, a pass, the report written) and the metrics on arrays (the first
+    step out of tolerance of each member: 50)."""
+    import subprocess
+    import sys
+
+    api, metrics = _python_blocks("how-to/own-tests.md")[2:4]
+    for name, code, expected in (("api.py", api, "pendulum pass "), ("metrics_demo.py", metrics, "[50 50 50 50]")):
+        (tmp_path / name).write_text(code)
+        done = subprocess.run([sys.executable, name], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0 and expected in done.stdout, name + done.stdout[-2000:] + done.stderr[-2000:]
+    assert (tmp_path / "results" / "report.json").is_file()
