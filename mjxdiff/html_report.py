@@ -120,7 +120,8 @@ def tested(info: dict) -> str:
         if not isinstance(check, dict):
             continue
         if check.get("status") in ("pass", "fail") or "checked" in check:  # the host interface has no status
-            ran.append(name)
+            refused = [str(u).split(":")[0] for u in check.get("unsupported") or ()]
+            ran.append(name + (f" (MJX cannot: {', '.join(refused)})" if refused else ""))
         else:
             not_run.append(f"{name} ({check.get('status') or 'error'})")
     return "; ".join(parts + ([f"checks: {', '.join(ran)}"] if ran else [])
