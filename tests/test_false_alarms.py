@@ -14,8 +14,9 @@ from mjxdiff.cli import main
 #: Seeds swept per run; the first costs the compiles, the others only stepping.
 SEEDS_PER_RUN = 2
 
+
 def seeds_of(day: datetime.date) -> list[int]:
-    """``SEEDS_PER_RUN`` seeds for ``day``: 1000 + 3 x (days since 2026-01-01) onwards, so no two
+    """``SEEDS_PER_RUN`` seeds for ``day``: 1000 + SEEDS_PER_RUN x (days since 2026-01-01) onwards, so no two
     days share one and none falls in 0-999."""
     first = 1000 + SEEDS_PER_RUN * (day - datetime.date(2026, 1, 1)).days
     return list(range(first, first + SEEDS_PER_RUN))
