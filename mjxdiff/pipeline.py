@@ -134,14 +134,16 @@ def _scenarios(options: SweepOptions) -> tuple[list, list[ScenarioResult]]:
         raise OptionsError(f"no scenarios selected ({no_bundled_scenarios_message()})")
     scenarios, bad = [], []
     for ref in refs:
+        name = str(ref)
         try:
             scenario = load_scenario(ref)
+            name = scenario.name
             if options.scenarios:  # the user's: an MJCF MuJoCo cannot compile is said now, before MJX's import
                 with contextlib.suppress(LaterFeatureError):  # a newer MuJoCo's feature: the sweep's unsupported
                     load_model(scenario)
             scenarios.append(scenario)
         except ScenarioError as e:
-            bad.append(ScenarioResult(name=str(ref), status="error", error_kind="input", message=str(e)))
+            bad.append(ScenarioResult(name=name, status="error", error_kind="input", message=str(e)))
     return scenarios, bad
 
 
