@@ -458,8 +458,7 @@ def _contact_count(mx: mjx.Model, dx: mjx.Data) -> jax.Array:
     c = impl.contact  # pyright: ignore[reportAttributeAccessIssue] - the JAX implementation's Data
     if c.dist.shape[0] == 0:
         return jnp.zeros((), jnp.int32)
-    pair_geom = np.stack([np.asarray(mx.pair_geom1), np.asarray(mx.pair_geom2)], -1).reshape(-1, 2)
-    gap = stages.contact_gap(jnp.stack([c.geom1, c.geom2], -1), mx.geom_gap, pair_geom, mx.pair_gap, jnp)
+    gap = stages.contact_gap(mx, jnp.stack([c.geom1, c.geom2], -1), jnp)
     return jnp.sum(c.dist < c.includemargin + gap)
 
 

@@ -98,7 +98,6 @@ td,th{border:1px solid #ccc;padding:3px 6px;text-align:left}th{background:#eee}.
 padding:.5em;font-size:85%}img{max-width:100%}"""
 
 
-
 def _has_section(sc: dict, plots: str) -> bool:
     """Whether the page gives the scenario a section of its own (a failure, or every one with
     ``--plots all``)."""
@@ -126,6 +125,7 @@ def tested(info: dict) -> str:
             not_run.append(f"{name} ({check.get('status') or 'error'})")
     return "; ".join(parts + ([f"checks: {', '.join(ran)}"] if ran else [])
                      + ([f"did not run: {', '.join(not_run)}"] if not_run else []))
+
 
 def _e(x: Any) -> str:
     return html.escape(str(x))

@@ -48,7 +48,7 @@ def contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> Contacts:
     return out
 
 
-def contact_gap(geom: Any, geom_gap: Any, pair_geom: Any, pair_gap: Any, xp: Any = np) -> Any:
+def contact_gap(m: Any, geom: Any, xp: Any = np) -> Any:
     """(C,) the gap, m, that C gives each of C contacts (``engine_collision_driver.c``): an explicit
     pair's ``pair_gap``, else the larger ``geom_gap`` of its two geoms.
 
@@ -57,18 +57,18 @@ def contact_gap(geom: Any, geom_gap: Any, pair_geom: Any, pair_gap: Any, xp: Any
     with ``dist < includemargin + gap`` counts what ``d.ncon`` counts.
 
     Args:
+      m: a C ``MjModel`` or an MJX ``Model`` (``geom_gap``, ``pair_geom1``, ``pair_geom2``,
+        ``pair_gap``; the pair ids are NumPy in both).
       geom: (C, 2) int geom ids of each contact.
-      geom_gap: (ngeom,) ``m.geom_gap``.
-      pair_geom: (npair, 2) int ``pair_geom1``, ``pair_geom2``.
-      pair_gap: (npair,) ``m.pair_gap``.
       xp: ``numpy``, or ``jax.numpy`` inside a trace.
     """
-    gap = xp.maximum(geom_gap[geom[:, 0]], geom_gap[geom[:, 1]])
-    if pair_geom.shape[0] == 0:
+    gap = xp.maximum(m.geom_gap[geom[:, 0]], m.geom_gap[geom[:, 1]])
+    p1, p2 = np.asarray(m.pair_geom1), np.asarray(m.pair_geom2)
+    if p1.size == 0:
         return gap
     a, b = geom[:, 0, None], geom[:, 1, None]
-    match = ((a == pair_geom[:, 0]) & (b == pair_geom[:, 1])) | ((a == pair_geom[:, 1]) & (b == pair_geom[:, 0]))
-    return xp.where(match.any(axis=1), pair_gap[xp.argmax(match, axis=1)], gap)
+    match = ((a == p1) & (b == p2)) | ((a == p2) & (b == p1))
+    return xp.where(match.any(axis=1), m.pair_gap[xp.argmax(match, axis=1)], gap)
 
 
 def contacts_mjx(m: mujoco.MjModel, dx: Any) -> Contacts:
@@ -77,7 +77,7 @@ def contacts_mjx(m: mujoco.MjModel, dx: Any) -> Contacts:
     c = data_impl(dx).contact  # MJX's contacts
     dist, margin, geom, pos, friction, frames = map(np.asarray, (c.dist, c.includemargin, c.geom, c.pos, c.friction,
                                                                  c.frame))
-    margin = margin + contact_gap(geom, m.geom_gap, np.stack([m.pair_geom1, m.pair_geom2], -1), m.pair_gap)
+    margin = margin + contact_gap(m, geom)
     out: Contacts = {}
     for i in np.flatnonzero(dist < margin):
         key = tuple(sorted(int(g) for g in geom[i]))

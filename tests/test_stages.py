@@ -25,8 +25,7 @@ def test_the_gap_is_c_s_a_pair_s_own_else_the_larger_geom_gap():
     m = mujoco.MjModel.from_xml_string(GAPS)
     ids = {n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n) for n in ("floor", "ball", "pill", "box")}
     geom = np.array([[ids["floor"], ids["ball"]], [ids["pill"], ids["floor"]], [ids["floor"], ids["box"]]])
-    pair_geom = np.stack([m.pair_geom1, m.pair_geom2], -1)
-    np.testing.assert_allclose(stages.contact_gap(geom, m.geom_gap, pair_geom, m.pair_gap), [0.001, 0.003, 0.0])
+    np.testing.assert_allclose(stages.contact_gap(m, geom), [0.001, 0.003, 0.0])
 
 
 def test_mjx_s_contact_count_and_contacts_are_c_s_with_gap_zone_contacts():
