@@ -529,8 +529,6 @@ def _scan_steps(mx, dx, ctrl, with_energy, n=None):
     return jax.lax.fori_loop(0, n, body, (dx, empty))
 
 
-#: ``mjx.forward``, compiled: every stage of one state, for the drill-down.
-forward = jax.jit(mjx.forward)
 
 
 def _per_leaf(mx, varying, if_varying, if_shared):
@@ -666,6 +664,20 @@ def xla_options(mode: str, steps: int) -> export_cache.Options:
         return dict(options), choice
 
     return choose
+
+
+def jit_for_few_calls(fn):
+    """``jax.jit(fn)`` compiled for a function called a few times (a drill-down's ``forward``, a
+    fuzz check), not stepped: with :data:`FAST_COMPILE` (:data:`BALANCED_COMPILE` where LLVM level
+    0 is not validated, :func:`mjxdiff.compat.fast_compile_validated`). Measured on the sensing
+    scenario's ``mjx.forward`` (2 cores): XLA compile 21.1 s with XLA's defaults, 12.6 s
+    balanced, 11.5 s fast; its accelerations agree with C's to 1e-14 under each."""
+    options = FAST_COMPILE if fast_compile_validated() else BALANCED_COMPILE
+    return jax.jit(fn, compiler_options=dict(options))
+
+
+#: ``mjx.forward``, compiled to run once per state: every stage of one state, for the drill-down.
+forward = jit_for_few_calls(mjx.forward)
 
 
 def _pad(x: np.ndarray, n: int) -> np.ndarray:

@@ -478,14 +478,15 @@ def _forward_given_contacts():
     """MJX's ``forward`` from its collision on, compiled: ``(mx, dx, contact) -> dx`` with
     ``contact`` in place of ``dx``'s (constraint rows, solver, acceleration sensors; the other
     stages do not read contacts)."""
-    import jax
     from mujoco.mjx._src import constraint, sensor, solver
+
+    from mjxdiff import engines
 
     def after_collision(mx, dx, contact):
         dx = with_impl(dx, contact=contact)
         return sensor.sensor_acc(mx, solver.solve(mx, constraint.make_constraint(mx, dx)))
 
-    return jax.jit(after_collision)
+    return engines.jit_for_few_calls(after_collision)
 
 
 def _divergence(m, inputs: BatchedInputs, config) -> ScenarioResult:

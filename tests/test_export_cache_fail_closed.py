@@ -51,12 +51,13 @@ def _cli_sweep(tmp_path: Path, variant: str, run: int, scenario: str = "pendulum
 
 
 def test_edited_and_clean_mjx_sharing_one_cache_each_run_their_own_code(tmp_path):
-    """The failure of the issue: edited MJX (a module copy from a workspace bound by hand, a patch
-    from another module, a module whose __file__ is not its code's file) swept with a shared
-    cache, then unmodified MJX with the same cache. Before the fix the clean sweep loaded the
-    copy's artifact and failed; the copy's sweep after a clean one loaded the clean artifact
-    and passed."""
-    edited = ("copy", "patch", "mismatch")
+    """The failure of the issue, through the CLI: edited MJX (a module copy from a workspace bound
+    by hand) swept with a shared cache, then unmodified MJX with the same cache. Before the fix
+    the clean sweep loaded the copy's artifact and failed; the copy's sweep after a clean one
+    loaded the clean artifact and passed. (The other variants, a patch from another module and a
+    module whose __file__ is not its code's file among them, are swept in any order over one
+    cache by the property below, in this process.)"""
+    edited = ("copy",)
     first = {v: _cli_sweep(tmp_path, v, 1) for v in edited}
     for v, r in first.items():
         assert r["exit"] == 1 and r["status"] == "fail", (v, r["stderr"][-2000:])
@@ -71,7 +72,7 @@ def test_edited_and_clean_mjx_sharing_one_cache_each_run_their_own_code(tmp_path
         assert (again["exit"], again["status"], again["worst"]) == (1, "fail", first[v]["worst"]), v
     assert _cli_sweep(tmp_path, "clean", 2)["cache"]["loaded"] == 1, "the clean code's own artifact"
     checked = export_cache.check(tmp_path / "cache" / "mjxdiff-exports")
-    assert checked["artifacts"] == 4 and not checked["ambiguous"] and not checked["unreadable"]
+    assert checked["artifacts"] == 2 and not checked["ambiguous"] and not checked["unreadable"]
 
 
 def _site_with_mujoco_copy(tmp_path: Path) -> tuple[str, Path]:
@@ -119,7 +120,9 @@ def test_an_edit_inside_a_decorated_collider_or_in_the_installed_file_is_traced_
     assert again["cache"]["loaded"] == 1 and again["cache"]["traced"] == 0, again["cache"]
 
 
-SCENARIOS = ("pendulum", "cartpole", "double_pendulum")
+#: Every edited variant fails at least one of these, and no two give the same verdicts (asserted
+#: below); a third scenario (double_pendulum, swept here before) added only compiles.
+SCENARIOS = ("pendulum", "cartpole")
 VARIANTS = code_variants.VARIANTS
 _FRESH: dict[str, list] = {}
 
