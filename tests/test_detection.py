@@ -17,8 +17,10 @@ from mjxdiff.inputs import make_inputs
 from mjxdiff.scenario import load_model, load_scenario
 from mjxdiff.sweep import SweepConfig, run_scenario
 
-# Detection is the verdict's job; the diagnosis of these bugs is tested in test_diagnose.py.
-CONFIG = SweepConfig(seed=0, batch=4, diagnose="none")
+# Detection is the rollout verdict's job: the diagnosis of these bugs is tested in test_diagnose.py,
+# the one-step and host-interface checks (more compiles of each patched MJX) in test_onestep.py
+# and test_transfer.py.
+CONFIG = SweepConfig(seed=0, batch=4, diagnose="none", onestep=False, transfer=False)
 
 
 def extra_damping(monkeypatch):

@@ -135,7 +135,8 @@ def _verdicts(variant: str, workspace: Path, exports: Path | None, monkeypatch) 
         with monkeypatch.context() as mp:
             mp.setattr(export_cache, "export_dir", lambda: exports)
             engines.clear_compiled()  # a new process, as far as compiled functions go
-            config = SweepConfig(quick=True, diagnose="none", compile_workers=0)
+            # the rollout's verdict: the one-step check steps the same artifact, the host interface none
+            config = SweepConfig(quick=True, diagnose="none", compile_workers=0, onestep=False, transfer=False)
             results = sweep([load_scenario(n) for n in SCENARIOS], config, progress=False)
     finally:
         undo()
