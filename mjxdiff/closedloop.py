@@ -904,7 +904,7 @@ def _drill(m: mujoco.MjModel, first: dict[str, Any], n_frames: int) -> dict[str,
     except Exception as e:  # noqa: BLE001 - the verdict stands without its drill-down
         return dict(error=_one_line(e))
     return dict(substep=k, first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
-                fields=[dataclasses.asdict(f) for f in drill.fields])
+                contact=drill.contact, fields=[dataclasses.asdict(f) for f in drill.fields])
 
 
 def judge(m: mujoco.MjModel, comparison: Comparison, seed: int = 0, n_frames: int = 1) -> dict[str, Any]:

@@ -35,8 +35,8 @@ from mjxdiff.noise import converge_solver
 if TYPE_CHECKING:
     from mjxdiff.trajectory import Engine
 
-__all__ = ["STAGES", "StageDiff", "DrillDown", "drill_down", "local_error", "attribute_cause", "ABLATIONS", "GENUINE",
-           "UNCLASSIFIED"]
+__all__ = ["STAGES", "StageDiff", "DrillDown", "contact_detail", "drill_down", "local_error", "attribute_cause",
+           "ABLATIONS", "GENUINE", "UNCLASSIFIED"]
 
 #: Pipeline stages in the order ``mj_forward`` computes them, with their fields.
 STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -59,13 +59,16 @@ STAGE_RTOL = {p: t.stage_rtol for p, t in THRESHOLDS.items()}
 
 @dataclasses.dataclass(frozen=True)
 class StageDiff:
-    """One field of one stage: worst scaled error and the object it belongs to."""
+    """One field of one stage: worst scaled error and the object it belongs to; for the
+    ``contact`` field, the worst geom pair as data (:func:`contact_detail`), what known entries
+    and the shrinker match on (never the object's text)."""
 
     stage: str
     field: str
     error: float
     object: str
     differs: bool
+    contact: dict[str, Any] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,6 +80,7 @@ class DrillDown:
       first_stage / first_field / object: the earliest stage that differs,
         or ``None`` when every stage agrees at that state.
       fields: every compared field, in pipeline order.
+      contact: the worst geom pair's :func:`contact_detail`, where the first field is ``contact``.
     """
 
     member: int
@@ -85,6 +89,8 @@ class DrillDown:
     first_field: str | None
     object: str
     fields: tuple[StageDiff, ...]
+    #: the first differing field's :attr:`StageDiff.contact`, where that field is ``contact``
+    contact: dict[str, Any] | None = None
 
 
 def _name(m: mujoco.MjModel, obj: mujoco.mjtObj, i: int) -> str:
@@ -109,10 +115,19 @@ def _object(m: mujoco.MjModel, field: str, index: int) -> str:
     return ""
 
 
-def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float, str]:
+def contact_detail(pair: str, geoms: tuple[str, ...], c: int, mjx: int, part: str | None) -> dict[str, Any]:
+    """A geom pair's contact disagreement as data: ``pair`` the geom types, sorted and joined by
+    ``-`` (``plane-mesh``; a flex is ``flex``), ``geoms`` their names, ``c`` and ``mjx`` each
+    engine's contact count, ``part`` what differs most where the counts agree (``dist``,
+    ``position``, ``friction``, ``normal``, ``tangent frame``), ``count`` where they do not."""
+    return dict(pair=pair, geoms=list(geoms), c=c, mjx=mjx, part=part if c == mjx else "count")
+
+
+def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float, str, dict[str, Any] | None]:
     """Worst contact disagreement: inf for a geom pair whose contact count differs, else the
-    largest |dist|, |pos| or |friction| difference, each engine's contacts matched by position."""
-    worst, obj = 0.0, ""
+    largest |dist|, |pos| or |friction| difference, each engine's contacts matched by position.
+    Returns (error, the pair's description, its :func:`contact_detail`; None if no pair)."""
+    worst, obj, detail = 0.0, "", None
     for pair in sorted(set(cc) | set(cx)):
 
         def by_pos(c):
@@ -122,14 +137,17 @@ def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float,
         diff = np.abs(np.subtract(a, b)).max(axis=0) if len(a) == len(b) and a else np.zeros(0)
         err = np.inf if len(a) != len(b) else float(diff.max(initial=0.0))
         if err > worst:
-            names = " / ".join(_name(m, mujoco.mjtObj.mjOBJ_GEOM, g) if g >= 0 else
-                               f"flex '{_name(m, mujoco.mjtObj.mjOBJ_FLEX, -1 - g)}'" for g in pair)
+            named = tuple(_name(m, mujoco.mjtObj.mjOBJ_GEOM, g) if g >= 0 else
+                          f"flex '{_name(m, mujoco.mjtObj.mjOBJ_FLEX, -1 - g)}'" for g in pair)
+            names = " / ".join(named)
             geoms = [g for g in pair if g >= 0]
             kinds = "-".join(["flex"] * (len(pair) - len(geoms)) + [
                 mujoco.mjtGeom(t).name[len("mjGEOM_"):].lower() for t in sorted(m.geom_type[geoms])])
-            part = f"; {_CONTACT_PARTS[int(diff.argmax())]} differs by {err:.2g}" if diff.size else ""
+            which = _CONTACT_PARTS[int(diff.argmax())] if diff.size else None
+            part = f"; {which} differs by {err:.2g}" if which else ""
             worst, obj = err, f"geoms {names} ({kinds}: C {len(a)}, MJX {len(b)} contacts{part})"
-    return worst, obj
+            detail = contact_detail(kinds, named, len(a), len(b), which)
+    return worst, obj, detail
 
 
 #: What each number of a collected contact is (:func:`_contacts_c`).
@@ -166,8 +184,8 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
     for stage, fields in STAGES:
         for f in fields:
             if f == "contact":
-                err, obj = _contact_diff(m, reference.contacts, contacts_x)
-                diffs.append(StageDiff(stage, f, err, obj, err > 1e3 * rtol))
+                err, obj, detail = _contact_diff(m, reference.contacts, contacts_x)
+                diffs.append(StageDiff(stage, f, err, obj, err > 1e3 * rtol, detail))
                 continue
             c, x = values_c[f], values_x[f]
             if c.size == 0:
@@ -178,7 +196,7 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
             diffs.append(StageDiff(stage, f, err, _object(m, f, i), not err <= rtol))
     first = next((s for s in diffs if s.differs), None)
     return DrillDown(member=member, step=step, first_stage=first and first.stage, first_field=first and first.field,
-                     object=first.object if first else "", fields=tuple(diffs))
+                     object=first.object if first else "", fields=tuple(diffs), contact=first and first.contact)
 
 
 def state_before(inputs: BatchedInputs, traj_c: Trajectory, member: int, step: int):

@@ -11,17 +11,21 @@ TOML file (``--known FILE``)::
     id = "our-gripper-pads"
     title = "soft pads: MJX's box-box manifold"
     evidence = "ticket 123; C 2 contacts, MJX 4"
-    pattern = "\\\\(box-box:"          # regex searched in the failure's message and diagnosis
+    pair = "box-box"                 # regex on the geom types of a differing contact pair
     scenario = "gripper_.*"          # optional regex on the scenario name
     accepted = true                  # counts as accepted by the baseline
 
 Matching (every given condition must hold): ``stage`` equals the first stage of the rollout's
 drill-down or of the one-step check's (``collision``, ``sensors``, ``constraint``,
 ``integration``, ...), ``field`` equals the
-first divergent field (``qpos``, ``qvel``, ``sensordata``, ``transfer``, ...), ``pattern``
-is found in the message plus the drill-down's object, ``cause`` equals the attributed cause
-(``--diagnose full``), ``integrator`` is among the model's integrators, ``scenario``
-matches the scenario's name.
+first divergent field (``qpos``, ``qvel``, ``sensordata``, ``transfer``, ...), ``pair``
+matches in full the geom types of a contact pair that a drill-down found differing
+(``plane-mesh``, ``box-box``: sorted as MuJoCo numbers them, plane first, a flex ``flex``) and
+``part`` is what differs most there (``count``, ``dist``, ``position``, ``friction``,
+``normal``, ``tangent frame``), both read from the report's data; ``pattern`` is found in the
+message plus the drill-down's object (text: for what has no field of its own), ``cause``
+equals the attributed cause (``--diagnose full``), ``integrator`` is among the model's
+integrators, ``scenario`` matches the scenario's name.
 """
 
 from __future__ import annotations
@@ -57,8 +61,9 @@ def load_entries(path: str | Path) -> tuple[Entry, ...]:
                     t[key] = tuple(t[key])
             entries.append(Entry(**t))
         for e in entries:
-            if e.pattern:
-                re.compile(e.pattern)
+            for regex in (e.pattern, e.pair):
+                if regex:
+                    re.compile(regex)
         return tuple(entries)
     except (OSError, tomllib.TOMLDecodeError, TypeError, re.error) as e:
         raise KnownError(f"{path}: not a known-divergences file ({type(e).__name__}: {' '.join(str(e).split())}); "
@@ -73,8 +78,10 @@ def entries(path: str | Path | None = None) -> tuple[Entry, ...]:
 def match(s: dict[str, Any], entries: tuple[Entry, ...] = CATALOGUE) -> Entry | None:
     """The first entry a failing scenario (a report's scenario dict) matches, or None.
 
+    >>> contact = {"pair": "box-box", "geoms": ["pad", "box"], "c": 2, "mjx": 4, "part": "count"}
     >>> failure = {"status": "fail", "name": "my_gripper", "message": "... first field to differ: contact "
-    ...            "(collision, geoms pad / box (box-box: C 2, MJX 4 contacts))"}
+    ...            "(collision, geoms pad / box (box-box: C 2, MJX 4 contacts))",
+    ...            "diagnosis": {"drill_down": {"first_stage": "collision", "contact": contact}}}
     >>> match(failure).id
     'box-box-manifold'
     >>> match({"status": "pass"}) is None

@@ -178,11 +178,6 @@ class _Forward:
                        stages.contacts_mjx(m, dx))
 
 
-def _kinds(obj: str) -> str:
-    found = re.search(r"\(([a-z-]+): C \d+, MJX \d+ contacts", obj)
-    return found.group(1) if found else ""
-
-
 def scaled_error(c: np.ndarray, x: np.ndarray) -> float:
     """``max |x - c| / (1 + max |c|)`` (inf where ``x`` has a NaN); 0 for empty arrays."""
     c, x = np.ravel(c), np.ravel(x)
@@ -227,7 +222,7 @@ def probe(m: mujoco.MjModel, state: State) -> Signature | None:
 
     dd = _drill(m, state)
     if dd.first_stage is not None:
-        return Signature("forward", dd.first_stage, str(dd.first_field), _kinds(dd.object))
+        return Signature("forward", dd.first_stage, str(dd.first_field), (dd.contact or {}).get("pair", ""))
     errors = step_errors(m, state)
     field = next((f for f in STEP_FIELDS if not errors[f] <= STEP_RTOL), None)
     if field:

@@ -228,7 +228,8 @@ MEASURED_ON = "3.17.0"
 @dataclasses.dataclass(frozen=True)
 class Entry:
     """One known divergence: what it is, the evidence, what a failing scenario must show to
-    match it (stage, field, pattern, cause, integrator, scenario: all given must hold), whether
+    match it (stage, field, pair and part, pattern, cause, integrator, scenario: all given must
+    hold), whether
     it is accepted (``--fail-on new`` lets it pass), and ``versions``, the MJX releases it was
     seen in (``mjxdiff versions`` sweeps; a match on another release is labelled all the same,
     and the report says where it was seen)."""
@@ -261,6 +262,19 @@ class Entry:
     #: gap, or the release that fixed it. :func:`advice` adds what ``--fail-on new`` does with it and,
     #: for a bug with a bundle, where to report it.
     remedy: str = ""
+    #: A regular expression the geom-type pair of a differing contact must match in full
+    #: (``plane-mesh``, ``box-box``; types sorted, a flex is ``flex``), in any drill-down of the
+    #: failure (:func:`contacts_shown`): read from the drill-down's data, never from its text.
+    pair: str | None = None
+    #: What of that pair's contacts must differ most: ``count``, ``dist``, ``position``,
+    #: ``friction``, ``normal`` or ``tangent frame`` (:func:`mjxdiff.diagnose.contact_detail`).
+    part: str | None = None
+
+    def _contact_fits(self, s: dict[str, Any]) -> bool:
+        if self.pair is None and self.part is None:
+            return True
+        return any((self.pair is None or re.fullmatch(self.pair, c.get("pair", "")) is not None)
+                   and (self.part is None or c.get("part") == self.part) for c in contacts_shown(s))
 
     def matches(self, s: dict[str, Any]) -> bool:
         """Whether a failing scenario (a report's scenario dict) fits this entry."""
@@ -276,12 +290,22 @@ class Entry:
             not self.only_on or any(_mjx_version().startswith(v) for v in self.only_on),
             self.stage is None or self.stage in (drill.get("first_stage"), one.get("first_stage")),
             self.field is None or first.get("field") == self.field,
+            self._contact_fits(s),
             self.pattern is None or re.search(self.pattern, text) is not None,
             self.cause is None or (diag.get("cause") or {}).get("cause") == self.cause,
             not self.integrator or (s.get("info") or {}).get("integrator") in self.integrator,
             self.scenario is None or re.fullmatch(self.scenario, s.get("name", "")) is not None,
         ]
         return all(checks)
+
+
+def contacts_shown(s: dict[str, Any]) -> list[dict[str, Any]]:
+    """The differing contacts (:func:`mjxdiff.diagnose.contact_detail`) that a failing scenario's
+    drill-downs found: the diagnosis's, the solver floor's, the one-step check's, the twin's."""
+    info = s.get("info") or {}
+    found = [((s.get("diagnosis") or {}).get("drill_down") or {}).get("contact")]
+    found += [(info.get(check) or {}).get("contact") for check in ("solver_floor", "onestep", "twin")]
+    return [c for c in found if isinstance(c, dict)]
 
 
 def _releases_before(minor: int) -> tuple[str, ...]:
@@ -306,27 +330,27 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("plane-mesh-before-3.14", "MJX before 3.14: a plane-mesh manifold of more contacts than C's",
           "mjxdiff versions (2026-11-26), primitives_on_plane at step 0, geoms floor / mesh: C 3, MJX 4 contacts on "
           "3.3.7 and 3.9.0; C 2, MJX 4 on 3.10.0 and 3.12.0 (the one-step check from C's state shows the same); "
-          "passes on 3.14.0 to 3.17.0 (3.13 not swept)", stage="collision", pattern=r"\(plane-mesh: C \d+, MJX",
+          "passes on 3.14.0 to 3.17.0 (3.13 not swept)", stage="collision", pair="plane-mesh",
           versions=("3.3.5", "3.3.7", "3.9.0", "3.10.0", "3.12.0"), only_on=_releases_before(14),
           kind="fixed", bundle=FIXED_SINCE,
           remedy="upgrade mujoco-mjx to 3.14 or later, where it is fixed"),
     Entry("capsule-mesh-before-3.15", "MJX before 3.15: capsule-mesh contacts other than C's",
           "mjxdiff versions (2026-11-26), primitive_pairs at step 0, geoms slab / cap_slab: C 1, MJX 2 contacts on "
           "3.3.7; C 2, MJX 2 with normals 1e-3 apart on 3.9.0, 3.10.0, 3.12.0 and 3.14.0 (the one-step check shows "
-          "the same); passes on 3.15.0 to 3.17.0", stage="collision", pattern=r"\(capsule-mesh:",
+          "the same); passes on 3.15.0 to 3.17.0", stage="collision", pair="capsule-mesh",
           versions=("3.3.5", "3.3.7", "3.9.0", "3.10.0", "3.12.0", "3.14.0"), only_on=_releases_before(15),
           kind="fixed", bundle=FIXED_SINCE,
           remedy="upgrade mujoco-mjx to 3.15 or later, where it is fixed"),
     Entry("plane-box-corners", "plane-box/mesh: MJX keeps only corners within 1 mm of the deepest",
           "primitives_on_plane notes: a box that lands on a corner or rocks (> 1 mm depth spread) diverges ~1e-3; "
-          "a tipped cube in sensing: C 4 corners, MJX 3", stage="collision", pattern=r"\(plane-(box|mesh):",
+          "a tipped cube in sensing: C 4 corners, MJX 3", stage="collision", pair="plane-(box|mesh)",
           versions=(MEASURED_ON, "3.3.5", "3.3.0", "3.9.0"),
           remedy="nothing to set: MJX drops corners more than 1 mm above the deepest; where contact forces on a "
                  "tipping box or mesh foot matter, use sphere or capsule collision geoms, or judge the task's "
                  "behaviour (mjxdiff closedloop) instead of the trajectory"),
     Entry("plane-cylinder-rim", "plane-cylinder: MJX adds the second rim point only near parallel",
           "primitives_on_plane notes: the second rim point only when the axis is within ~1e-3 of parallel; a "
-          "cylinder sunk into a plane: C 4 contacts, MJX 3", stage="collision", pattern=r"\(plane-cylinder:",
+          "cylinder sunk into a plane: C 4 contacts, MJX 3", stage="collision", pair="plane-cylinder",
           remedy="use a capsule (or a sphere) for a cylinder's collision geom where its shape allows; a tilted "
                  "cylinder on a plane otherwise gets other contact forces"),
     Entry("contact-tangent-frame", "contact tangent frames: MJX's plane-capsule (and other) frames differ from C's, "
@@ -334,12 +358,12 @@ CATALOGUE: tuple[Entry, ...] = (
           "tests/test_known_divergences.py: a plane-capsule contact's first tangent is (0, 1, 0) in MJX, along the "
           "capsule's axis in C; Unitree H1 (playground scene_mjx_feetonly.xml, pyramidal): one step from the same "
           "state with converged solvers, qfrc_constraint 52 apart, same contacts, other efc_aref",
-          stage="collision", pattern=r"tangent frame differs",
+          stage="collision", part="tangent frame",
           remedy="use the elliptic friction cone (<option cone=\"elliptic\"/>): with isotropic friction its forces "
                  "do not depend on the tangent frame; a pyramidal cone turns with the frame"),
     Entry("box-box-manifold", "box-box: MJX pads the manifold and places points on a surface",
           "primitive_pairs / box_stack notes: edge-first landings C 2, MJX 4 contacts; contact points on a surface "
-          "(C halfway): friction arms differ by dist/2", pattern=r"\(box-box:",
+          "(C halfway): friction arms differ by dist/2", pair="box-box",
           versions=(MEASURED_ON, "3.3.5", "3.3.0"),
           remedy="nothing to set: MJX's box-box contacts differ at edge landings by design; where stacking or "
                  "grasping boxes matters, judge the task's behaviour (mjxdiff closedloop) instead of the "
@@ -350,18 +374,18 @@ CATALOGUE: tuple[Entry, ...] = (
           "2.882 mm deep in C (GJK/EPA; 2.883 mm exactly), 1.354 mm in MJX (collision_sdf.py), normals 0.037 rad "
           "and points 9.7 mm apart, qacc 99 apart; MJX given C's contacts agrees to 7e-13 (tests/test_fuzz.py); "
           "scenarios/wip/sdf_pairs.toml notes", stage="collision",
-          pattern=r"\(((sphere|capsule|ellipsoid)-(ellipsoid|cylinder)|cylinder-cylinder):",
+          pair="(sphere|capsule|ellipsoid)-(ellipsoid|cylinder)|cylinder-cylinder",
           remedy="use sphere, capsule or box collision geoms for these pairs (MJX collides them exactly); MJX's "
                  "SDF descent for ellipsoids and cylinders gives other depths and normals"),
     Entry("capsule-regularisation", "capsule pairs: MJX's +1e-6 segment regularisation tilts normals",
           "primitive_pairs notes: closest_segment_point divides by |ab|^2 + 1e-6; a sphere rolling along a 1 m "
-          "capsule rail drifts 2e-3 qvel in 300 steps", pattern=r"\((sphere-capsule|capsule-capsule|capsule-\w+):",
+          "capsule rail drifts 2e-3 qvel in 300 steps", pair=r"sphere-capsule|capsule-\w+",
           versions=(MEASURED_ON, "3.3.5", "3.9.0"),
           remedy="split long capsules into shorter ones (the tilt grows with the contact's distance from the "
                  "segment's origin), or use sphere geoms for rolling contacts along a capsule"),
     Entry("heightfield-pairs", "heightfield pairs: MJX keeps other contacts than C",
           "tests/test_known_divergences.py: a sphere across a valley C 2, MJX 1 contact (qacc 16.4 apart); a box "
-          "on a slope C 3, MJX 4", pattern=r"\(hfield-\w+:",
+          "on a slope C 3, MJX 4", pair=r"hfield-\w+",
           remedy="nothing to set: MJX keeps other heightfield contacts; for terrain, judge the task's behaviour "
                  "(mjxdiff closedloop), or use a mesh or boxes where the terrain allows"),
     Entry("rk4-sensor-stage", "RK4: MJX's sensordata is from the last Runge-Kutta stage",
@@ -427,7 +451,7 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("mesh-mesh-contacts-3.3", "MJX 3.3: mesh-mesh contacts other than C's",
           "mjxdiff versions 3.3.5/0.7.0 (2026-11-26): convex_mesh at step 0, geoms slab / frustum_slab: C 1, MJX 4 "
           "contacts (passes contacts disabled); the same scenario passes on MJX 3.9.0 and 3.17.0", stage="collision",
-          pattern=r"\(mesh-mesh:", versions=("3.3.5",), only_on=("3.3.",),
+          pair="mesh-mesh", versions=("3.3.5",), only_on=("3.3.",),
           kind="fixed", bundle=FIXED_SINCE,
           remedy="upgrade mujoco-mjx to 3.9 or later, where it is fixed"),
     Entry("flex-ignored-3.3", "MJX 3.3.0-3.3.4 accept a flex and make none of its contacts",
@@ -435,7 +459,7 @@ CATALOGUE: tuple[Entry, ...] = (
           "step 0, first field contact, flex 'cloth' / flex 'cloth' C 2, MJX 0 contacts (C 9 at the one-step "
           "check); likely cause contact generation. MJX 3.3.5 and later refuse the model (put_model: 'Flex not "
           "implemented for JAX backend.', unsupported); support.UNSUPPORTED_FEATURES 'flex' refused_since 3.3.5 "
-          "(tests/test_supported_versions.py)", stage="collision", pattern=r"flex '",
+          "(tests/test_supported_versions.py)", stage="collision", pair=r"flex-\w+",
           versions=("3.3.0",), only_on=("3.3.0", "3.3.1", "3.3.2", "3.3.3", "3.3.4"),
           kind="fixed", bundle=FIXED_SINCE,
           remedy="upgrade mujoco-mjx to 3.3.5 or later, which refuses flex (MJX has no flex contacts); test flex "

@@ -724,7 +724,7 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
         traj_c = c_engine.rollout(inputs)
         drill = _drill(result, inputs, traj_c, config.precision, under_test)
         check: dict[str, Any] = dict(
-            first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object,
+            first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object, contact=drill.contact,
             margin=SOLVER_MARGIN, status=f"not needed: the divergence starts in the {drill.first_stage} stage")
         # None: every stage of one forward agrees, so the difference is in what a step does with
         # them, and under RK4 a step solves the constraints four times, from states the drill-down
@@ -818,7 +818,8 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
         drill = diagnose.drill_down(converged(inputs.take([row])).models[0],
                                     *diagnose.state_before(inputs, traj_c, row, step),
                                     precision=config.precision, member=member, step=step, engine=under_test)
-        found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object)
+        found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object,
+                         contact=drill.contact)
         where = (f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
                  if drill.first_stage else "; every forward stage agrees (the difference is in the integration)")
     if config.diagnose == "full":
@@ -889,7 +890,8 @@ def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, con
     if twin.status == "fail" and twin.first_divergence:
         with contextlib.suppress(Exception):  # the verdict stands without its drill-down
             drill = _drill(twin, twin_inputs, c_engine.rollout(twin_inputs), config.precision, under_test)
-            found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object)
+            found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object,
+                             contact=drill.contact)
             if drill.first_stage:
                 message += f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
     found["seconds"] = time.perf_counter() - t

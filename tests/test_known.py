@@ -43,11 +43,21 @@ def test_an_accepted_entry_of_the_user_passes_fail_on_new(box, tmp_path, capsys)
 
 
 def test_entries_match_on_what_the_diagnosis_says():
+    box_box = dict(pair="box-box", geoms=["a", "b"], c=2, mjx=4, part="count")
     failing = dict(name="s", status="fail", message="first field to differ: contact (collision, geoms a / b "
-                   "(box-box: C 2, MJX 4 contacts))", diagnosis=dict(drill_down=dict(first_stage="collision")))
+                   "(box-box: C 2, MJX 4 contacts))",
+                   diagnosis=dict(drill_down=dict(first_stage="collision", contact=box_box)))
     assert known.match(failing).id == "box-box-manifold"
     assert known.match(dict(failing, status="pass")) is None
-    assert known.match(dict(failing, message="qvel of joint 'a' leaves its bound")) is None
+    # contacts are matched on the drill-down's data, not on the message's wording
+    assert known.match(dict(failing, message="qvel of joint 'a' leaves its bound")).id == "box-box-manifold"
+    assert known.match(dict(failing, diagnosis=dict(drill_down=dict(first_stage="collision")))) is None
+    # wherever a drill-down found it: the one-step check's too
+    one_step = dict(failing, diagnosis={}, info=dict(onestep=dict(first_stage="collision", contact=box_box)))
+    assert known.match(one_step).id == "box-box-manifold"
+    frame = dict(box_box, pair="plane-capsule", c=1, mjx=1, part="tangent frame")
+    assert known.match(dict(failing, diagnosis=dict(drill_down=dict(first_stage="collision", contact=frame)))
+                       ).id == "contact-tangent-frame"
     # a tendon's wrap side shows in the tendons stage, named; a tendon's armature as a joint's qM,
     # which an armature or mass bug shows too: that entry labels nothing
     wrap = dict(failing, message="first field to differ: ten_length (tendons, tendon 't0')",

@@ -107,7 +107,8 @@ def test_mesh_contacts_mjx_fixed_later_are_known_only_before(monkeypatch):
 
     def failing(pair):
         return dict(status="fail", message="", diagnosis=dict(drill_down=dict(
-            first_stage="collision", object=f"geoms a / b ({pair}: C 3, MJX 4 contacts)")))
+            first_stage="collision", object=f"geoms a / b ({pair}: C 3, MJX 4 contacts)",
+            contact=dict(pair=pair, geoms=["a", "b"], c=3, mjx=4, part="count"))))
     for release, plane, capsule in (("3.3.7", True, True), ("3.9.0", True, True), ("3.12.0", True, True),
                                     ("3.14.0", False, True), ("3.15.0", False, False), ("3.17.0", False, False)):
         monkeypatch.setattr(support, "_mjx_version", lambda release=release: release)
