@@ -104,7 +104,7 @@ def _matching(entry) -> str:
     """What a failing scenario must show to get the entry's label, as one sentence."""
     rules = [f"{label} `{value}`" for label, value in (
         ("first stage", entry.stage), ("first field", entry.field), ("contact pair", entry.pair),
-        ("contacts differ in", entry.part), ("message matches", entry.pattern),
+        ("contacts differ in", entry.part), ("first element", entry.element), ("message matches", entry.pattern),
         ("cause", entry.cause), ("scenario matches", entry.scenario)) if value]
     if entry.integrator:
         rules.append("integrator " + " or ".join(f"`{i}`" for i in entry.integrator))

@@ -22,7 +22,9 @@ first divergent field (``qpos``, ``qvel``, ``sensordata``, ``transfer``, ...), `
 matches in full the geom types of a contact pair that a drill-down found differing
 (``plane-mesh``, ``box-box``: sorted as MuJoCo numbers them, plane first, a flex ``flex``) and
 ``part`` is what differs most there (``count``, ``dist``, ``position``, ``friction``,
-``normal``, ``tangent frame``), both read from the report's data; ``pattern`` is found in the
+``normal``, ``tangent frame``), ``element`` matches in full the first divergence's element as
+``kind:type`` (``sensor:accelerometer``, ``joint:free``), all read from the report's data;
+``pattern`` is found in the
 message plus the drill-down's object (text: for what has no field of its own), ``cause``
 equals the attributed cause (``--diagnose full``), ``integrator`` is among the model's
 integrators, ``scenario`` matches the scenario's name.
@@ -61,7 +63,7 @@ def load_entries(path: str | Path) -> tuple[Entry, ...]:
                     t[key] = tuple(t[key])
             entries.append(Entry(**t))
         for e in entries:
-            for regex in (e.pattern, e.pair):
+            for regex in (e.pattern, e.pair, e.element):
                 if regex:
                     re.compile(regex)
         return tuple(entries)

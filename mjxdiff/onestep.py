@@ -32,7 +32,7 @@ from mjxdiff.trajectory import Engine, Trajectory
 from mjxdiff.inputs import BatchedInputs
 from mjxdiff.scenario import Tolerances
 from mjxdiff.noise import converged, perturb
-from mjxdiff.verdict import WEAK_BOUND, component_objects, error_series, rangefinder_mask
+from mjxdiff.verdict import WEAK_BOUND, component_elements, describe, error_series, rangefinder_mask
 
 __all__ = ["FIELDS", "ROUNDING_FACTOR", "STATES", "check", "one_step_inputs", "sample_steps"]
 
@@ -183,7 +183,7 @@ def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine:
         x, reference, nudged_ref, settings = engine.rollout(one), c, nudged, "converged"
     err, own = _per_pair(x, reference, layout, mask), _per_pair(nudged_ref, reference, layout, mask)
     healthy = (reference.diverged_at < 0) & (nudged_ref.diverged_at < 0)
-    objects = component_objects(m, layout)
+    elements = component_elements(m, layout)
     out.update(pairs=int(healthy.sum()), settings=settings)
     worst = None
     for field in FIELDS:
@@ -202,7 +202,8 @@ def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine:
         i = int(ratio.argmax())
         if worst is None or ratio[i] > worst["ratio"]:
             comp = int(np.nan_to_num(e[i], nan=np.inf).argmax())
-            worst = dict(field=field, object=objects[field][comp] if objects.get(field) else "",
+            element = elements[field][comp] if elements.get(field) else None
+            worst = dict(field=field, object=describe(element) if element else "", element=element,
                          member=int(member_of[rows[i]]), step=int(step_of[rows[i]]) + 1,
                          error=float(per_pair[i]), bound=float(bound[i]), ratio=float(ratio[i]))
     out.update(worst or dict(ratio=0.0), solver=solver,

@@ -228,8 +228,8 @@ MEASURED_ON = "3.17.0"
 @dataclasses.dataclass(frozen=True)
 class Entry:
     """One known divergence: what it is, the evidence, what a failing scenario must show to
-    match it (stage, field, pair and part, pattern, cause, integrator, scenario: all given must
-    hold), whether
+    match it (stage, field, pair and part, element, pattern, cause, integrator, scenario: all
+    given must hold), whether
     it is accepted (``--fail-on new`` lets it pass), and ``versions``, the MJX releases it was
     seen in (``mjxdiff versions`` sweeps; a match on another release is labelled all the same,
     and the report says where it was seen)."""
@@ -269,6 +269,15 @@ class Entry:
     #: What of that pair's contacts must differ most: ``count``, ``dist``, ``position``,
     #: ``friction``, ``normal`` or ``tangent frame`` (:func:`mjxdiff.diagnose.contact_detail`).
     part: str | None = None
+    #: A regular expression the first divergence's element, as ``kind:type``, must match in full
+    #: (``sensor:accelerometer``, ``joint:free``; :func:`mjxdiff.verdict.component_elements`).
+    element: str | None = None
+
+    def _element_fits(self, first: dict[str, Any]) -> bool:
+        if self.element is None:
+            return True
+        e = first.get("element")
+        return isinstance(e, dict) and re.fullmatch(self.element, f"{e.get('kind')}:{e.get('type')}") is not None
 
     def _contact_fits(self, s: dict[str, Any]) -> bool:
         if self.pair is None and self.part is None:
@@ -291,6 +300,7 @@ class Entry:
             self.stage is None or self.stage in (drill.get("first_stage"), one.get("first_stage")),
             self.field is None or first.get("field") == self.field,
             self._contact_fits(s),
+            self._element_fits(first),
             self.pattern is None or re.search(self.pattern, text) is not None,
             self.cause is None or (diag.get("cause") or {}).get("cause") == self.cause,
             not self.integrator or (s.get("info") or {}).get("integrator") in self.integrator,
@@ -411,13 +421,13 @@ CATALOGUE: tuple[Entry, ...] = (
                  "like the angular velocity squared times the timestep)"),
     Entry("acceleration-sensors-without-constraints", "MJX skips sensor_acc in a model without constraint rows",
           "the bundle: a spring-loaded slider's accelerometer C -0.0234 m/s², MJX 0",
-          field="sensordata", pattern=r"\((accelerometer|force|torque|framelinacc|frameangacc)\)",
+          field="sensordata", element="sensor:(accelerometer|force|torque|framelinacc|frameangacc)",
           kind="bug", bundle="tests/data/bundles/acceleration-sensors-without-constraints",
           remedy="compute accelerations from qacc yourself, or give the model a constraint (a joint limit or "
                  "contact) so that MJX evaluates sensor_acc"),
     Entry("contact-sensor-explicit-pair", "contact sensor reads the explicit pair's contact",
           "the bundle: with a <pair>, a geom-matched contact sensor reads the pair's force",
-          field="sensordata", pattern=r"\(contact\)",
+          field="sensordata", element="sensor:contact",
           kind="bug", bundle="tests/data/bundles/contact-sensor-explicit-pair",
           remedy="match the contact sensor by body or site rather than by geom, or drop the explicit <pair> for "
                  "those geoms"),

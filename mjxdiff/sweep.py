@@ -837,7 +837,8 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
     if result.status == "fail":
         return dataclasses.replace(result, message=f"{result.message}; {said}", diagnosis=diagnosis), found, traj_c
     first = dict(field=found["field"], step=step, time=round((step + 1) * float(m.opt.timestep), 9), member=member,
-                 object=found["object"], error=found["error"], tolerance=found["bound"], check="onestep")
+                 object=found["object"], element=found.get("element"), error=found["error"], tolerance=found["bound"],
+                 check="onestep")
     return dataclasses.replace(result, status="fail", message=f"{said}; the rollout alone passed ({result.message})",
                                first_divergence=first, diagnosis=diagnosis), found, traj_c
 

@@ -44,22 +44,44 @@ def _name(m: mujoco.MjModel, obj: mujoco.mjtObj, i: int) -> str:
     return mujoco.mj_id2name(m, obj, int(i)) or f"#{int(i)}"
 
 
-def component_objects(m: mujoco.MjModel, layout: metrics.QposLayout) -> dict[str, list[str]]:
-    """For each compared field, the MuJoCo object each column belongs to."""
+def component_elements(m: mujoco.MjModel, layout: metrics.QposLayout) -> dict[str, list[dict[str, str]]]:
+    """For each compared field, the MuJoCo element each column belongs to, as data:
+    ``kind`` (``joint``, ``sensor``, ``actuator``), ``name`` and ``type`` (a joint's ``free``,
+    ``ball``, ``slide`` or ``hinge``, a sensor's ``accelerometer``, ``contact``, ...; an
+    actuator's ``""``). What known entries match on (:attr:`mjxdiff.support.Entry.element`)."""
 
     def jnt(j):
-        return f"joint '{_name(m, mujoco.mjtObj.mjOBJ_JOINT, j)}'"
+        kind = mujoco.mjtJoint(m.jnt_type[j]).name.removeprefix("mjJNT_").lower()
+        return dict(kind="joint", name=_name(m, mujoco.mjtObj.mjOBJ_JOINT, j), type=kind)
 
     qpos = [jnt(j) for j in metrics.qpos_error_joint_ids(layout)]
     qvel = [jnt(j) for j in m.dof_jntid]
     sens = []
     for s in range(m.nsensor):
         kind = mujoco.mjtSensor(m.sensor_type[s]).name.removeprefix("mjSENS_").lower()
-        sens += [f"sensor '{_name(m, mujoco.mjtObj.mjOBJ_SENSOR, s)}' ({kind})"] * int(m.sensor_dim[s])
+        sens += [dict(kind="sensor", name=_name(m, mujoco.mjtObj.mjOBJ_SENSOR, s), type=kind)] * int(m.sensor_dim[s])
     act = []
     for a in range(m.nu):
-        act += [f"actuator '{_name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a)}'"] * max(int(m.actuator_actnum[a]), 0)
+        act += [dict(kind="actuator", name=_name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a), type="")] * max(
+            int(m.actuator_actnum[a]), 0)
     return {"qpos": qpos, "qvel": qvel, "sensordata": sens, "act": act}
+
+
+def describe(element: dict[str, str]) -> str:
+    """An element of :func:`component_elements` as reports name it: ``joint 'hip'``,
+    ``sensor 'imu' (accelerometer)``."""
+    sensor = f" ({element['type']})" if element["kind"] == "sensor" else ""
+    return f"{element['kind']} '{element['name']}'{sensor}"
+
+
+def component_objects(m: mujoco.MjModel, layout: metrics.QposLayout) -> dict[str, list[str]]:
+    """For each compared field, the MuJoCo object each column belongs to (:func:`describe`)."""
+    return {f: [describe(e) for e in elements] for f, elements in component_elements(m, layout).items()}
+
+
+def elements_by_object(m: mujoco.MjModel, layout: metrics.QposLayout) -> dict[str, dict[str, str]]:
+    """What :func:`component_objects` names, back to its element (the data behind the name)."""
+    return {describe(e): e for elements in component_elements(m, layout).values() for e in elements}
 
 
 def rangefinder_mask(m: mujoco.MjModel) -> np.ndarray:
@@ -413,7 +435,8 @@ class Judge:
                 exact = track.first_step[f.member] == step
                 time = float(track.first_time[f.member]) if exact else round((step + 1) * dt, 9)
             first = dict(field=f.field, step=step, time=time, member=f.member, object=f.object,
-                         error=f.max_error, tolerance=f.tolerance)
+                         element=elements_by_object(m, self.layout).get(f.object), error=f.max_error,
+                         tolerance=f.tolerance)
         unstable_c = ""
         if c_bad.any():
             d0 = min((d for d in diverged if d["engine"] == "c"), key=lambda d: d["step"])

@@ -55,6 +55,14 @@ def test_entries_match_on_what_the_diagnosis_says():
     # wherever a drill-down found it: the one-step check's too
     one_step = dict(failing, diagnosis={}, info=dict(onestep=dict(first_stage="collision", contact=box_box)))
     assert known.match(one_step).id == "box-box-manifold"
+    # a sensor's type from the first divergence's element, not from its name
+    accelerometer = dict(name="s", status="fail", message="sensordata of sensor 'imu' leaves its bound",
+                         first_divergence=dict(field="sensordata", element=dict(kind="sensor", name="imu",
+                                                                                type="accelerometer")))
+    assert known.match(accelerometer).id == "acceleration-sensors-without-constraints"
+    named_so = dict(accelerometer, first_divergence=dict(field="sensordata", object="sensor 'a' (accelerometer)",
+                                                         element=dict(kind="sensor", name="a", type="touch")))
+    assert known.match(named_so) is None
     frame = dict(box_box, pair="plane-capsule", c=1, mjx=1, part="tangent frame")
     assert known.match(dict(failing, diagnosis=dict(drill_down=dict(first_stage="collision", contact=frame)))
                        ).id == "contact-tangent-frame"

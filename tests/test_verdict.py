@@ -119,6 +119,10 @@ def test_verdict_names_the_injected_errors(lidar):
     assert contacts.member == 1 and contacts.max_error == pytest.approx(1 / T)
     assert result.pass_rate == pytest.approx(1 - 3 / 6)  # members 2, 4 and the non-finite 5
     assert result.first_divergence["step"] == 9 and result.first_divergence["field"] == "sensordata"
+    # the object it names, as data too (what known entries match)
+    element = result.first_divergence["element"]
+    assert element["kind"] == "sensor" and result.first_divergence["object"] == (
+        f"sensor '{element['name']}' ({element['type']})"), result.first_divergence
 
 
 def test_mjx_non_finite_fails_whatever_the_threshold(lidar):
