@@ -436,7 +436,7 @@ CATALOGUE: tuple[Entry, ...] = (
           "tendon: ten_length C 1.438173, MJX 1.441468 at step 0. C 4.0 picks the side by the winding of end0 -> "
           "sidesite -> end1 around the wrap geom (MuJoCo Warp 4.0 too), MJX 3.17 by the older rule (the arc "
           "whose middle is nearest the sidesite's direction): near the sidesite's symmetry plane they part",
-          stage="tendons", pattern=r"tendon '",
+          stage="tendons",
           kind="bug", bundle="tests/data/bundles/tendon-wrap-sidesite",
           remedy="move the tendon's sidesite away from the plane of symmetry between the tendon's ends (the "
                  "engines agree away from it)"),
