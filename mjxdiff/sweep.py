@@ -514,9 +514,23 @@ class _CPieces:
         self._pieces.close()
 
 
-def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-             under_test: Engine, c_engine: CEngine, seconds: dict[str, Any],
-             solver: bool = False) -> tuple[ScenarioResult, dict[str, Any]]:
+@dataclasses.dataclass(frozen=True)
+class _Case:
+    """What the rollout's verdict and every check after it read: the scenario's ``name``, its C
+    model ``m`` (each member's own in ``inputs.models``), the inputs, tolerances and settings,
+    the engine under test and MuJoCo C. A check on other inputs (the converged twin, an
+    ablation) judges a :func:`dataclasses.replace` of it."""
+
+    name: str
+    m: mujoco.MjModel
+    inputs: BatchedInputs
+    tol: Tolerances
+    config: SweepConfig
+    under_test: Engine
+    c_engine: CEngine
+
+
+def _verdict(case: _Case, seconds: dict[str, Any], solver: bool = False) -> tuple[ScenarioResult, dict[str, Any]]:
     """Streams both engines (and C's perturbed rerun) piece by piece into a :class:`Judge`.
 
     Members run in groups of at most :func:`group_size` (memory) and the MJX
@@ -535,6 +549,8 @@ def _verdict(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sweep
     Raises:
       UnsupportedError, _EngineFailed: from the engines.
     """
+    name, m, inputs, tol, config, under_test, c_engine = (
+        case.name, case.m, case.inputs, case.tol, case.config, case.under_test, case.c_engine)
     B, T = inputs.batch, inputs.steps
     groups, chunk = _plan(m, inputs, config, under_test)
     judge = Judge(m, tol, B, T)
@@ -630,10 +646,11 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     info["impl"] = under_test.name
     clock: dict[str, Any] = {}  # seconds per engine and for the verdict, and how far the stepping got
     cpu = info.setdefault("cpu_seconds", {})
+    case = _Case(name, m, inputs, tol, config, under_test, c_engine)
     t0 = time.monotonic()
     try:
         with _clock({}, "stepping", cpu):  # the engines and the verdict run at once: one CPU window
-            result, counts = _verdict(name, m, inputs, tol, config, under_test, c_engine, clock)
+            result, counts = _verdict(case, clock)
     except UnsupportedError as e:
         return ScenarioResult(status="unsupported", message=f"MJX does not support: {e.feature}", **base)
     except _EngineFailed as e:
@@ -653,13 +670,12 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     if result.status == "fail" and config.envelope and has_constraints(m) and not any(
             d["engine"] == "mjx" for d in result.diverged_members):
         with _clock(seconds, "solver_floor", cpu):
-            result, traj_c, drill, info["solver_floor"] = _solver_floor(result, m, inputs, tol, config,
-                                                                         under_test, c_engine, {})
+            result, traj_c, drill, info["solver_floor"] = _solver_floor(result, case, {})
     if result.status == "fail" and config.diagnose != "none":
         with _clock(seconds, "diagnosis", cpu):
-            result = _diagnose(result, m, inputs, tol, config, under_test, c_engine, traj_c, drill)
+            result = _diagnose(result, case, traj_c, drill)
     if config.reference == "c" and result.status in ("pass", "fail"):
-        result = _sharp(result, m, inputs, tol, config, under_test, c_engine, traj_c, info, bundled)
+        result = _sharp(result, case, traj_c, info, bundled)
     if counts.get("xla") is not None:
         info["xla"] = counts.pop("xla")
     info.update(mjx_code=export_cache.code_digest(),
@@ -704,8 +720,7 @@ def _drill(result: ScenarioResult, inputs: BatchedInputs, traj_c: Trajectory, pr
                                precision=precision, member=member, step=step, engine=engine)
 
 
-def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-                  under_test: Engine, c_engine: CEngine, clock: dict[str, float]):
+def _solver_floor(result: ScenarioResult, case: _Case, clock: dict[str, float]):
     """A second look at a failure that starts in the constraint stage (or in no forward stage at
     all, the step's own use of the solver): judged again against the
     larger of the rounding envelope and the solver floor (C against C with a converged solver,
@@ -717,12 +732,13 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
       ``info['solver_floor']``); the trajectory and drill-down are reused by the diagnosis.
       Never raises.
     """
+    inputs, config = case.inputs, case.config
     traj_c = drill = None
     if _out_of_time(rerun=True):  # its drill-down compiles MJX's stages, its rerun steps again
         return result, None, None, dict(status=f"not run: {BudgetSpent()}")
     try:
-        traj_c = c_engine.rollout(inputs)
-        drill = _drill(result, inputs, traj_c, config.precision, under_test)
+        traj_c = case.c_engine.rollout(inputs)
+        drill = _drill(result, inputs, traj_c, config.precision, case.under_test)
         check: dict[str, Any] = dict(
             first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object, contact=drill.contact,
             margin=SOLVER_MARGIN, status=f"not needed: the divergence starts in the {drill.first_stage} stage")
@@ -733,7 +749,7 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
             return result, traj_c, drill, check
         if _out_of_time(rerun=True):
             raise BudgetSpent()
-        second, _ = _verdict(result.name, m, inputs, tol, config, under_test, c_engine, clock, solver=True)
+        second, _ = _verdict(case, clock, solver=True)
     except Exception as e:  # noqa: BLE001 - the verdict stands
         return result, traj_c, drill, dict(status=f"could not run: {one_line(e)}")
     first = result.first_divergence
@@ -755,9 +771,8 @@ def _solver_floor(result: ScenarioResult, m, inputs: BatchedInputs, tol: Toleran
     return dataclasses.replace(second, message=message), traj_c, drill, check
 
 
-def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-           under_test: Engine, c_engine: CEngine, traj_c: Trajectory | None,
-           info: dict, bundled: bool = False) -> ScenarioResult:
+def _sharp(result: ScenarioResult, case: _Case, traj_c: Trajectory | None, info: dict,
+           bundled: bool = False) -> ScenarioResult:
     """The checks that stay sharp where the rollout's verdict cannot: the one-step check
     (:func:`_onestep`, with ``config.onestep``), then, where the rollout's pass was held only by
     the solver floor, or was weak on a model whose solver settings the one-step check found not
@@ -768,28 +783,26 @@ def _sharp(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, co
                                                    f"{BudgetSpent()}")
     excused = result.status == "pass" and info.get("solver_floor", {}).get("status") == "pass"
     found: dict = {}
-    if config.onestep:
+    if case.config.onestep:
         _phase("one-step check")
         with _clock(info["seconds"], "onestep", info["cpu_seconds"]):
-            result, found, traj_c = _onestep(result, m, inputs, tol, config, under_test, c_engine, traj_c,
-                                             evidence=excused or bool(result.weak))
+            result, found, traj_c = _onestep(result, case, traj_c, evidence=excused or bool(result.weak))
         info["onestep"] = found
     converged_ = found.get("solver", {}).get("converged", True)
     twin = None
-    if result.status == "pass" and (excused or (result.weak and not converged_)) and config.quick:
+    if result.status == "pass" and (excused or (result.weak and not converged_)) and case.config.quick:
         info["twin"] = twin = dict(status="skipped", message=QUICK_SKIPS["twin"])
         result = dataclasses.replace(result, message=f"{result.message}; {QUICK_SKIPS['twin']}")
     elif result.status == "pass" and (excused or (result.weak and not converged_)):
         with _clock(info["seconds"], "twin", info["cpu_seconds"]):
-            result, info["twin"] = _twin(result, m, inputs, tol, config, under_test, c_engine, {})
+            result, info["twin"] = _twin(result, case, {})
         twin = info["twin"]
     if result.status == "pass" and excused:
-        result = _truncation(result, m, info["solver_floor"], found, twin, bundled=bundled)
+        result = _truncation(result, case.m, info["solver_floor"], found, twin, bundled=bundled)
     return result
 
 
-def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-             under_test: Engine, c_engine: CEngine, traj_c: Trajectory | None,
+def _onestep(result: ScenarioResult, case: _Case, traj_c: Trajectory | None,
              evidence: bool = False) -> tuple[ScenarioResult, dict, Trajectory | None]:
     """``result`` judged again by :func:`mjxdiff.onestep.check` (kept in ``info['onestep']``): a
     failure there fails a passing scenario, naming the field, object, step and (from the stage
@@ -797,10 +810,11 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
     failing scenario keeps its verdict and gains the one-step result as evidence. Never raises.
 
     Returns (result, what the check found, C's whole rollout or None)."""
+    m, inputs, config, under_test, c_engine = case.m, case.inputs, case.config, case.under_test, case.c_engine
     try:
         traj_c = traj_c if traj_c is not None else c_engine.rollout(inputs)
         groups, chunk = _plan(m, inputs, config, under_test)
-        found = onestep.check(m, inputs, traj_c, tol, under_test, c_engine, config.precision, evidence=evidence,
+        found = onestep.check(m, inputs, traj_c, case.tol, under_test, c_engine, config.precision, evidence=evidence,
                               reuse=(groups[0], chunk))
     except Exception as e:  # noqa: BLE001 - the rollout's verdict stands
         found = dict(status="error", message=one_line(e))
@@ -819,11 +833,11 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
                                     *diagnose.state_before(inputs, traj_c, row, step),
                                     precision=config.precision, member=member, step=step, engine=under_test)
         found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object,
-                         contact=drill.contact)
+                     contact=drill.contact)
         where = (f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
                  if drill.first_stage else "; every forward stage agrees (the difference is in the integration)")
     if config.diagnose == "full":
-        found["cause"] = _onestep_cause(m, inputs, traj_c, tol, config, under_test, c_engine, member, step)
+        found["cause"] = _onestep_cause(case, traj_c, member, step)
         if found["cause"]["ablation"]:
             where += f"; one-step cause: {found['cause']['cause']} (passes with {found['cause']['ablation']})"
     said = (f"one-step check: {found['field']} of {found['object'] or 'member ' + str(member)} after step "
@@ -843,25 +857,22 @@ def _onestep(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, 
                                first_divergence=first, diagnosis=diagnosis), found, traj_c
 
 
-def _onestep_cause(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, config: SweepConfig,
-                   under_test: Engine, c_engine: CEngine, member: int, step: int) -> dict:
+def _onestep_cause(case: _Case, traj_c: Trajectory, member: int, step: int) -> dict:
     """:func:`mjxdiff.diagnose.attribute_cause` on the one failing member-state of the one-step
     check: the first ablation under which that one step agrees names the cause. Chaos cannot
     blur it, unlike the rollout's ablations on a model with several differences (a robot)."""
-    row = int(np.flatnonzero(inputs.ids == member)[0])
-    single, traj_row = inputs.take([row]), jax.tree.map(lambda a: a[row:row + 1], traj_c)
+    row = int(np.flatnonzero(case.inputs.ids == member)[0])
+    single, traj_row = case.inputs.take([row]), jax.tree.map(lambda a: a[row:row + 1], traj_c)
 
     def passes(ablated: BatchedInputs, precision: Precision) -> bool:
         with _precision(precision):
-            return onestep.check(ablated.models[0], ablated, traj_row, tol, under_test, c_engine, precision,
-                                 steps=np.array([step - 1]))["status"] == "pass"
+            return onestep.check(ablated.models[0], ablated, traj_row, case.tol, case.under_test, case.c_engine,
+                                 precision, steps=np.array([step - 1]))["status"] == "pass"
 
-    return diagnose.attribute_cause(passes, single, config.precision, skip=("solver convergence",))
+    return diagnose.attribute_cause(passes, single, case.config.precision, skip=("solver convergence",))
 
 
-def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, config: SweepConfig,
-          under_test: Engine, c_engine: CEngine,
-          clock: dict[str, float]) -> tuple[ScenarioResult, dict | None]:
+def _twin(result: ScenarioResult, case: _Case, clock: dict[str, float]) -> tuple[ScenarioResult, dict | None]:
     """The converged twin: both engines rerun with a converged solver
     (:func:`mjxdiff.noise.converged`), judged as sharply as any converged scenario (rounding
     envelope, never the solver floor). Returns the result and what the twin found (for
@@ -869,11 +880,11 @@ def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, con
     fields, seconds). A twin that fails fails the scenario, naming field, step, member and (from
     the drill-down at that state) the first stage and field that differ. Never raises."""
     t = time.perf_counter()
-    twin_inputs = converged(inputs)
+    twin_inputs = converged(case.inputs)
     try:
         if _out_of_time(rerun=True):  # a converged solver compiles again
             raise BudgetSpent()
-        twin, _ = _verdict(result.name, m, twin_inputs, tol, config, under_test, c_engine, clock)
+        twin, _ = _verdict(dataclasses.replace(case, inputs=twin_inputs), clock)
     except Exception as e:  # noqa: BLE001 - the rollout's verdict stands, and says what is missing
         return dataclasses.replace(result, message=f"{result.message}; converged twin could not run: "
                                                    f"{one_line(e)}"), dict(status="error", message=one_line(e))
@@ -890,9 +901,10 @@ def _twin(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances, con
     first = dict(twin.first_divergence or {}, check="twin")
     if twin.status == "fail" and twin.first_divergence:
         with contextlib.suppress(Exception):  # the verdict stands without its drill-down
-            drill = _drill(twin, twin_inputs, c_engine.rollout(twin_inputs), config.precision, under_test)
+            drill = _drill(twin, twin_inputs, case.c_engine.rollout(twin_inputs), case.config.precision,
+                           case.under_test)
             found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object,
-                             contact=drill.contact)
+                         contact=drill.contact)
             if drill.first_stage:
                 message += f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
     found["seconds"] = time.perf_counter() - t
@@ -964,9 +976,8 @@ def _truncation(result: ScenarioResult, m, floor: dict, found: dict, twin: dict 
                                diagnosis=diagnosis, first_divergence=first)
 
 
-def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
-              config: SweepConfig, under_test: Engine, c_engine: CEngine,
-              traj_c: Trajectory | None = None, drill: diagnose.DrillDown | None = None) -> ScenarioResult:
+def _diagnose(result: ScenarioResult, case: _Case, traj_c: Trajectory | None = None,
+              drill: diagnose.DrillDown | None = None) -> ScenarioResult:
     """Adds local error, the stage drill-down and (``full``) the likely cause to a failing verdict;
     ``traj_c`` (C's whole rollout) and ``drill`` when already computed.
 
@@ -974,6 +985,7 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
     the state or an ablated model) becomes a line in ``diagnosis['notes']``
     and in the message, and the verdict stands.
     """
+    m, inputs, tol, config, under_test = case.m, case.inputs, case.tol, case.config, case.under_test
     diagnosis: dict = {}
     notes: list[str] = []
     message = result.message
@@ -988,7 +1000,7 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
             return None
 
     if traj_c is None:  # whole, for the failing scenario only
-        traj_c = attempt("C's full rerun", lambda: c_engine.rollout(inputs))
+        traj_c = attempt("C's full rerun", lambda: case.c_engine.rollout(inputs))
     local = None
     if traj_c is not None:
         if drill is None:
@@ -1016,8 +1028,8 @@ def _diagnose(result: ScenarioResult, m, inputs: BatchedInputs, tol: Tolerances,
             if _out_of_time(rerun=True):  # each ablation compiles and steps again
                 raise BudgetSpent()
             with _precision(precision):
-                return _verdict(result.name, ablated.models[0], ablated, tol, config, under_test, c_engine,
-                                {})[0].status == "pass"
+                ablation = dataclasses.replace(case, m=ablated.models[0], inputs=ablated)
+                return _verdict(ablation, {})[0].status == "pass"
 
         cause = diagnose.attribute_cause(passes, inputs, config.precision)
         if cause["cause"] == diagnose.GENUINE and drill is not None and drill.first_stage == "collision":

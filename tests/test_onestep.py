@@ -106,8 +106,8 @@ def test_a_one_step_failure_fails_the_weak_pass_and_names_the_stage(quadruped, m
     scenario, m, inputs, traj_c = quadruped
     weak = ScenarioResult(name="quadruped_1iter", status="pass", message="worst qpos 3.1 (...)", weak=("qpos",))
     _gain(monkeypatch)
-    result, found, _ = sweep._onestep(weak, m, inputs, scenario.tolerance, SweepConfig(), MJXEngine(), CEngine(),
-                                      traj_c)
+    case = sweep._Case("quadruped_1iter", m, inputs, scenario.tolerance, SweepConfig(), MJXEngine(), CEngine())
+    result, found, _ = sweep._onestep(weak, case, traj_c)
     assert result.status == "fail" and found["status"] == "fail"
     assert result.message.startswith(f"one-step check: {found['field']} of {found['object']} after step ")
     assert found["first_stage"] == "actuation" and "first field to differ: actuator_force (actuation" in result.message
