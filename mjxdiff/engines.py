@@ -529,8 +529,6 @@ def _scan_steps(mx, dx, ctrl, with_energy, n=None):
     return jax.lax.fori_loop(0, n, body, (dx, empty))
 
 
-
-
 def _per_leaf(mx, varying, if_varying, if_shared):
     """A tree shaped like ``mx`` holding ``if_varying`` at stacked leaves, ``if_shared`` elsewhere."""
     return jax.tree.unflatten(jax.tree.structure(mx), [if_varying if v else if_shared for v in varying])

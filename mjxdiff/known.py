@@ -23,11 +23,10 @@ matches in full the geom types of a contact pair that a drill-down found differi
 (``plane-mesh``, ``box-box``: sorted as MuJoCo numbers them, plane first, a flex ``flex``) and
 ``part`` is what differs most there (``count``, ``dist``, ``position``, ``friction``,
 ``normal``, ``tangent frame``), ``element`` matches in full the first divergence's element as
-``kind:type`` (``sensor:accelerometer``, ``joint:free``), all read from the report's data;
-``pattern`` is found in the
-message plus the drill-down's object (text: for what has no field of its own), ``cause``
-equals the attributed cause (``--diagnose full``), ``integrator`` is among the model's
-integrators, ``scenario`` matches the scenario's name.
+``kind:type`` (``sensor:accelerometer``, ``joint:free``), all three read from the report's
+data; ``pattern`` is found in the message plus the drill-down's object (text: for what has no
+field of its own), ``cause`` equals the attributed cause (``--diagnose full``), ``integrator``
+is among the model's integrators, ``scenario`` matches the scenario's name.
 """
 
 from __future__ import annotations

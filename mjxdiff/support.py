@@ -229,10 +229,9 @@ MEASURED_ON = "3.17.0"
 class Entry:
     """One known divergence: what it is, the evidence, what a failing scenario must show to
     match it (stage, field, pair and part, element, pattern, cause, integrator, scenario: all
-    given must hold), whether
-    it is accepted (``--fail-on new`` lets it pass), and ``versions``, the MJX releases it was
-    seen in (``mjxdiff versions`` sweeps; a match on another release is labelled all the same,
-    and the report says where it was seen)."""
+    given must hold), whether it is accepted (``--fail-on new`` lets it pass), and ``versions``,
+    the MJX releases it was seen in (``mjxdiff versions`` sweeps; a match on another release is
+    labelled all the same, and the report says where it was seen)."""
 
     id: str
     title: str

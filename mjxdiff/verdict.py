@@ -79,11 +79,6 @@ def component_objects(m: mujoco.MjModel, layout: metrics.QposLayout) -> dict[str
     return {f: [describe(e) for e in elements] for f, elements in component_elements(m, layout).items()}
 
 
-def elements_by_object(m: mujoco.MjModel, layout: metrics.QposLayout) -> dict[str, dict[str, str]]:
-    """What :func:`component_objects` names, back to its element (the data behind the name)."""
-    return {describe(e): e for elements in component_elements(m, layout).values() for e in elements}
-
-
 def rangefinder_mask(m: mujoco.MjModel) -> np.ndarray:
     """(nsensordata,) True for rangefinder outputs, whose -1 means 'no hit'."""
     mask = np.zeros(m.nsensordata, bool)
@@ -402,7 +397,8 @@ class Judge:
         judged, healthy = ~c_bad, ~c_bad & ~mjx_bad
         diverged = [self._diverged(engine, int(i)) for engine, bad in (("c", c_bad), ("mjx", mjx_bad))
                     for i in np.flatnonzero(bad)]
-        objects = component_objects(m, self.layout)
+        elements = component_elements(m, self.layout)
+        objects = {f: [describe(e) for e in column] for f, column in elements.items()}
         fields = [track.result(key, judged, objects[key], dt) for key, track in self.fields.items()]
         allowed = np.full(self.batch, tol.contact_mismatch)
         for floor in (noise, solver):  # a contact-count mismatch may reach twice what C's own reruns show
@@ -435,8 +431,8 @@ class Judge:
                 exact = track.first_step[f.member] == step
                 time = float(track.first_time[f.member]) if exact else round((step + 1) * dt, 9)
             first = dict(field=f.field, step=step, time=time, member=f.member, object=f.object,
-                         element=elements_by_object(m, self.layout).get(f.object), error=f.max_error,
-                         tolerance=f.tolerance)
+                         element=next((e for e in elements.get(f.field, ()) if describe(e) == f.object), None),
+                         error=f.max_error, tolerance=f.tolerance)
         unstable_c = ""
         if c_bad.any():
             d0 = min((d for d in diverged if d["engine"] == "c"), key=lambda d: d["step"])
