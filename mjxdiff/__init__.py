@@ -82,7 +82,7 @@ _PUBLIC = {
     "run": "mjxdiff.pipeline",  # a whole sweep as the CLI runs it: verdicts, known, history, baseline, files
     "run_scenario": "mjxdiff.sweep",
     "shrink": None,  # the module: a diverging model shrunk to a minimal one with the same divergence
-    "sweep": "mjxdiff.sweep",
+    "sweep": None,  # the module, callable as its function: mjxdiff.sweep(scenarios, config)
 }
 
 __all__ = sorted(_PUBLIC)  # pyright: ignore[reportUnsupportedDunderAll] - the lazy exports below

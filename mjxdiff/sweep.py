@@ -15,6 +15,7 @@ import re
 import sys
 import threading
 import time
+import types
 import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Callable, Generator, Iterable, Iterator, Sequence, TypeVar
@@ -1246,3 +1247,16 @@ def exit_code(results: Iterable[ScenarioResult]) -> int:
     if any(r.status in ("fail", "error") for r in results):
         return 1
     return 0
+
+
+class _CallableModule(types.ModuleType):
+    """This module, callable as its :func:`sweep`: ``mjxdiff.sweep`` is one object whichever came
+    first, ``import mjxdiff.sweep`` (which binds the module to the package) or the package's
+    lazy ``mjxdiff.sweep``, and ``mjxdiff.sweep(scenarios, config)`` runs a sweep either way."""
+
+    def __call__(self, scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
+                 **kwargs) -> list[ScenarioResult]:
+        return sweep(scenarios, config, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

@@ -1,6 +1,8 @@
 """The sweep's plumbing: C streamed from a background thread, an engine crash contained to its scenario."""
 
 import dataclasses
+import subprocess
+import sys
 import threading
 import time
 
@@ -238,3 +240,14 @@ def test_a_quick_sweep_steps_the_full_sweeps_compiled_piece(fresh_mjx):
     assert full.info["batch"] > 4 and full.info["steps"] > 50, full.info
     assert (quick.info["mjx_compiles"], quick.info["mjx_loaded"]) == (0, 0), quick.info
     assert quick.info["groups"] == 1 and quick.info["onestep"]["status"] == "pass", quick.info
+
+
+@pytest.mark.parametrize("first", ["f = mjxdiff.sweep; mjxdiff.SweepConfig", "mjxdiff.SweepConfig; f = mjxdiff.sweep",
+                                   "import mjxdiff.sweep; f = mjxdiff.sweep"])
+def test_mjxdiff_sweep_means_one_thing_whatever_is_imported_first(first):
+    """``mjxdiff.sweep`` is the module, callable as its ``sweep`` function, in whatever order the
+    package, the module and its names are first touched (a fresh interpreter per order)."""
+    code = (f"import mjxdiff; {first}; assert mjxdiff.sweep is f; from mjxdiff import sweep as g; assert g is f; "
+            "from mjxdiff.sweep import sweep as run; import inspect; assert inspect.isfunction(run); "
+            "assert f([], mjxdiff.SweepConfig()) == run([], mjxdiff.SweepConfig()) == []")
+    subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, timeout=120)
