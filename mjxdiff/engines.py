@@ -65,8 +65,8 @@ import numpy as np  # noqa: E402
 with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import warp" to stdout
     from mujoco import mjx
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
-from mjxdiff.compat import (Batch, SimulationError, data_impl, disable_bit, fast_compile_validated,  # noqa: E402
-                            jaxlib_validated)
+from mjxdiff.compat import (BALANCED_COMPILE, FAST_COMPILE, Batch, SimulationError, data_impl,  # noqa: E402,F401
+                            disable_bit, fast_compile_validated, jaxlib_validated, jit_for_few_calls)
 
 from mjxdiff.precision import Precision  # noqa: E402
 from mjxdiff import export_cache, joints, stages  # noqa: E402
@@ -599,15 +599,6 @@ def device_count() -> int:
 
 #: Values of :class:`MJXEngine`'s ``compile``.
 COMPILE_MODES = ("auto", "fast", "optimized")
-#: XLA options of a rollout compiled for stepping: LLVM level 1 and XLA CPU's classic emitters
-#: instead of its fusion emitters. Measured (2 cores, 8 members x 200 steps, against XLA's
-#: defaults): compile 36-40% shorter (ant 5.7 -> 3.5 s, humanoid 10.0 -> 6.3, box_stack
-#: 8.4 -> 5.9, primitive_pairs 11.6 -> 7.0), stepping within -12%..+9%.
-BALANCED_COMPILE = {"xla_backend_optimization_level": 1, "xla_cpu_use_fusion_emitters": False}
-#: XLA options of a rollout compiled quickly: LLVM level 0, classic emitters: compile 55-62%
-#: shorter than XLA's defaults (ant 2.2 s, humanoid 4.5, box_stack 3.7, primitive_pairs 4.9),
-#: stepping 2.7-3.7x slower than :data:`BALANCED_COMPILE`.
-FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 #: Seconds per flop (XLA's cost analysis of one step of the batch) that :data:`FAST_COMPILE`
 #: adds to stepping over :data:`BALANCED_COMPILE`: the largest measured, with a margin (ant
 #: 3.7e-9, humanoid 2.8e-9, box_stack 0.8e-9, primitive_pairs 0.5e-9).
@@ -662,16 +653,6 @@ def xla_options(mode: str, steps: int) -> export_cache.Options:
         return dict(options), choice
 
     return choose
-
-
-def jit_for_few_calls(fn):
-    """``jax.jit(fn)`` compiled for a function called a few times (a drill-down's ``forward``, a
-    fuzz check), not stepped: with :data:`FAST_COMPILE` (:data:`BALANCED_COMPILE` where LLVM level
-    0 is not validated, :func:`mjxdiff.compat.fast_compile_validated`). Measured on the sensing
-    scenario's ``mjx.forward`` (2 cores): XLA compile 21.1 s with XLA's defaults, 12.6 s
-    balanced, 11.5 s fast; its accelerations agree with C's to 1e-14 under each."""
-    options = FAST_COMPILE if fast_compile_validated() else BALANCED_COMPILE
-    return jax.jit(fn, compiler_options=dict(options))
 
 
 #: ``mjx.forward``, compiled to run once per state: every stage of one state, for the drill-down.

@@ -38,6 +38,7 @@ import numpy as np
 
 from mjxdiff.precision import THRESHOLDS, Precision
 from mjxdiff import metrics
+from mjxdiff.compat import jit_for_few_calls
 from mjxdiff.trajectory import Trajectory
 from mjxdiff.inputs import BatchedInputs
 
@@ -119,7 +120,7 @@ class NoiseFloor:
         (over the members fed; an empty dict when none was)."""
         if not self.fed.any():
             return {}
-        return {k: float(metrics.error_growth(jnp.asarray(v), self.dt).rate) for k, v in self._batch_max.items()}
+        return {k: float(fit_growth(jnp.asarray(v), self.dt).rate) for k, v in self._batch_max.items()}
 
 
 def perturb(inputs: BatchedInputs, precision: Precision) -> BatchedInputs:
@@ -174,7 +175,12 @@ def combine(rounding: dict[str, np.ndarray], solver: dict[str, np.ndarray] | Non
     return envelope, source
 
 
-@jax.jit
+#: :func:`mjxdiff.metrics.error_growth` compiled quickly (:func:`~mjxdiff.compat.jit_for_few_calls`):
+#: a sweep fits a few per scenario, each of its own length.
+fit_growth = jit_for_few_calls(lambda err, dt: metrics.error_growth(err, dt))
+
+
+@jit_for_few_calls
 def _self_divergence_fields(a: Trajectory, b: Trajectory, layout: metrics.QposLayout, rf_mask: jax.Array):
     """(B, T) worst component of each judged field of :func:`metrics.trajectory_errors`:
     the same errors the verdict computes for MJX against C."""

@@ -150,15 +150,14 @@ _JITTED: dict[str, Callable] = {}
 
 
 def _jitted(name: str) -> Callable:
-    """``mjx.<name>`` jitted with the model as an argument (one compile per structure), with
-    XLA's quick compile options where they are validated (:func:`mjxdiff.compat.fast_compile_validated`):
-    a shrink compiles once per candidate structure and runs each once."""
+    """``mjx.<name>`` jitted with the model as an argument (one compile per structure), compiled
+    quickly (:func:`mjxdiff.compat.jit_for_few_calls`): a shrink compiles once per candidate
+    structure and runs each once."""
     if name not in _JITTED:
         from mujoco import mjx
 
-        from mjxdiff import compat, engines
-        options = engines.FAST_COMPILE if compat.fast_compile_validated() else {}
-        _JITTED[name] = jax.jit(getattr(mjx, name), compiler_options=options)
+        from mjxdiff import compat
+        _JITTED[name] = compat.jit_for_few_calls(getattr(mjx, name))
     return _JITTED[name]
 
 

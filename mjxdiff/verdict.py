@@ -28,9 +28,10 @@ import mujoco
 import numpy as np
 
 from mjxdiff import joints
+from mjxdiff.compat import jit_for_few_calls
 from mjxdiff import metrics
 from mjxdiff.trajectory import Trajectory, first_diverged
-from mjxdiff.noise import FLOORS, NoiseFloor, noise_floor
+from mjxdiff.noise import FLOORS, NoiseFloor, fit_growth, noise_floor
 from mjxdiff.scenario import Tolerances
 # the verdict's data lives apart, without JAX (a report or an input error needs no JAX); public here too
 from mjxdiff.result import (OUTLIER_RATIO, SERIES_POINTS, STATUSES, TRUNCATION, WEAK_BOUND,  # noqa: F401
@@ -91,7 +92,7 @@ def rangefinder_mask(m: mujoco.MjModel) -> np.ndarray:
 # error series (jax)
 
 
-@functools.partial(jax.jit, static_argnames=("layout",))
+@functools.partial(jit_for_few_calls, static_argnames=("layout",))
 def error_series(a: Trajectory, b: Trajectory, layout: metrics.QposLayout, rf_mask: jax.Array) -> dict[str, jax.Array]:
     """:func:`mjxdiff.metrics.trajectory_errors` of every member of ``a`` against ``b``:
     ``qpos`` (B, T, ncomp) [m | rad], ``qvel`` (B, T, nv), ``act`` (B, T, na),
@@ -176,7 +177,7 @@ class _FieldTrack:
             step = -1
             member = int(np.where(healthy, self.max_ratio, 0.0).argmax())
             comp, floor = int(self.ratio_comp[member]), int(self.ratio_floor[member])
-        growth = metrics.error_growth(jnp.asarray(self.batch_max), dt)
+        growth = fit_growth(jnp.asarray(self.batch_max), dt)
         envelope = float(np.where(healthy, self.last_bound, 0.0).max()) if self.above_tol else 0.0
         scale = float(np.sqrt(self.sumsq / self.count)) if self.count else 0.0
         sharp = (0.0, 0.0)
@@ -241,7 +242,7 @@ def _track(m: mujoco.MjModel, qpos: np.ndarray | jax.Array) -> np.ndarray | jax.
     return qpos[..., [p.qpos_adr for p in parts if p.kind == "scalar"]]
 
 
-@jax.jit
+@jit_for_few_calls
 def _piece_behaviour(pos: jax.Array, dt: float) -> metrics.BehaviourStats:
     return jax.vmap(metrics.behaviour_stats, in_axes=(0, None))(pos, dt)
 
