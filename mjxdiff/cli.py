@@ -485,7 +485,8 @@ def _sweep_parser(sub) -> argparse.ArgumentParser:
     sw.add_argument("--quick", action="store_true",
                     help="smoke run: batch <= 4, steps <= 50, and none of the checks that compile on their own "
                          "(the converged twin, the ablations that name a likely cause): each verdict says what it "
-                         "skipped")
+                         "skipped; it steps the full run's compiled code, so either run warms the cache for the "
+                         "other")
     _shared(sw, "cache_dir", cache_dir=
             "JAX persistent compilation cache, plus traced MJX rollouts in DIR/mjxdiff-exports "
             "so a second run skips tracing mjx.step (default $MJXDIFF_CACHE or "

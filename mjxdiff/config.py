@@ -29,6 +29,9 @@ class SweepConfig:
       precision: ``float64`` or ``float32`` (MJX side; C is always float64).
       quick: a smoke run: batch <= 4 and steps <= 50, without the converged twin and the
         diagnosis's ablations (each a compile of its own; the verdict says what was skipped).
+        Its members are stepped through the full run's compiled piece (padded to its member
+        group, the 50 steps a run-time trip count): a quick run after a full one, or before it,
+        compiles nothing the other has not (not where stepping is slow: hull-hull contacts).
       threshold: least fraction of batch members within tolerance for a scenario to pass.
       envelope: judge against the chaos envelope from C's self-divergence
         (:mod:`mjxdiff.noise`); False holds errors to the fixed tolerances only.

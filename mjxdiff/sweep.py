@@ -113,6 +113,7 @@ class _Prepared:
     inputs: BatchedInputs | None = None
     early: ScenarioResult | None = None
     ahead: dict | None = None
+    plan_for: tuple[int, int] | None = None
 
 
 def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
@@ -154,6 +155,11 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
     if scenario.randomize.values:
         info["set"] = {k: list(v) for k, v in sorted(scenario.randomize.values.items())}
     prepared.inputs = inputs
+    full = dataclasses.replace(config, quick=False).sizes(scenario)
+    # padded to the full run's group, a quick run steps every member of it: not where stepping is slow
+    if config.quick and not info.get("plan", {}).get("changed") and (
+            info.get("estimate", {}).get("step_s", 0.0) < SLOW_STEP_S):
+        prepared.plan_for = full
     return prepared
 
 
@@ -218,9 +224,9 @@ def _compile_ahead(scenario: Scenario, config: SweepConfig, under_test: Engine) 
         prepared = _prepare(scenario, config)
         if prepared.early is None:
             assert prepared.inputs is not None  # a prepared scenario without an early result has its inputs
-            groups, chunk = _plan(prepared.m, prepared.inputs, prepared.config, under_test)
+            groups, chunk = _plan(prepared.m, prepared.inputs, prepared.config, under_test, prepared.plan_for)
             _phase("compiling", estimate_s=prepared.info.get("estimate", {}).get("compile_s"))
-            first = prepared.inputs.take(groups[0]) if len(groups) > 1 else prepared.inputs
+            first = _members(prepared.inputs, groups[0])
             under_test.compile_ahead(first, chunk)
     prepared.ahead = dict(work, wall=time.perf_counter() - t)
     return prepared
@@ -237,7 +243,7 @@ def _finish(prepared: _Prepared, under_test: Engine | None,
     scenario, m, inputs, tol, config = prepared.scenario, prepared.m, prepared.inputs, prepared.tol, prepared.config
     assert inputs is not None  # a prepared scenario without an early result has its inputs
     result = _advised(run_inputs(scenario.name, m, inputs, tol, config, under_test, c_engine,
-                                 dict(prepared.info, bundled=is_bundled(scenario)),
+                                 dict(prepared.info, bundled=is_bundled(scenario), plan_for=prepared.plan_for),
                                  prepared.ahead), advice)
     if result.status == "fail" and config.reproducers is not None:
         result = _with_reproducer(result, scenario, inputs, tol, config)
@@ -345,11 +351,26 @@ def member_groups(batch: int, most: int) -> list[np.ndarray]:
     return [idx[i * size:(i + 1) * size] for i in range(n)]
 
 
-def _plan(m, inputs: BatchedInputs, config: SweepConfig,
-          under_test: Engine) -> tuple[list[np.ndarray], int]:
-    """How the verdict steps ``inputs``: member groups (:func:`member_groups`) and steps per piece."""
-    groups = member_groups(inputs.batch, config.group_size or min(group_size(m, inputs.batch), under_test.batch_cap()))
-    return groups, config.piece_steps or piece_steps(m, len(groups[0]), inputs.steps)
+def _plan(m, inputs: BatchedInputs, config: SweepConfig, under_test: Engine,
+          plan_for: tuple[int, int] | None = None) -> tuple[list[np.ndarray], int]:
+    """How the verdict steps ``inputs``: member groups (:func:`member_groups`) and steps per piece.
+
+    ``plan_for`` (batch, steps): the sizes to plan for instead of the inputs' own, larger ones (a
+    ``--quick`` run plans for the full sweep's): the one group of ``inputs`` is padded to the
+    group those sizes would have and stepped in their pieces, so that both runs step one compiled
+    piece (the quick run's horizon a run-time trip count of it) and a quick run after a full one,
+    or before it, compiles nothing the other has not."""
+    batch, steps = plan_for or (inputs.batch, inputs.steps)
+    size = config.group_size or min(group_size(m, batch), under_test.batch_cap())
+    groups = member_groups(inputs.batch, size)
+    if plan_for is not None and len(groups) == 1:
+        groups = [np.minimum(np.arange(size), inputs.batch - 1)]
+    return groups, config.piece_steps or piece_steps(m, len(groups[0]), steps)
+
+
+def _members(inputs: BatchedInputs, idx: np.ndarray) -> BatchedInputs:
+    """The members ``idx`` of ``inputs`` (padding repeats included), or ``inputs`` when ``idx`` is all of them."""
+    return inputs if np.array_equal(idx, np.arange(inputs.batch)) else inputs.take(idx)
 
 
 class _EngineFailed(Exception):
@@ -529,6 +550,7 @@ class _Case:
     config: SweepConfig
     under_test: Engine
     c_engine: CEngine
+    plan_for: tuple[int, int] | None = None
 
 
 def _verdict(case: _Case, seconds: dict[str, Any], solver: bool = False) -> tuple[ScenarioResult, dict[str, Any]]:
@@ -553,7 +575,7 @@ def _verdict(case: _Case, seconds: dict[str, Any], solver: bool = False) -> tupl
     name, m, inputs, tol, config, under_test, c_engine = (
         case.name, case.m, case.inputs, case.tol, case.config, case.under_test, case.c_engine)
     B, T = inputs.batch, inputs.steps
-    groups, chunk = _plan(m, inputs, config, under_test)
+    groups, chunk = _plan(m, inputs, config, under_test, case.plan_for)
     judge = Judge(m, tol, B, T)
     floor = NoiseFloor(m, rangefinder_mask(m), B, T) if config.envelope else None
     solver_floor = NoiseFloor(m, rangefinder_mask(m), B, T, SOLVER_MARGIN) if floor and solver else None
@@ -562,7 +584,7 @@ def _verdict(case: _Case, seconds: dict[str, Any], solver: bool = False) -> tupl
         _phase("stepping", group=len(done) + 1, groups=len(groups))
         members = idx[:len(np.unique(idx))]  # the padding repeats come last
         n = len(members)
-        group = inputs.take(idx) if len(groups) > 1 else inputs
+        group = _members(inputs, idx)
 
         def feed(reference, perturbed, solved, at):
             """Both floors' envelopes of a piece, and which floor each value came from."""
@@ -641,13 +663,14 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
                 info: dict | None) -> ScenarioResult:
     info = dict(info or {}, batch=inputs.batch, steps=inputs.steps)
     bundled = bool(info.pop("bundled", False))  # how a truncation is worded, not part of the result
+    plan_for = info.pop("plan_for", None)  # the sizes a --quick run plans (and compiles) for
     seconds = info.setdefault("seconds", {})
     base: dict[str, Any] = dict(name=name, tolerances=tol.as_dict(), info=info)
     under_test, c_engine = under_test or simulator(config), c_engine or CEngine()
     info["impl"] = under_test.name
     clock: dict[str, Any] = {}  # seconds per engine and for the verdict, and how far the stepping got
     cpu = info.setdefault("cpu_seconds", {})
-    case = _Case(name, m, inputs, tol, config, under_test, c_engine)
+    case = _Case(name, m, inputs, tol, config, under_test, c_engine, plan_for)
     t0 = time.monotonic()
     try:
         with _clock({}, "stepping", cpu):  # the engines and the verdict run at once: one CPU window
@@ -814,7 +837,7 @@ def _onestep(result: ScenarioResult, case: _Case, traj_c: Trajectory | None,
     m, inputs, config, under_test, c_engine = case.m, case.inputs, case.config, case.under_test, case.c_engine
     try:
         traj_c = traj_c if traj_c is not None else c_engine.rollout(inputs)
-        groups, chunk = _plan(m, inputs, config, under_test)
+        groups, chunk = _plan(m, inputs, config, under_test, case.plan_for)
         found = onestep.check(m, inputs, traj_c, case.tol, under_test, c_engine, config.precision, evidence=evidence,
                               reuse=(groups[0], chunk))
     except Exception as e:  # noqa: BLE001 - the rollout's verdict stands

@@ -226,6 +226,22 @@ def test_a_scenarios_phases_do_not_overlap_and_stepping_is_only_stepping(fresh_m
     assert line.startswith(f"time: {wall:.0f} s wall") and "MJX stepping" in line and "compile" in line, line
 
 
+def test_a_quick_sweep_steps_the_full_sweeps_compiled_piece(fresh_mjx):
+    """``--quick`` judges its 4 members over 50 steps padded to the full sweep's member group and
+    stepped in its pieces (the horizon a run-time trip count): after the full sweep of a scenario
+    it compiles nothing more, not even a load, and still judges only its own members and steps."""
+    from mjxdiff.sweep import run_scenario
+
+    scenario = load_scenario("cartpole")
+    full = run_scenario(scenario, SweepConfig(diagnose="none", transfer=False))
+    quick = run_scenario(scenario, SweepConfig(quick=True, diagnose="none", transfer=False))
+    assert full.status == quick.status == "pass", (full.message, quick.message)
+    assert (quick.info["batch"], quick.info["steps"]) == (4, 50), quick.info
+    assert full.info["batch"] > 4 and full.info["steps"] > 50, full.info
+    assert (quick.info["mjx_compiles"], quick.info["mjx_loaded"]) == (0, 0), quick.info
+    assert quick.info["groups"] == 1 and quick.info["onestep"]["status"] == "pass", quick.info
+
+
 @pytest.mark.parametrize("first", ["f = mjxdiff.sweep; mjxdiff.SweepConfig", "mjxdiff.SweepConfig; f = mjxdiff.sweep",
                                    "import mjxdiff.sweep; f = mjxdiff.sweep"])
 def test_mjxdiff_sweep_means_one_thing_whatever_is_imported_first(first):
