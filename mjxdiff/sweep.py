@@ -155,11 +155,10 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
     if scenario.randomize.values:
         info["set"] = {k: list(v) for k, v in sorted(scenario.randomize.values.items())}
     prepared.inputs = inputs
-    full = dataclasses.replace(config, quick=False).sizes(scenario)
     # padded to the full run's group, a quick run steps every member of it: not where stepping is slow
     if config.quick and not info.get("plan", {}).get("changed") and (
             info.get("estimate", {}).get("step_s", 0.0) < SLOW_STEP_S):
-        prepared.plan_for = full
+        prepared.plan_for = dataclasses.replace(config, quick=False).sizes(scenario)
     return prepared
 
 
