@@ -3,12 +3,16 @@ process (compiles shared), each scenario's worst ratio to its bound per check: t
 field's error / tolerance or envelope), the one-step check and the converged twin where they ran.
 
     python benchmarks/scripts/margins.py --seeds 0:50 [--quick] [--scenarios A B ...] [--json OUT]
+    python benchmarks/scripts/margins.py --merge A.json B.json ... --json OUT
+
 
 Prints per scenario and check: seeds, median, 99th percentile and max ratio, and the probability
 of a ratio >= 1 on one draw, from a normal in log10(ratio) fitted to the upper half of the seeds
 (:func:`p_exceed`; the tail of a few dozen draws says little on its own); the per-sweep
 false-alarm estimate is one minus the product of the scenarios' chances to pass. Seeds that
-fail are listed with their messages.
+fail are listed with their messages. The JSON keeps every seed's ratios (``per_seed``), so runs
+over other seeds or scenarios merge (``--merge``: a later file's scenario replaces an earlier
+file's for the seeds it ran).
 """
 import argparse
 import json
@@ -55,6 +59,13 @@ def p_exceed_from(median: float, largest: float, n: int) -> float:
     return 1 - statistics.NormalDist(mu, sd).cdf(0.0)
 
 
+def worst_field(result) -> str | None:
+    """The name of ``result``'s field with the largest ratio to its bound (None where none has one)."""
+    fields = [f for f in result.fields if f.ratio is not None and math.isfinite(f.ratio)]
+    worst = max(fields, key=lambda f: f.ratio) if fields else None
+    return worst and f"{worst.field} {worst.object}"
+
+
 def summarize(table: dict) -> dict:
     rows = {}
     for name, per_seed in table.items():
@@ -72,7 +83,10 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--scenarios", nargs="*")
     parser.add_argument("--json")
+    parser.add_argument("--merge", nargs="+", metavar="JSON", help="summarize these runs' seeds, no sweep")
     a = parser.parse_args()
+    if a.merge:
+        return report(*merged(a.merge), a.json)
     engines.configure_jax("float64", None)
     first, end = map(int, a.seeds.split(":"))
     scenarios = [load_scenario(n) for n in a.scenarios] if a.scenarios else bundled_scenarios()
@@ -81,11 +95,32 @@ def main() -> int:
     for seed in range(first, end):
         t = time.perf_counter()
         for r in sweep(scenarios, SweepConfig(seed=seed, quick=a.quick), progress=False):
-            table[r.name][seed] = dict(status=r.status, ratios=ratios(r))
+            table[r.name][seed] = dict(status=r.status, ratios=ratios(r), worst=worst_field(r))
             if r.status not in ("pass", "unsupported"):
                 failures.append(dict(seed=seed, name=r.name, status=r.status, message=r.message[:400]))
         print(f"seed {seed}: {time.perf_counter() - t:.1f} s, failures so far {len(failures)}", file=sys.stderr,
               flush=True)
+    return report(table, failures, [first, end], a.quick, a.json)
+
+
+def merged(paths: list[str]) -> tuple[dict, list, list[int], bool]:
+    """The per-seed table, failures, seed range and quick flag of the runs in ``paths``, merged."""
+    table: dict = {}
+    failures: list = []
+    first, end, quick = math.inf, -math.inf, False
+    for path in paths:
+        with open(path) as f:
+            data = json.load(f)
+        for name, per_seed in data["per_seed"].items():
+            table.setdefault(name, {}).update({int(k): v for k, v in per_seed.items()})
+            failures = [x for x in failures if not (x["name"] == name and str(x["seed"]) in per_seed)]
+        failures += data["failures"]
+        first, end, quick = min(first, data["seeds"][0]), max(end, data["seeds"][1]), quick or data["quick"]
+    return table, failures, [int(first), int(end)], quick
+
+
+def report(table: dict, failures: list, seeds: list[int], quick: bool, out: str | None) -> int:
+    """Prints the summary of ``table`` and writes it, with every seed's ratios, to ``out``."""
     rows = summarize(table)
     p_pass = math.prod(1 - r["p_exceed"] for r in rows.values() if math.isfinite(r["p_exceed"]))
     for key, r in rows.items():
@@ -94,12 +129,11 @@ def main() -> int:
     print(f"per-sweep false-alarm estimate: {1 - p_pass:.2e}; failures: {len(failures)}")
     for f in failures:
         print(f"  seed {f['seed']} {f['name']} {f['status']}: {f['message']}")
-    if a.json:
-        with open(a.json, "w") as f:
-            json.dump(dict(seeds=[first, end], quick=a.quick, rows=rows, failures=failures,
-                           per_sweep_false_alarm=1 - p_pass), f, indent=1, sort_keys=True)
+    if out:
+        with open(out, "w") as f:
+            json.dump(dict(seeds=seeds, quick=quick, rows=rows, failures=failures, per_sweep_false_alarm=1 - p_pass,
+                           per_seed=table), f, indent=1, sort_keys=True)
     return 1 if failures else 0
-
 
 if __name__ == "__main__":
     sys.exit(main())
