@@ -196,12 +196,12 @@ def margins_markdown() -> str:
     rows = [f"Unmodified MJX, seeds {first} to {end - 1}{' (--quick)' if data['quick'] else ''}: "
             f"{len(data['failures'])} failure(s); per-sweep false-alarm estimate "
             f"{data['per_sweep_false_alarm']:.1e}.", "",
-            "| scenario | check | seeds | median | 99th percentile | max | P(ratio >= 1) per draw |",
-            "|---|---|---|---|---|---|---|"]
+            "| scenario | check | seeds | differing | median | 99th percentile | max | P(ratio >= 1) per draw |",
+            "|---|---|---|---|---|---|---|---|"]
     for key, r in sorted(data["rows"].items()):
         name, check = key.rsplit(" ", 1)
-        rows.append(f"| {name} | {check} | {r['seeds']} | {r['median']:.2g} | {r['p99']:.2g} | {r['max']:.2g} "
-                    f"| {r['p_exceed']:.1e} |")
+        rows.append(f"| {name} | {check} | {r['seeds']} | {r.get('differing', '')} | {r['median']:.2g} "
+                    f"| {r['p99']:.2g} | {r['max']:.2g} | {r['p_exceed']:.1e} |")
     return "\n".join(rows) + "\n"
 
 

@@ -50,31 +50,6 @@ def _cli_sweep(tmp_path: Path, variant: str, run: int, scenario: str = "pendulum
                 cache=doc["code"]["cache"], stderr=proc.stderr)
 
 
-def test_edited_and_clean_mjx_sharing_one_cache_each_run_their_own_code(tmp_path):
-    """The failure of the issue, through the CLI: edited MJX (a module copy from a workspace bound
-    by hand) swept with a shared cache, then unmodified MJX with the same cache. Before the fix
-    the clean sweep loaded the copy's artifact and failed; the copy's sweep after a clean one
-    loaded the clean artifact and passed. (The other variants, a patch from another module and a
-    module whose __file__ is not its code's file among them, are swept in any order over one
-    cache by the property below, in this process.)"""
-    edited = ("copy",)
-    first = {v: _cli_sweep(tmp_path, v, 1) for v in edited}
-    for v, r in first.items():
-        assert r["exit"] == 1 and r["status"] == "fail", (v, r["stderr"][-2000:])
-        assert r["cache"]["traced"] == 1 and r["cache"]["loaded"] == 0 and not r["cache"]["unsaved"], (v, r["cache"])
-    clean = _cli_sweep(tmp_path, "clean", 1)
-    assert clean["exit"] == 0 and clean["status"] == "pass", clean["stderr"][-2000:]
-    assert clean["cache"]["loaded"] == 0, "unmodified MJX loaded an artifact of edited code"
-    assert "cache: 0 MJX rollouts loaded" in clean["stderr"]
-    for v in edited:
-        again = _cli_sweep(tmp_path, v, 2)
-        assert again["cache"]["loaded"] == 1 and again["cache"]["traced"] == 0, (v, again["cache"])
-        assert (again["exit"], again["status"], again["worst"]) == (1, "fail", first[v]["worst"]), v
-    assert _cli_sweep(tmp_path, "clean", 2)["cache"]["loaded"] == 1, "the clean code's own artifact"
-    checked = export_cache.check(tmp_path / "cache" / "mjxdiff-exports")
-    assert checked["artifacts"] == 2 and not checked["ambiguous"] and not checked["unreadable"]
-
-
 def _site_with_mujoco_copy(tmp_path: Path) -> tuple[str, Path]:
     """A venv whose site-packages holds a copy of the installed ``mujoco`` package (links to its
     files, ``collision_primitive.py`` a file of its own) ahead of this environment's packages:
@@ -100,15 +75,23 @@ def test_an_edit_inside_a_decorated_collider_or_in_the_installed_file_is_traced_
     for the half-length (before the fix it loaded the clean artifact and passed: the raw function
     lives only in the wrapper's closure), then the same edit made in the installed file where it
     lies (before the fix: every file under a venv's lib/python3.X was ignored), then unmodified
-    MJX again, which loads its own artifact and gives its first numbers."""
+    MJX again, which loads its own artifact and gives its first numbers; an edited copy run again
+    loads its own artifact too (before issue 49's first fix, clean MJX loaded an edited copy's
+    artifact and failed). The property below sweeps every other variant in any order over one
+    cache, in this process."""
     python, installed = _site_with_mujoco_copy(tmp_path)
     run = functools.partial(_cli_sweep, tmp_path, scenario="primitives_on_plane", python=python)
     clean = run("clean", 1)
     assert (clean["exit"], clean["status"], clean["cache"]["traced"]) == (0, "pass", 1), clean["stderr"][-2000:]
+    first = {}
     for variant in code_variants.CONTACT_VARIANTS:
-        edited = run(variant, 1)
+        first[variant] = edited = run(variant, 1)
         assert (edited["exit"], edited["status"]) == (1, "fail"), (variant, edited["stderr"][-2000:])
         assert edited["cache"]["traced"] == 1 and edited["cache"]["loaded"] == 0, (variant, edited["cache"])
+    variant = code_variants.CONTACT_VARIANTS[0]
+    again = run(variant, 2)
+    assert (again["cache"]["loaded"], again["cache"]["traced"]) == (1, 0), (variant, again["cache"])
+    assert (again["exit"], again["status"], again["worst"]) == (1, "fail", first[variant]["worst"]), variant
     original = installed.read_text()
     installed.write_text(original.replace(code_variants._CAPSULE_OLD, "segment = axis * cap.size[0]"))
     in_place = run("clean", 2)
@@ -118,6 +101,8 @@ def test_an_edit_inside_a_decorated_collider_or_in_the_installed_file_is_traced_
     again = run("clean", 3)
     assert (again["exit"], again["status"], again["worst"]) == (0, "pass", clean["worst"]), again["stderr"][-2000:]
     assert again["cache"]["loaded"] == 1 and again["cache"]["traced"] == 0, again["cache"]
+    checked = export_cache.check(tmp_path / "cache" / "mjxdiff-exports")
+    assert not checked["ambiguous"] and not checked["unreadable"], checked
 
 
 #: Every edited variant fails at least one of these, and no two give the same verdicts (asserted
