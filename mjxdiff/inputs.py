@@ -83,6 +83,11 @@ class BatchedInputs:
             models=tuple(self.models[int(i)] for i in np.arange(self.batch)[members]),
             factors={k: pick(v) for k, v in self.factors.items()}, member_ids=ids)
 
+    def members(self, idx: np.ndarray) -> "BatchedInputs":
+        """The members ``idx`` (an index array; repeats, as padding makes, included), or ``self``
+        when ``idx`` is every member in order."""
+        return self if np.array_equal(idx, np.arange(self.batch)) else self.take(idx)
+
     def edit_models(self, edit: Callable[[mujoco.MjModel], None]) -> "BatchedInputs":
         """These inputs with ``edit`` applied to a copy of every member's model (members that
         share a model share its edited copy)."""

@@ -114,7 +114,7 @@ def _through_rollout(inputs: BatchedInputs, configured: BatchedInputs, engine, r
     group, through the sweep's own compiled rollout (``engine.first_piece``: no compile of its
     own). Returns (pair rows into ``configured``, the one-step Trajectory)."""
     group, chunk = reuse
-    base = inputs.take(group) if len(group) != inputs.batch or np.any(group != np.arange(inputs.batch)) else inputs
+    base = inputs.members(group)
     row_of = {int(i): r for r, i in enumerate(inputs.ids)}
     rows = np.array([row_of[int(i)] * S + k % S for k, i in enumerate(base.ids)])
     ctrl = np.zeros_like(np.asarray(base.ctrl))

@@ -225,7 +225,7 @@ def _compile_ahead(scenario: Scenario, config: SweepConfig, under_test: Engine) 
             assert prepared.inputs is not None  # a prepared scenario without an early result has its inputs
             groups, chunk = _plan(prepared.m, prepared.inputs, prepared.config, under_test, prepared.plan_for)
             _phase("compiling", estimate_s=prepared.info.get("estimate", {}).get("compile_s"))
-            first = _members(prepared.inputs, groups[0])
+            first = prepared.inputs.members(groups[0])
             under_test.compile_ahead(first, chunk)
     prepared.ahead = dict(work, wall=time.perf_counter() - t)
     return prepared
@@ -365,11 +365,6 @@ def _plan(m, inputs: BatchedInputs, config: SweepConfig, under_test: Engine,
     if plan_for is not None and len(groups) == 1:
         groups = [np.minimum(np.arange(size), inputs.batch - 1)]
     return groups, config.piece_steps or piece_steps(m, len(groups[0]), steps)
-
-
-def _members(inputs: BatchedInputs, idx: np.ndarray) -> BatchedInputs:
-    """The members ``idx`` of ``inputs`` (padding repeats included), or ``inputs`` when ``idx`` is all of them."""
-    return inputs if np.array_equal(idx, np.arange(inputs.batch)) else inputs.take(idx)
 
 
 class _EngineFailed(Exception):
@@ -583,7 +578,7 @@ def _verdict(case: _Case, seconds: dict[str, Any], solver: bool = False) -> tupl
         _phase("stepping", group=len(done) + 1, groups=len(groups))
         members = idx[:len(np.unique(idx))]  # the padding repeats come last
         n = len(members)
-        group = _members(inputs, idx)
+        group = inputs.members(idx)
 
         def feed(reference, perturbed, solved, at):
             """Both floors' envelopes of a piece, and which floor each value came from."""
