@@ -27,6 +27,23 @@ def test_the_seeds_of_a_day_are_its_own_and_outside_the_tuned_range():
     assert min(seeds_of(today)) >= 1000 and not set(seeds_of(today)) & set(seeds_of(tomorrow))
 
 
+def test_the_published_margins_cover_every_bundled_scenario_with_room_to_spare(repo_root):
+    """docs/data/margins.json (benchmarks/scripts/margins.py): at least 50 seeds of every bundled
+    scenario that ran, no failure, every check's 99th percentile at most half its bound and its
+    largest below it (issue 54's bar)."""
+    from mjxdiff.scenario import bundled_scenarios
+
+    data = json.loads((repo_root / "docs" / "data" / "margins.json").read_text())
+    assert not data["failures"], data["failures"]
+    per_seed = data["per_seed"]
+    assert set(per_seed) == {s.name for s in bundled_scenarios()}
+    judged = {name for name, seeds in per_seed.items() if any(r["status"] != "unsupported" for r in seeds.values())}
+    assert judged <= {key.rsplit(" ", 1)[0] for key in data["rows"]}
+    wide = {key: (r["p99"], r["max"]) for key, r in data["rows"].items()
+            if r["seeds"] < 50 or r["p99"] > 0.5 or r["max"] >= 1}
+    assert not wide, wide
+
+
 @pytest.mark.slow
 def test_unmodified_mjx_passes_the_quick_default_sweep_on_seeds_drawn_from_the_date(tmp_path):
     for seed in seeds_of(datetime.date.today()):
