@@ -202,6 +202,7 @@ def margins_markdown() -> str:
         name, check = key.rsplit(" ", 1)
         rows.append(f"| {name} | {check} | {r['seeds']} | {r.get('differing', '')} | {r['median']:.2g} "
                     f"| {r['p99']:.2g} | {r['max']:.2g} | {r['p_exceed']:.1e} |")
+    rows += ["", *(f"Measured: {run}" for run in data.get("runs", []))]
     return "\n".join(rows) + "\n"
 
 
