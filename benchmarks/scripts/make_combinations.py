@@ -237,12 +237,13 @@ def main() -> None:
     # draws (combinations seed 51: 0.068 of a sensor's tolerance; combinations_implicit seed 55: 0.020
     # of qvel's, where the median seed is 1e-8 of it)
     converged = ('<!-- Solver converged (tolerance 1e-14, 100 iterations and line-search steps): at 1e-10 MJX\n'
-                 '       and C stopped at different points on some draws. A bundled scenario\'s pass must be sharp. -->\n  ')
+                 "       and C stopped at different points on some draws. A bundled scenario's pass must be sharp."
+                 ' -->\n  ')
     explicit = (converged + '<option timestep="0.002" integrator="Euler" cone="elliptic" solver="Newton" impratio="2" '
                 'iterations="100" tolerance="1e-14" ls_iterations="100">\n'
                 '    <flag eulerdamp="disable" warmstart="disable"/>\n  </option>')
-    implicit = (converged + '<option timestep="0.002" integrator="implicitfast" cone="pyramidal" solver="Newton" impratio="1.5" '
-                'iterations="100" tolerance="1e-14" ls_iterations="100">\n'
+    implicit = (converged + '<option timestep="0.002" integrator="implicitfast" cone="pyramidal" solver="Newton" '
+                'impratio="1.5" iterations="100" tolerance="1e-14" ls_iterations="100">\n'
                 '    <flag refsafe="disable" clampctrl="disable" gravity="disable"/>\n  </option>')
     (root / "combinations.xml").write_text(model("combinations", explicit, implicit=False))
     (root / "combinations_implicit.xml").write_text(model("combinations_implicit", implicit, implicit=True))
