@@ -89,9 +89,9 @@ def test_an_edit_inside_a_decorated_collider_or_in_the_installed_file_is_traced_
         assert (edited["exit"], edited["status"]) == (1, "fail"), (variant, edited["stderr"][-2000:])
         assert edited["cache"]["traced"] == 1 and edited["cache"]["loaded"] == 0, (variant, edited["cache"])
     variant = code_variants.CONTACT_VARIANTS[0]
-    again = run(variant, 2)
-    assert (again["cache"]["loaded"], again["cache"]["traced"]) == (1, 0), (variant, again["cache"])
-    assert (again["exit"], again["status"], again["worst"]) == (1, "fail", first[variant]["worst"]), variant
+    reloaded = run(variant, 2)
+    assert (reloaded["cache"]["loaded"], reloaded["cache"]["traced"]) == (1, 0), (variant, reloaded["cache"])
+    assert (reloaded["exit"], reloaded["status"], reloaded["worst"]) == (1, "fail", first[variant]["worst"]), variant
     original = installed.read_text()
     installed.write_text(original.replace(code_variants._CAPSULE_OLD, "segment = axis * cap.size[0]"))
     in_place = run("clean", 2)

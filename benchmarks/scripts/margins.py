@@ -5,10 +5,9 @@ field's error / tolerance or envelope), the one-step check and the converged twi
     python benchmarks/scripts/margins.py --seeds 0:50 [--quick] [--scenarios A B ...] [--json OUT]
     python benchmarks/scripts/margins.py --merge A.json B.json ... --json OUT
 
-
 Prints per scenario and check: seeds, median, 99th percentile and max ratio, and the probability
 of a ratio >= 1 on one draw, from a normal in log10(ratio) fitted to the upper half of the seeds
-(:func:`p_exceed`; the tail of a few dozen draws says little on its own); the per-sweep
+where anything differed (:func:`p_exceed`; the tail of a few dozen draws says little on its own); the per-sweep
 false-alarm estimate is one minus the product of the scenarios' chances to pass. Seeds that
 fail are listed with their messages. The JSON keeps every seed's ratios (``per_seed``), so runs
 over other seeds or scenarios merge (``--merge``: a later file's scenario replaces an earlier
@@ -26,10 +25,15 @@ from mjxdiff.scenario import bundled_scenarios, load_scenario
 from mjxdiff.sweep import SweepConfig, sweep
 
 
+def _judged(result) -> list:
+    """``result``'s fields that have a finite ratio to their bound."""
+    return [f for f in result.fields if f.ratio is not None and math.isfinite(f.ratio)]
+
+
 def ratios(result) -> dict[str, float]:
     """check -> worst ratio to its bound, for the checks that ran on ``result``."""
     out = {}
-    fields = [f.ratio for f in result.fields if f.ratio is not None and math.isfinite(f.ratio)]
+    fields = [f.ratio for f in _judged(result)]
     if fields:
         out["rollout"] = max(fields)
     for check in ("onestep", "twin"):
@@ -45,11 +49,11 @@ def p_exceed(values: list[float]) -> float:
     chance that such a draw reaches 1, from a normal in log10(ratio) over those draws' upper half:
     centred on their median and scaled by the spread from the median to the largest of the k
     draws, which for a normal is about the quantile 1 - 1/(k + 1). The tail is where a false alarm
-    comes from; draws where MJX and C agreed to the bit (ratio 0: most seeds of gravcomp_arm,
-    muscles_and_limits) do not widen it, as they did when the median itself was 0 (a log10 of
-    1e-300 put gravcomp_arm's 0.14 at 0.03 per draw), nor does a ratio at rounding level (energy
-    flag's one-step check, at most 7e-12, came out at 0.32 from a fit to every value). Under 3
-    differing draws, the spread is taken as one decade about the largest."""
+    comes from; draws where MJX and C agreed to the bit (ratio 0: energy_flag's one-step check on 9
+    of 50 seeds) do not widen it, as they did where the median itself was 0 (in the 20-seed table of
+    2026-11-27 a log10 of 1e-300 put gravcomp_arm's 0.14 at 0.03 per draw), nor does a ratio at
+    rounding level (energy_flag's one-step check, at most 7e-12, came out at 0.32 from a fit to
+    every value). Under 3 differing draws, the spread is taken as one decade about the largest."""
     if len(values) < 3:
         return float("nan")
     differing = sorted(v for v in values if v > 0)
@@ -72,8 +76,8 @@ def p_exceed_from(median: float, largest: float, n: int) -> float:
 
 
 def worst_field(result) -> str | None:
-    """The name of ``result``'s field with the largest ratio to its bound (None where none has one)."""
-    fields = [f for f in result.fields if f.ratio is not None and math.isfinite(f.ratio)]
+    """``field object`` of ``result``'s field with the largest ratio to its bound (None where none has one)."""
+    fields = _judged(result)
     worst = max(fields, key=lambda f: f.ratio) if fields else None
     return worst and f"{worst.field} {worst.object}"
 
@@ -147,6 +151,7 @@ def report(table: dict, failures: list, seeds: list[int], quick: bool, out: str 
             json.dump(dict(seeds=seeds, quick=quick, rows=rows, failures=failures, per_sweep_false_alarm=1 - p_pass,
                            per_seed=table), f, indent=1, sort_keys=True)
     return 1 if failures else 0
+
 
 if __name__ == "__main__":
     sys.exit(main())
