@@ -14,11 +14,16 @@ from __future__ import annotations
 
 import dataclasses
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
+from mujoco.mjx._src.types import Model
 
 from mjxdiff import engines
+from mjxdiff import sweep as sweep_module
 from mjxdiff.scenario import Scenario, load_scenario
 from mjxdiff.sweep import ScenarioResult, SweepConfig, run_scenario
 
@@ -46,10 +51,63 @@ def _scenario(scenario: str | Scenario) -> Scenario:
     return load_scenario(scenario) if isinstance(scenario, str) else scenario
 
 
-def sweep(scenario: str | Scenario, config: SweepConfig, bug: Bug | None = None) -> ScenarioResult:
-    """``run_scenario`` with ``bug`` applied (None: unmodified MJX), traced afresh."""
+def _gate(args, kwargs) -> jax.Array:
+    models = [a for a in (*args, *kwargs.values()) if isinstance(a, Model)]
+    assert models, "a switched bug patches a function that is given no mjx.Model: switch it off (among=())"
+    return models[0].opt._impl.o_margin
+
+
+def _select(on: jax.Array, new, old):
+    """``new`` where ``on``, else ``old``, leaf by leaf; static leaves must agree."""
+    def pick(a, b):
+        if a is b or (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and np.array_equal(a, b)):
+            return a
+        if isinstance(a, (jax.Array, np.ndarray)) or isinstance(b, (jax.Array, np.ndarray)):
+            return jnp.where(on, a, b)
+        assert a == b, f"a switched bug changes a static value: {a!r} != {b!r}"
+        return a
+    return jax.tree.map(pick, new, old)
+
+
+def _switched(k: int, new: Callable, old: Callable) -> Callable:
+    def either(*args, **kwargs):
+        return _select(_gate(args, kwargs) == k, new(*args, **kwargs), old(*args, **kwargs))
+    return either
+
+
+def install_switched(mp: pytest.MonkeyPatch, bugs: Sequence[Bug]) -> None:
+    """Every one of ``bugs`` patched at once, bug ``bugs[k - 1]`` live only where the model's
+    ``opt.o_margin`` is ``k`` (0: none; MJX never reads ``o_margin``, and C only with the override
+    flag enabled). Each patched function computes the bug's output and the unpatched one and
+    selects at run time, so one compile serves the whole set: the patched code, and so the
+    artifact's key, is the same whichever bug is live."""
+    for k, bug in enumerate(bugs, start=1):
+        with pytest.MonkeyPatch.context() as probe:  # what the bug sets, then undone
+            bug(probe)
+            patched = [(target, name, getattr(target, name), False) for target, name, _ in probe._setattr]
+            patched += [(target, name, target[name], True) for target, name, _ in probe._setitem]
+        for target, name, new, item in patched:
+            old = target[name] if item else getattr(target, name)
+            (mp.setitem if item else mp.setattr)(target, name, _switched(k, new, old))
+
+
+def sweep(scenario: str | Scenario, config: SweepConfig, bug: Bug | None = None,
+          among: Sequence[Bug] = ()) -> ScenarioResult:
+    """``run_scenario`` with ``bug`` applied (None: unmodified MJX), traced afresh. With
+    ``among`` (holding ``bug``), every bug of it is installed switched (:func:`install_switched`)
+    and only ``bug`` live (None: none live): the tests of one set share one compiled rollout
+    through the compile cache."""
     with pytest.MonkeyPatch.context() as mp:
-        if bug is not None:
+        if among:
+            install_switched(mp, among)
+            live, load = (0 if bug is None else list(among).index(bug) + 1), sweep_module.load_model
+
+            def load_live(s):
+                m = load(s)
+                m.opt.o_margin = live
+                return m
+            mp.setattr(sweep_module, "load_model", load_live)
+        elif bug is not None:
             bug(mp)
         engines.clear_compiled()
         try:
@@ -88,8 +146,10 @@ def assert_names(result: ScenarioResult, expect: Expect, what: str) -> dict:
     return first
 
 
-def caught(bug: Bug, scenario: str | Scenario, config: SweepConfig, expect: Expect) -> dict:
+def caught(bug: Bug, scenario: str | Scenario, config: SweepConfig, expect: Expect,
+           among: Sequence[Bug] = ()) -> dict:
     """The proof of one catch: ``scenario`` at ``config`` passes unmodified, and fails with
-    ``bug`` naming ``expect``. Returns the first divergence."""
+    ``bug`` (live among the switched set ``among``, if given) naming ``expect``. Returns the
+    first divergence."""
     assert_passes_clean(scenario, config)
-    return assert_names(sweep(scenario, config, bug), expect, bug.__name__)
+    return assert_names(sweep(scenario, config, bug, among), expect, bug.__name__)

@@ -112,7 +112,9 @@ GROUPS = {
     **{name: "two_sweeps" for name in ("test_baseline.py", "test_history.py", "test_html_report.py",
                                        "test_pipeline.py")},
     **{name: name for name in ("test_coverage.py", "test_closedloop.py", "test_journal.py",
-                               "test_executors.py", "test_engines.py", "test_packaging.py")},
+                               "test_executors.py", "test_engines.py", "test_packaging.py",
+                               # one compile of each scenario with its bugs switched (_bugs.install_switched)
+                               "test_sensing_scenario.py", "test_wider_reach.py", "test_parameter_families.py")},
 }
 
 

@@ -19,7 +19,8 @@ from mujoco.mjx._src import sensor as mjx_sensor
 from mujoco.mjx._src import smooth as mjx_smooth
 from mujoco.mjx._src.types import GeomType
 
-from _bugs import Expect, caught, model_edited
+import _bugs
+from _bugs import Expect, caught, model_edited, sweep
 from combination_bugs import COVERING_SCENARIOS
 from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
 from mjxdiff.sweep import SweepConfig
@@ -145,7 +146,19 @@ def test_every_bug_has_its_expected_catch():
     assert set(CATCHES) == set(REACHES)
 
 
-@pytest.mark.slow  # each a fresh compile of the scenario: 82-116 s in a cold CI run on 2 cores
+@pytest.mark.slow  # one compile of the scenario with every bug switched (about 70 s), then a loaded run each
 @pytest.mark.parametrize("bug", list(REACHES), ids=lambda b: b.__name__)
 def test_the_sensing_scenario_catches_it(bug):
-    caught(bug, "sensing", CONFIG, CATCHES[bug])
+    caught(bug, "sensing", CONFIG, CATCHES[bug], among=list(REACHES))
+
+
+@pytest.mark.slow
+def test_with_no_bug_live_the_switched_set_passes_as_unmodified_mjx_does():
+    """The switch's off position is unmodified MJX: every check passes with each field's worst
+    error the unmodified sweep's (measured equal to the bit; the selects could change XLA's
+    fusion, not its arithmetic)."""
+    off, clean = sweep("sensing", CONFIG, None, among=list(REACHES)), _bugs.clean("sensing", CONFIG)
+    assert off.status == clean.status == "pass", off.message
+    assert [f.field for f in off.fields] == [f.field for f in clean.fields]
+    for f, g in zip(off.fields, clean.fields):
+        assert f.ok and f.max_error == pytest.approx(g.max_error, rel=1e-6), (f, g)
