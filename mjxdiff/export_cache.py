@@ -1296,7 +1296,7 @@ class Bound:
 
 
 def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | None = None,
-         options_key: Any = None) -> Callable:
+         options_key: Any = None, counted: bool = True) -> Callable:
     """``fn`` with ``static`` bound and compiled, for calls whose arguments are shaped, typed and
     sharded like ``args``: a loaded or freshly exported artifact (exported on first use, from
     ``args``' shapes; saved when the cache is on), compiled ahead of time by XLA with the
@@ -1309,8 +1309,10 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
     part of the in-memory key. Falls back to ``fn`` itself when the function cannot be
     exported (calling it then raises MJX's own error, e.g. ``NotImplementedError`` for an
     unsupported feature). Either way the code that runs is the code loaded now
-    (:func:`fresh_digest`).
+    (:func:`fresh_digest`). ``counted=False``: a helper function (the drill-down's ``forward``),
+    left out of :func:`events`, which count the rollouts a run loaded, traced and saved.
     """
+    event = _event if counted else (lambda kind, detail=1: None)
     code = fresh_digest()
     direct = functools.partial(fn, **static)
     directory = export_dir()
@@ -1333,19 +1335,20 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
                 if traced is None:
                     return direct
                 (out_tree, exported, deps), artifact = traced, None
-                _event("traced")
+                event("traced")
                 if isinstance(deps, str):  # a frame the key cannot name: used, never saved
-                    _event("unsaved", deps)
+                    event("unsaved", deps)
                 elif directory is not None:
                     with contextlib.suppress(Exception):  # unwritable cache dir, no flatbuffers: use it unsaved
                         artifact = _save(directory / key, out_tree, exported, deps)
-                        _event("saved")
+                        event("saved")
                         for other in _also_matching(directory / key, artifact, deps):  # keyed incompletely
                             _remove(other)
-                            _event("removed")
+                            event("removed")
             else:
-                _event("loaded")
-                count("loaded")
+                event("loaded")
+                if counted:
+                    count("loaded")
                 out_tree, exported, artifact = found
             lowered = jax.jit(exported.call).lower(*leaves)
             chosen, choice = options(_Lowered(lowered, artifact)) if options is not None else ({}, None)
