@@ -1312,7 +1312,10 @@ def bind(fn: Callable, args: tuple, static: dict[str, Any], options: Options | N
     (:func:`fresh_digest`). ``counted=False``: a helper function (the drill-down's ``forward``),
     left out of :func:`events`, which count the rollouts a run loaded, traced and saved.
     """
-    event = _event if counted else (lambda kind, detail=1: None)
+    def event(kind: str, detail: Any = 1) -> None:
+        if counted:
+            _event(kind, detail)
+
     code = fresh_digest()
     direct = functools.partial(fn, **static)
     directory = export_dir()
