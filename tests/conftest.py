@@ -111,10 +111,12 @@ def pytest_make_collect_report(collector):
 GROUPS = {
     **{name: "two_sweeps" for name in ("test_baseline.py", "test_history.py", "test_html_report.py",
                                        "test_pipeline.py")},
+    # one compile of the sensing scenario with both files' bugs switched (_bugs.install_switched)
+    **{name: "sensing_bugs" for name in ("test_sensing_scenario.py", "test_wider_reach.py")},
     **{name: name for name in ("test_coverage.py", "test_closedloop.py", "test_journal.py",
                                "test_executors.py", "test_engines.py", "test_packaging.py",
                                # one compile of each scenario with its bugs switched (_bugs.install_switched)
-                               "test_sensing_scenario.py", "test_wider_reach.py", "test_parameter_families.py")},
+                               "test_parameter_families.py")},
 }
 
 
