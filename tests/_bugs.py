@@ -12,6 +12,7 @@ rollout, beyond its tolerance.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import re
 from collections.abc import Callable, Sequence
@@ -72,6 +73,7 @@ def _select(on: jax.Array, new, old):
 def _switched(k: int, new: Callable, old: Callable) -> Callable:
     def either(*args, **kwargs):
         return _select(_gate(args, kwargs) == k, new(*args, **kwargs), old(*args, **kwargs))
+    either.__dict__.update(getattr(new, "__dict__", {}))  # what MJX reads off a collider (ncon)
     return either
 
 
@@ -89,6 +91,23 @@ def install_switched(mp: pytest.MonkeyPatch, bugs: Sequence[Bug]) -> None:
         for target, name, new, item in patched:
             old = target[name] if item else getattr(target, name)
             (mp.setitem if item else mp.setattr)(target, name, _switched(k, new, old))
+
+
+@contextlib.contextmanager
+def live(bug: Bug, among: Sequence[Bug], models: Sequence):
+    """Within the block, every bug of ``among`` installed switched (:func:`install_switched`),
+    ``bug`` live on ``models`` (C models: their ``opt.o_margin`` set, and restored after)."""
+    k = list(among).index(bug) + 1
+    before = [mi.opt.o_margin for mi in models]
+    with pytest.MonkeyPatch.context() as mp:
+        install_switched(mp, among)
+        try:
+            for mi in models:
+                mi.opt.o_margin = k
+            yield
+        finally:
+            for mi, value in zip(models, before):
+                mi.opt.o_margin = value
 
 
 def sweep(scenario: str | Scenario, config: SweepConfig, bug: Bug | None = None,

@@ -115,8 +115,8 @@ GROUPS = {
     **{name: "sensing_bugs" for name in ("test_sensing_scenario.py", "test_wider_reach.py")},
     **{name: name for name in ("test_coverage.py", "test_closedloop.py", "test_journal.py",
                                "test_executors.py", "test_engines.py", "test_packaging.py",
-                               # one compile of each scenario with its bugs switched (_bugs.install_switched)
-                               "test_parameter_families.py")},
+                               # one compile of each model with its bugs switched (_bugs.install_switched)
+                               "test_parameter_families.py", "test_onestep.py", "test_injected_bugs.py")},
 }
 
 

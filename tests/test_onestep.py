@@ -9,6 +9,7 @@ from mujoco.mjx._src import forward as mjx_forward
 from mujoco.mjx._src import passive as mjx_passive
 from mujoco.mjx._src import smooth as mjx_smooth
 
+import _bugs
 from mjxdiff import onestep, report
 from mjxdiff.engines import CEngine, MJXEngine
 from mjxdiff.inputs import make_inputs
@@ -78,11 +79,16 @@ def _inertia(monkeypatch):
     monkeypatch.setattr(mjx_smooth, "com_pos", lambda m, d: orig(m.replace(body_mass=m.body_mass * 1.01), d))
 
 
-@pytest.mark.parametrize("bug", [_gain, _damping, _one_percent_more_constraint_force, _friction, _inertia],
+#: One bug of each kind, switched in one compile of the quadruped (_bugs.install_switched).
+BUGS = (_gain, _damping, _one_percent_more_constraint_force, _friction, _inertia)
+
+
+@pytest.mark.parametrize("bug", BUGS,
                          ids=["actuator gain", "passive damping", "constraint force", "friction", "inertia"])
-def test_injected_bugs_exceed_the_bound_by_orders_of_magnitude(quadruped, bug, monkeypatch, fresh_mjx):
-    bug(monkeypatch)
-    found = _check(quadruped)
+def test_injected_bugs_exceed_the_bound_by_orders_of_magnitude(quadruped, bug, fresh_mjx):
+    _, m, inputs, _ = quadruped
+    with _bugs.live(bug, BUGS, (m, *inputs.models)):
+        found = _check(quadruped)
     assert found["status"] == "fail" and found["ratio"] > 10, found
     assert found["field"] in ("qpos", "qvel") and found["object"].startswith("joint ")
     assert 0 <= found["step"] < quadruped[2].steps
