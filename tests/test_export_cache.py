@@ -303,3 +303,32 @@ def test_xla_executables_are_kept_per_cpu_type_and_artifacts_shared(tmp_path):
         assert tag.split("-")[0] and len(tag.split("-")[-1]) == 12 and export_cache.cpu_type() == tag
     finally:
         jax.config.update("jax_compilation_cache_dir", before)
+
+
+def test_a_drill_down_s_forward_is_traced_once_loaded_after_and_traced_again_for_patched_mjx(
+        pendulum, tmp_path, monkeypatch):
+    """The drill-down's ``mjx.forward`` is an artifact like a rollout: a later process (compiled
+    functions forgotten) loads it, the same numbers; an MJX patched since is traced afresh and
+    differs; and none of it counts among the rollouts a run loaded or traced."""
+    m, _ = pendulum
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:] = 0.3, -0.7
+    monkeypatch.setattr(export_cache, "export_dir", lambda: tmp_path)
+    traces = []
+    export = export_cache._export
+    monkeypatch.setattr(export_cache, "_export", lambda *a, **k: traces.append(1) or export(*a, **k))
+    before = export_cache.events()
+
+    def forward():
+        engines.clear_compiled()
+        return MJXEngine().forward(m, d, ("qfrc_passive", "qacc")).values
+
+    first, again = forward(), forward()
+    assert len(traces) == 1 and any(tmp_path.iterdir()), "traced once, saved, then loaded"
+    np.testing.assert_array_equal(again["qacc"], first["qacc"])
+    orig = mjx_passive._spring_damper
+    monkeypatch.setattr(mjx_passive, "_spring_damper", lambda m, d: orig(m, d) * 1.01)
+    patched = forward()
+    assert len(traces) == 2 and not np.array_equal(patched["qfrc_passive"], first["qfrc_passive"])
+    after, counted = export_cache.events(), ("loaded", "traced", "saved")
+    assert {k: after[k] for k in counted} == {k: before[k] for k in counted}
