@@ -82,7 +82,8 @@ def install_switched(mp: pytest.MonkeyPatch, bugs: Sequence[Bug]) -> None:
     ``opt.o_margin`` is ``k`` (0: none; MJX never reads ``o_margin``, and C only with the override
     flag enabled). Each patched function computes the bug's output and the unpatched one and
     selects at run time, so one compile serves the whole set: the patched code, and so the
-    artifact's key, is the same whichever bug is live."""
+    artifact's key, is the same whichever bug is live. Bugs of one function nest (each traces
+    the one before twice): the bundled sets patch any function at most twice."""
     for k, bug in enumerate(bugs, start=1):
         with pytest.MonkeyPatch.context() as probe:  # what the bug sets, then undone
             bug(probe)
