@@ -820,6 +820,20 @@ def _sharp(result: ScenarioResult, case: _Case, traj_c: Trajectory | None, info:
     return result
 
 
+def _drilled(found: dict, drill: Callable[[], diagnose.DrillDown]) -> diagnose.DrillDown | None:
+    """``drill()``, its first stage, field, object and contact added to ``found``; None where it
+    raised, the reason in ``found["drill_error"]`` (one line): the verdict stands without its
+    drill-down, and says that it could not run."""
+    try:
+        result = drill()
+    except Exception as e:  # noqa: BLE001 - any failure of the drill-down is reported, not raised
+        found["drill_error"] = one_line(e, 300)
+        return None
+    found.update(first_stage=result.first_stage, first_field=result.first_field, stage_object=result.object,
+                 contact=result.contact)
+    return result
+
+
 def _onestep(result: ScenarioResult, case: _Case, traj_c: Trajectory | None,
              evidence: bool = False) -> tuple[ScenarioResult, dict, Trajectory | None]:
     """``result`` judged again by :func:`mjxdiff.onestep.check` (kept in ``info['onestep']``): a
@@ -844,14 +858,16 @@ def _onestep(result: ScenarioResult, case: _Case, traj_c: Trajectory | None,
     if found["status"] == "pass":  # its own line in the report (mjxdiff.report.format_checks)
         return result, found, traj_c
     member, step = found["member"], found["step"]
-    where = ""
-    with contextlib.suppress(Exception):  # the verdict stands without its drill-down
+    def at_the_state():
         row = int(np.flatnonzero(inputs.ids == member)[0])
-        drill = diagnose.drill_down(converged(inputs.take([row])).models[0],
-                                    *diagnose.state_before(inputs, traj_c, row, step),
-                                    precision=config.precision, member=member, step=step, engine=under_test)
-        found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object,
-                     contact=drill.contact)
+        return diagnose.drill_down(converged(inputs.take([row])).models[0],
+                                   *diagnose.state_before(inputs, traj_c, row, step),
+                                   precision=config.precision, member=member, step=step, engine=under_test)
+
+    drill = _drilled(found, at_the_state)
+    if drill is None:
+        where = f"; the drill-down could not run: {found['drill_error']}"
+    else:
         where = (f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
                  if drill.first_stage else "; every forward stage agrees (the difference is in the integration)")
     if config.diagnose == "full":
@@ -918,13 +934,12 @@ def _twin(result: ScenarioResult, case: _Case, clock: dict[str, float]) -> tuple
     message = f"converged twin (both engines with a converged solver): {twin.message}"
     first = dict(twin.first_divergence or {}, check="twin")
     if twin.status == "fail" and twin.first_divergence:
-        with contextlib.suppress(Exception):  # the verdict stands without its drill-down
-            drill = _drill(twin, twin_inputs, case.c_engine.rollout(twin_inputs), case.config.precision,
-                           case.under_test)
-            found.update(first_stage=drill.first_stage, first_field=drill.first_field, stage_object=drill.object,
-                         contact=drill.contact)
-            if drill.first_stage:
-                message += f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
+        drill = _drilled(found, lambda: _drill(twin, twin_inputs, case.c_engine.rollout(twin_inputs),
+                                               case.config.precision, case.under_test))
+        if drill is None:
+            message += f"; the drill-down could not run: {found['drill_error']}"
+        elif drill.first_stage:
+            message += f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
     found["seconds"] = time.perf_counter() - t
     status = "fail" if twin.status == "fail" else result.status
     if status == "pass":  # the twin could not be judged (C unstable with a converged solver): say so

@@ -119,6 +119,14 @@ def test_a_one_step_failure_fails_the_weak_pass_and_names_the_stage(quadruped, m
     assert found["first_stage"] == "actuation" and "first field to differ: actuator_force (actuation" in result.message
     assert result.first_divergence["check"] == "onestep" and result.first_divergence["member"] == found["member"]
     assert "the rollout alone passed (worst qpos 3.1" in result.message
+    # a drill-down that cannot run is said, with why, and the verdict stands without it
+    from mjxdiff import diagnose
+
+    monkeypatch.setattr(diagnose, "drill_down", lambda *a, **k: 1 / 0)
+    result, found, _ = sweep._onestep(weak, case, traj_c)
+    assert result.status == "fail" and "first_stage" not in found
+    assert found["drill_error"] == "ZeroDivisionError: division by zero", found
+    assert "; the drill-down could not run: ZeroDivisionError: division by zero" in result.message
 
 
 def test_a_converged_model_is_checked_through_its_own_compiled_rollout():
