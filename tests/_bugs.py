@@ -94,11 +94,16 @@ def install_switched(mp: pytest.MonkeyPatch, bugs: Sequence[Bug]) -> None:
             (mp.setitem if item else mp.setattr)(target, name, _switched(k, new, old))
 
 
+def _position(bug: Bug | None, among: Sequence[Bug]) -> int:
+    """The ``opt.o_margin`` that makes ``bug`` the live one of :func:`install_switched`'s set (0: none)."""
+    return 0 if bug is None else list(among).index(bug) + 1
+
+
 @contextlib.contextmanager
 def live(bug: Bug, among: Sequence[Bug], models: Sequence):
     """Within the block, every bug of ``among`` installed switched (:func:`install_switched`),
     ``bug`` live on ``models`` (C models: their ``opt.o_margin`` set, and restored after)."""
-    k = list(among).index(bug) + 1
+    k = _position(bug, among)
     before = [mi.opt.o_margin for mi in models]
     with pytest.MonkeyPatch.context() as mp:
         install_switched(mp, among)
@@ -120,7 +125,7 @@ def sweep(scenario: str | Scenario, config: SweepConfig, bug: Bug | None = None,
     with pytest.MonkeyPatch.context() as mp:
         if among:
             install_switched(mp, among)
-            live, load = (0 if bug is None else list(among).index(bug) + 1), sweep_module.load_model
+            live, load = _position(bug, among), sweep_module.load_model
 
             def load_live(s):
                 m = load(s)

@@ -3,6 +3,7 @@ representative bug from each of five categories is caught, by orders of magnitud
 field, object and step, while the same model unmodified stays far inside its bound. The whole
 catalogue is run by benchmarks/scripts/injected_bugs.py (every bug costs an MJX compile)."""
 
+import contextlib
 from pathlib import Path
 
 import pytest
@@ -98,10 +99,11 @@ def test_an_injected_bug_is_caught_and_named(models, bug_id, field, object_prefi
     setup = models(bug.model)
     among = _switched(bug.model)
     if bug.patch in among:
-        with _bugs.live(bug.patch, among, (setup[1], *setup[2].models)):
-            found = _check(setup)
+        patched = _bugs.live(bug.patch, among, (setup[1], *setup[2].models))
     else:
         bug.patch(monkeypatch)
+        patched = contextlib.nullcontext()
+    with patched:
         found = _check(setup)
     assert found["status"] == "fail" and found["ratio"] > 10, (bug.id, found)
     assert found["field"] == field and found["object"].startswith(object_prefix), (bug.id, found)
