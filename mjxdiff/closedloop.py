@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco import mjx
-from mjxdiff.compat import Batch, data_impl, impl_fields, with_impl
+from mjxdiff.compat import BALANCED_COMPILE, Batch, data_impl, impl_fields, jit_for_few_calls, with_impl
 
 from mjxdiff import joints
 from mjxdiff.precision import Precision
@@ -492,7 +492,10 @@ def _mjx_functions(env: Any, policy: Callable) -> tuple[Callable, Callable]:
         return nxt, (nxt.obs, action, nxt.reward, nxt.done, ps.qpos, ps.qvel, ps.ctrl, nxt.metrics)
 
     advance = jax.vmap(lambda state, keys: jax.lax.scan(control_step, state, keys))
-    return jax.jit(jax.vmap(env.reset)), jax.jit(advance)
+    # compiled as a sweep compiles a rollout that steps for long (mjxdiff.engines.xla_options):
+    # XLA's compile at its default level was 60-80% of a short run's time (tests/test_closedloop.py,
+    # cold: jax.monitoring's backend_compile_duration against each test's wall time)
+    return jit_for_few_calls(jax.vmap(env.reset)), jax.jit(advance, compiler_options=dict(BALANCED_COMPILE))
 
 
 @functools.lru_cache(maxsize=8)
@@ -508,8 +511,8 @@ def _c_functions(env: Any, policy: Callable) -> tuple[Callable, Callable, Callab
         return jax.vmap(lambda state, action, ps: _with_pipeline(env, step=ps).step(state, action))(state, action, ps)
 
     # the brax state is built from C's recorded fields inside the compiled function: one call a step
-    act = jax.jit(jax.vmap(functools.partial(_act, env, policy)))
-    return jax.jit(reset), jax.jit(step), act
+    act = jit_for_few_calls(jax.vmap(functools.partial(_act, env, policy)))
+    return jit_for_few_calls(reset), jit_for_few_calls(step), act
 
 
 def c_stream(env: Any, policy: Callable, reset_keys: jax.Array, policy_keys: jax.Array, qpos0: np.ndarray,
@@ -806,7 +809,7 @@ def _mjx_local(m: mujoco.MjModel, state: dict[str, Any], n_frames: int) -> np.nd
     if state["qacc_warmstart"] is not None:
         d.qacc_warmstart[:] = state["qacc_warmstart"]
     mx, dx = mjx.put_model(m), mjx.put_data(m, d)
-    step = jax.jit(lambda mx, dx: mjx.step(mx, dx))  # a fresh function: no trace cached under a patched MJX
+    step = jit_for_few_calls(lambda mx, dx: mjx.step(mx, dx))  # a fresh function: no trace cached under a patched MJX
     for _ in range(n_frames):
         dx = step(mx, dx)
     return np.concatenate([np.asarray(dx.qpos), np.asarray(dx.qvel)])

@@ -43,11 +43,17 @@ from mjxdiff import interactions, report, reproducer, segments, strategies
 from mjxdiff.support import KNOWN_DIVERGENCES
 from mjxdiff.inputs import BatchedInputs
 from mjxdiff.scenario import Tolerances
+from mjxdiff.config import SweepConfig
 from mjxdiff.sweep import release_compiled_if_crowded
 from mjxdiff.verdict import TRUNCATION, ScenarioResult
 
 __all__ = ["DEFAULT_BUDGET", "DEFAULT_VARIANTS", "KNOWN_DIVERGENCES", "FuzzResult", "fuzz", "model_strategy",
            "variants"]
+
+#: How the fuzzer judges a structure's variants: their rollouts, with the drill-down. The one-step
+#: check is not yet validated on generated models (their known divergences, a compile per
+#: structure inside the budget), so the fuzzer judges rollouts, as before that check existed.
+JUDGE = SweepConfig(diagnose="basic", onestep=False)
 
 #: Seconds of generation before the fuzzer stops looking (shrinking a found failure may take longer).
 DEFAULT_BUDGET = 60.0
@@ -533,11 +539,7 @@ def fuzz(max_examples: int = 300, seed: int = 0, budget: float = DEFAULT_BUDGET,
       shrink_budget: seconds allowed for shrinking a find (default max(120, 2 x budget));
         each shrink candidate is a new model structure, hence a new compile.
     """
-    from mjxdiff.sweep import SweepConfig
-
-    # the one-step check is not yet validated on generated models (their known divergences, a
-    # compile per structure inside the budget): the fuzzer judges rollouts, as before it existed
-    config = SweepConfig(diagnose="basic", onestep=False)
+    config = JUDGE
     db_dir = Path(database) if database else (Path(out) / ".hypothesis" if out else
                                               Path.home() / ".cache" / "mjxdiff" / "hypothesis")
     t0 = time.perf_counter()

@@ -42,7 +42,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from mjxdiff.compat import enable_x64
+from mjxdiff.compat import enable_x64, jit_for_few_calls
 from mjxdiff.errors import one_line
 from mjxdiff import joints
 from mjxdiff.noise import converge_solver, has_constraints
@@ -106,21 +106,22 @@ def _reference(mx, dx, u):
 def _jacobian_fn(parts: tuple, nv: int, na: int, code: str):
     """jit(jacfwd) of one mjx.step around a state, for models with these joints (the model
     itself is an argument: one compile serves every member and state) and this MJX ``code``
-    (:func:`mjxdiff.export_cache.code_digest`: an edited or patched MJX is traced anew)."""
+    (:func:`mjxdiff.export_cache.code_digest`: an edited or patched MJX is traced anew). Called
+    once per state, so compiled for compile time (:func:`mjxdiff.compat.jit_for_few_calls`)."""
     f = _next(parts, nv)
 
     def jac(mx, dx, u):
         x = jnp.zeros(2 * nv + na, dx.qpos.dtype)
         return jax.jacfwd(f, argnums=(3, 4))(mx, dx, _reference(mx, dx, u), x, u)
 
-    return jax.jit(jac)
+    return jit_for_few_calls(jac)
 
 
 @functools.lru_cache(maxsize=16)
 def _values_fn(parts: tuple, nv: int, na: int, code: str):
     """jit(vmap) of :func:`_next` over a batch of (x, u): MJX's own finite-difference stencil."""
     f = jax.vmap(_next(parts, nv), in_axes=(None, None, None, 0, 0))
-    return jax.jit(lambda mx, dx, u, xs, us: f(mx, dx, _reference(mx, dx, u), xs, us))
+    return jit_for_few_calls(lambda mx, dx, u, xs, us: f(mx, dx, _reference(mx, dx, u), xs, us))
 
 
 def _data(m: mujoco.MjModel, state: dict[str, np.ndarray]) -> mujoco.MjData:

@@ -1,14 +1,21 @@
 """Fuzzing: finds an injected MJX bug from scratch and shrinks it; no alarm on unmodified MJX;
 the pytest plugin's assertion helper carries the diagnosis."""
 
+import dataclasses
+
 import mujoco
 import pytest
 from mujoco.mjx._src import smooth as mjx_smooth
 
 from mjxdiff import engines
-from mjxdiff.fuzz import DEFAULT_BUDGET, DEFAULT_VARIANTS, fuzz, known_contact_divergence, variants
+from mjxdiff.fuzz import DEFAULT_BUDGET, DEFAULT_VARIANTS, JUDGE, fuzz, known_contact_divergence, variants
 from mjxdiff.scenario import Tolerances
 from mjxdiff.testing import MJXMismatch, assert_mjx_matches_c, compare
+
+
+#: The fuzzer's own judgement of a model's variants (their rollouts: no one-step check), without
+#: the drill-down and the host-interface check, neither of which these tests read (each a compile).
+ROLLOUTS = dataclasses.replace(JUDGE, diagnose="none", transfer=False)
 
 
 def bias_force_0p1_percent(monkeypatch):
@@ -29,10 +36,10 @@ def test_fuzz_finds_and_shrinks_an_injected_bug(fresh_mjx, monkeypatch, tmp_path
     # the shrunk model still fails, with the bug, from its own saved state
     from mjxdiff import reproducer
     from mjxdiff.scenario import Tolerances
-    from mjxdiff.sweep import SweepConfig, run_inputs
+    from mjxdiff.sweep import run_inputs
 
     rep = reproducer.load(failure["reproducer"])
-    again = run_inputs("shrunk", rep.model, rep.inputs, Tolerances(), SweepConfig(diagnose="none"))
+    again = run_inputs("shrunk", rep.model, rep.inputs, Tolerances(), ROLLOUTS)
     assert again.status == "fail"
 
 
@@ -107,9 +114,9 @@ def test_only_the_contact_frame_divergence_is_excused(fresh_mjx, monkeypatch):
     from pathlib import Path
 
     from mjxdiff import fuzz as fuzz_module, reproducer
-    from mjxdiff.sweep import SweepConfig, run_inputs
+    from mjxdiff.sweep import run_inputs
 
-    config = SweepConfig(diagnose="none")
+    config = ROLLOUTS
     rep = reproducer.load(Path(__file__).parent / "data" / "fuzz_capsule_plane_frame.json")
     known = run_inputs("fuzz", rep.model, rep.inputs, rep.tolerances, config)
     assert known.status == "fail"
@@ -147,9 +154,9 @@ def test_only_the_sdf_contact_divergence_is_excused(fresh_mjx, monkeypatch):
     from pathlib import Path
 
     from mjxdiff import fuzz as fuzz_module, reproducer
-    from mjxdiff.sweep import SweepConfig, run_inputs
+    from mjxdiff.sweep import run_inputs
 
-    config = SweepConfig(diagnose="none")
+    config = ROLLOUTS
     rep = reproducer.load(Path(__file__).parent / "data" / "fuzz_ellipsoid_cylinder_contact.json")
     known = run_inputs("fuzz", rep.model, rep.inputs, rep.tolerances, config)
     assert known.status == "fail" and known.first_divergence is not None, known.message
@@ -177,9 +184,9 @@ def test_only_the_regularized_capsule_divergence_is_excused(fresh_mjx, monkeypat
     from mujoco.mjx._src import math as mjx_math
 
     from mjxdiff import reproducer, segments
-    from mjxdiff.sweep import SweepConfig, run_inputs
+    from mjxdiff.sweep import run_inputs
 
-    config = SweepConfig(diagnose="none")
+    config = ROLLOUTS
     rep = reproducer.load(Path(__file__).parent / "data" / "fuzz_capsule_capsule_contact.json")
     known = run_inputs("fuzz", rep.model, rep.inputs, rep.tolerances, config)
     assert known.status == "fail" and known.first_divergence is not None, known.message

@@ -12,6 +12,7 @@ from mujoco import mjx
 
 from _preconditions import precondition
 from mjxdiff import engines
+from mjxdiff.compat import jit_for_few_calls
 from mjxdiff.support import CATALOGUE, Entry
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -115,7 +116,7 @@ def _step_both(xml: str, qvel: list[float]):
     d.qvel[:] = qvel
     dx = mjx.make_data(m).replace(qvel=d.qvel.copy())
     mujoco.mj_step(m, d)
-    return d, jax.jit(mjx.step)(mjx.put_model(m), dx)
+    return d, jit_for_few_calls(mjx.step)(mjx.put_model(m), dx)
 
 
 POLYNOMIAL_SPRING_DAMPER = """<mujoco>

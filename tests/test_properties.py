@@ -36,6 +36,7 @@ from mujoco import mjx
 from mujoco.mjx._src import smooth as mjx_smooth
 
 from _preconditions import precondition
+from mjxdiff.compat import jit_for_few_calls
 from mjxdiff.engines import energy as mjx_energy
 from mjxdiff.fuzz import model_strategy
 from mjxdiff.inputs import quat_mul, rotvec_quat
@@ -85,7 +86,7 @@ def _step_fn():
     2 or more states of some generated models (two ellipsoids on a ball-jointed body and a
     capsule on a limited hinge, all against a plane: reproducible, while ``lax.map``, a batch of
     one, and mjxdiff's own scanned rollout of the same model run)."""
-    return jax.jit(lambda mx, dx: jax.lax.map(functools.partial(mjx.step, mx), dx))
+    return jit_for_few_calls(lambda mx, dx: jax.lax.map(functools.partial(mjx.step, mx), dx))
 
 
 _mjx_step = _step_fn()
@@ -550,7 +551,7 @@ ENERGY_RTOL = 1e-6
 ENERGY_ROUNDING = 1e-12
 
 
-@jax.jit
+@jit_for_few_calls
 def _mjx_energies(mx: mjx.Model, dx: mjx.Data, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
     """``(B, T, 2)`` potential and kinetic energy (J) of ``(B, T, nq)``/``(B, T, nv)`` states, by
     :func:`mjxdiff.engines.energy` after MJX's kinematics, tendons and mass matrix of each state
@@ -712,7 +713,7 @@ def test_mjx_rk4_conserves_energy_of_a_ball_pendulum():
     assert not bad, "\n".join(bad)
 
 
-@jax.jit
+@jit_for_few_calls
 def _mjx_bias(mx: mjx.Model, dx: mjx.Data) -> jax.Array:
     """``(B, nv)`` MJX ``qfrc_bias`` of a batch of states: the stages of ``mjx.forward`` that
     produce it (kinematics, com_pos, tendon, com_vel, rne, tendon_bias), leaving out collision,
