@@ -78,6 +78,47 @@ def two_sweeps(tmp_path_factory):
     return root, code
 
 
+# -- where a test's time goes ----------------------------------------------------------------------
+
+#: ``MJXDIFF_TEST_JAX_TIMES=DIR``: each test process writes ``DIR/jax-times.<pid>.json``, per test
+#: id its wall seconds and JAX's own durations summed over the test (``jax.monitoring``: tracing,
+#: lowering to MLIR, XLA's compile, persistent-cache hits), to find what compiles where:
+#: ``python benchmarks/scripts/jax_times.py DIR``. Off (nothing registered) when unset.
+JAX_TIMES = os.environ.get("MJXDIFF_TEST_JAX_TIMES")
+_JAX_EVENTS = {"/jax/core/compile/jaxpr_trace_duration": "trace",
+               "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+               "/jax/core/compile/backend_compile_duration": "compile",
+               "/jax/compilation_cache/compile_time_saved_sec": "cache_saved"}
+_TIMES: dict[str, dict[str, float]] = {}
+_CURRENT = {"test": "(outside tests)"}
+
+if JAX_TIMES:
+    import jax.monitoring
+
+    def _on_duration(event: str, seconds: float, **_) -> None:
+        if event in _JAX_EVENTS:
+            row = _TIMES.setdefault(_CURRENT["test"], {})
+            row[_JAX_EVENTS[event]] = row.get(_JAX_EVENTS[event], 0.0) + seconds
+
+    jax.monitoring.register_event_duration_secs_listener(_on_duration)
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):
+        import time
+
+        _CURRENT["test"], start = item.nodeid, time.perf_counter()
+        yield
+        row = _TIMES.setdefault(item.nodeid, {})
+        row["wall"] = row.get("wall", 0.0) + time.perf_counter() - start
+        _CURRENT["test"] = "(outside tests)"
+
+    def pytest_sessionfinish(session):
+        import json
+
+        Path(JAX_TIMES).mkdir(parents=True, exist_ok=True)
+        (Path(JAX_TIMES) / f"jax-times.{os.getpid()}.json").write_text(json.dumps(_TIMES, indent=1))
+
+
 # -- CI's guarantees ------------------------------------------------------------------------------
 
 #: ``MJXDIFF_REQUIRE_ALL=1`` (set by .ci/run): a skip (an optional dependency missing, no
