@@ -220,6 +220,12 @@ class _Digest:
         elif isinstance(value, type) and issubclass(value, enum.Enum):  # members, not lazily filled lookup tables
             h.update(f"{value.__module__}.{value.__qualname__}".encode())
             h.update(repr([(m.name, m.value) for m in value]).encode())
+            if self._ours(value.__module__):  # and its code: MJX's JointType.qpos_width, dof_width
+                for k in sorted(vars(value)):
+                    code = vars(value)[k]
+                    if isinstance(code, (types.FunctionType, staticmethod, classmethod, property)):
+                        h.update(k.encode())
+                        self.feed(code, depth + 1)
         elif isinstance(value, type):
             h.update(f"{value.__module__}.{value.__qualname__}".encode())
             if self._ours(value.__module__):  # a class MJX or mjxdiff defines: its methods and attributes

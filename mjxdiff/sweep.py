@@ -284,12 +284,15 @@ def _with_transfer(result: ScenarioResult, inputs: BatchedInputs, model_path, pr
     t, cpu = export_cache.clock(), time.process_time()
     try:
         with _precision(precision):
-            found = transfer.check_scenario_states(inputs.models[0], inputs.qpos[0], inputs.qvel[0], inputs.act[0],
-                                                   inputs.ctrl[0], 0.0, model_path, precision)
+            found, loaded = transfer.cached_check_scenario_states(
+                export_cache.cache_root(), inputs.models[0], inputs.qpos[0], inputs.qvel[0], inputs.act[0],
+                inputs.ctrl[0], 0.0, model_path, precision)
     except Exception as e:  # noqa: BLE001 - the trajectory verdict stands; say why this part is missing
         info = {**result.info, "transfer": dict(error=one_line(e))}
         return dataclasses.replace(result, info=info)
     info = {**result.info, "transfer": found.as_dict()}
+    if loaded:
+        info["checks_loaded"] = [*info.get("checks_loaded", []), "transfer"]
     info["seconds"] = {**info.get("seconds", {}), "transfer": export_cache.clock() - t}
     info["cpu_seconds"] = {**info.get("cpu_seconds", {}), "transfer": time.process_time() - cpu}
     if not found.mismatches:

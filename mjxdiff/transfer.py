@@ -25,6 +25,8 @@ float64 come back exact; float32 rounds once).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +37,8 @@ from mjxdiff import joints
 from mjxdiff.precision import THRESHOLDS, Precision
 from mjxdiff.errors import one_line
 
-__all__ = ["RTOL", "Mismatch", "TransferCheck", "check", "check_scenario_states", "CONTACTS_COMPARED"]
+__all__ = ["RTOL", "Mismatch", "TransferCheck", "check", "check_scenario_states", "cached_check_scenario_states",
+           "CONTACTS_COMPARED"]
 
 #: Largest relative difference a value may pick up going through MJX's host interface.
 RTOL = {p: t.transfer_rtol for p, t in THRESHOLDS.items()}
@@ -101,6 +104,12 @@ class TransferCheck:
     def as_dict(self) -> dict[str, Any]:
         return dict(mismatches=[dataclasses.asdict(x) for x in self.mismatches], unsupported=list(self.unsupported),
                     checked=self.checked, states=list(self.states))
+
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any]) -> TransferCheck:
+        """The check :meth:`as_dict` wrote."""
+        return cls(tuple(Mismatch(**x) for x in doc["mismatches"]), tuple(doc["unsupported"]), int(doc["checked"]),
+                   tuple(int(t) for t in doc["states"]))
 
 
 def _compare(out: list, call: str, field: str, c: Any, x: Any, rtol: float) -> None:
@@ -383,3 +392,61 @@ def _snapshot(m: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
     state = np.empty(mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_INTEGRATION))
     mujoco.mj_getState(m, d, state, mujoco.mjtState.mjSTATE_INTEGRATION)
     return state
+
+
+def cached_check_scenario_states(cache: Path | None, m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray,
+                                 act: np.ndarray, ctrl: np.ndarray, time: float,
+                                 model_path: str | Path | None = None,
+                                 precision: Precision = "float64") -> tuple[TransferCheck, bool]:
+    """:func:`check_scenario_states`, or what an earlier run of the very same check found, saved
+    under ``cache`` (None: always checked, nothing saved). Its key is everything the check reads
+    or runs (:func:`_key`), so a loaded result is the one a check now would give; an entry that
+    cannot be read is checked afresh and rewritten (fail closed).
+
+    Why: the check runs MJX's host functions eagerly, ~50 small XLA computations of each model's
+    shapes, lowered and compiled (or looked up) one by one in every process: 1.5-2.5 CPU-s a
+    scenario, the largest phase of a warm sweep after MJX's stepping.
+
+    Returns:
+      (the check, whether it was loaded).
+    """
+    path = None
+    if cache is not None:
+        try:
+            key = _key(m, qpos, qvel, act, ctrl, time, model_path, precision)
+            path = Path(cache) / "mjxdiff-checks" / f"transfer-{key}.json"
+            return TransferCheck.from_dict(json.loads(path.read_text())), True
+        except Exception:  # noqa: BLE001 - no key, no entry or a damaged one: check afresh
+            pass
+    found = check_scenario_states(m, qpos, qvel, act, ctrl, time, model_path, precision)
+    if path is not None:
+        from mjxdiff.files import atomic_write
+
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write(path, json.dumps(found.as_dict()))
+        except OSError:
+            pass  # a read-only cache: the check stands, unsaved
+    return found, False
+
+
+def _key(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, ctrl: np.ndarray, time: float,
+         model_path: str | Path | None, precision: Precision) -> str:
+    """Hex SHA-256 of what :func:`check_scenario_states` reads and runs: the code of MJX and of
+    this module, the versions and JAX settings (:func:`mjxdiff.export_cache.fresh_digest`, as a
+    rollout's artifact is keyed), the precision, the compiled model (``mj_saveModel``), the state
+    and controls, and the model file (its spec gives the ``bind`` checks)."""
+    from mjxdiff import export_cache
+
+    h = hashlib.sha256()
+    for part in (export_cache.fresh_digest(), export_cache.code_digest((__name__,)), precision, repr(float(time))):
+        h.update(part.encode() + b"\0")
+    model = np.empty(mujoco.mj_sizeModel(m), np.uint8)
+    mujoco.mj_saveModel(m, None, model)
+    h.update(model.tobytes())
+    for a in (qpos, qvel, act, ctrl):
+        a = np.ascontiguousarray(a, np.float64)
+        h.update(repr(a.shape).encode() + a.tobytes())
+    if model_path is not None and Path(model_path).suffix.lower() == ".xml":
+        h.update(Path(model_path).read_bytes())
+    return h.hexdigest()

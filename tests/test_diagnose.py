@@ -170,7 +170,7 @@ def test_replay_reproduces_a_saved_failure_bit_for_bit(fresh_mjx, monkeypatch, t
     assert outs[0]["reproduced"] is True
     a, b = outs[0]["replayed"], outs[1]["replayed"]
     for doc in (a, b):
-        for key in ("seconds", "cpu_seconds", "compile_seconds", "mjx_compiles", "mjx_loaded"):
+        for key in ("seconds", "cpu_seconds", "compile_seconds", "mjx_compiles", "mjx_loaded", "checks_loaded"):
             doc["info"].pop(key, None)  # timings and what the caches held
     assert a == b  # every number identical
     assert a["diagnosis"]["drill_down"]["first_field"] == "qfrc_passive"

@@ -21,7 +21,7 @@ pytestmark = [pytest.mark.filterwarnings(r"ignore:os\.fork\(\) was called:Runtim
 SCENARIOS = ("pendulum", "cartpole", "actuators")
 #: What differs between two runs of one unit: wall times, memory, compile or load counts, the worker.
 _RUN_INFO = {"seconds", "cpu_seconds", "compile_seconds", "guard", "plan", "mjx_compiles", "mjx_loaded", "reproducer",
-             "worker"}
+             "worker", "checks_loaded"}
 
 
 def _verdicts(doc: dict) -> list[dict]:

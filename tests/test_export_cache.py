@@ -149,6 +149,7 @@ def _global_patch(m, d):  # reads the module-level FACTOR
 @pytest.mark.parametrize("change", [
     "mjxdiff's own traced code", "a partial", "a closure's value", "a global the patch reads",
     "an MJX module constant", "a default argument", "a moved helper the rollout calls (mjxdiff.joints)",
+    "a method of an MJX enum",
 ])
 def test_every_kind_of_code_change_changes_the_digest(change, monkeypatch):
     before = export_cache.rollout_digest()
@@ -171,6 +172,10 @@ def test_every_kind_of_code_change_changes_the_digest(change, monkeypatch):
 
         orig = joints.parts
         monkeypatch.setattr(joints, "parts", lambda m: orig(m)[::-1])
+    elif change == "a method of an MJX enum":  # was left out: an enum was digested by its members alone
+        from mujoco.mjx._src import types as mjx_types
+
+        monkeypatch.setattr(mjx_types.JointType, "qpos_width", mjx_types.JointType.dof_width)
     elif change == "an MJX module constant":
         from mujoco.mjx._src import collision_driver
 

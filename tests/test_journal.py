@@ -17,7 +17,7 @@ from mjxdiff.sweep import SweepConfig
 SCENARIOS = ("pendulum", "cartpole", "actuators")
 #: What differs between two runs of one unit: wall times, memory, compile or load counts.
 _RUN_INFO = {"seconds", "cpu_seconds", "compile_seconds", "guard", "plan", "mjx_compiles", "mjx_loaded",
-             "reproducer"}
+             "reproducer", "checks_loaded"}
 
 
 def _verdicts(doc: dict) -> list[dict]:

@@ -15,7 +15,7 @@ from tests.conftest import REPORT_SCENARIOS
 #: learns from each compile).
 _VOLATILE_CONFIG = {"seconds", "mjx_compiles", "out", "history"}
 _VOLATILE = {"seconds", "compile_seconds", "cpu_seconds", "reproducer", "memory", "mjx_loaded", "mjx_compiles",
-             "estimate", "xla"}
+             "checks_loaded", "estimate", "xla"}
 
 
 def _scenario(s: dict) -> dict:

@@ -4,6 +4,7 @@ id2name or bind is caught, with the call, the field and the C state named. The r
 never call these functions, so no trajectory comparison could have caught any of them."""
 
 import dataclasses
+import json
 
 import mujoco
 import numpy as np
@@ -144,3 +145,42 @@ def test_a_host_interface_check_that_could_not_run_says_so_on_the_checks_line():
 
     line = format_checks({"transfer": {"error": "KeyError: 8"}})
     assert line == "checks: host-interface check did not run: KeyError: 8"
+
+
+def test_a_check_is_loaded_only_for_the_same_model_state_and_code(tmp_path, monkeypatch):
+    """The check's result is saved under the cache and loaded for the very same check; another
+    MJX (a patched state map), another state, or a damaged entry checks afresh, and the undone
+    patch loads the clean result again."""
+    s = load_scenario("pendulum")
+    m, _ = adjust.for_mjx(load_model(s), s.model_path)
+    i = make_inputs(s, m, 0, 1)
+
+    def check(qvel=i.qvel[0]):
+        return transfer.cached_check_scenario_states(tmp_path, i.models[0], i.qpos[0], qvel, i.act[0], i.ctrl[0],
+                                                     0.0, s.model_path)
+
+    clean, loaded = check()
+    assert not loaded and clean.mismatches == () and clean.checked > 100
+    assert check() == (clean, True)
+    with monkeypatch.context() as patch:
+        _swap_qpos_and_qvel(patch)
+        slipped, loaded = check()
+        assert not loaded and ("get_state(mjSTATE_QPOS)", "mjSTATE_QPOS") in _only(slipped)
+        assert check() == (slipped, True), "the slipped MJX's own result, for that code only"
+    assert check() == (clean, True)
+    assert check(i.qvel[0] + 0.1)[1] is False
+    key = transfer._key(i.models[0], i.qpos[0], i.qvel[0], i.act[0], i.ctrl[0], 0.0, s.model_path, "float64")
+    entry = tmp_path / "mjxdiff-checks" / f"transfer-{key}.json"
+    assert json.loads(entry.read_text()) == clean.as_dict()
+    entry.write_text("{damaged")
+    assert check() == (clean, False) and check() == (clean, True)
+
+
+def test_a_sweep_loads_the_check_it_made_before_and_says_so(tmp_path, monkeypatch):
+    from mjxdiff import export_cache
+
+    monkeypatch.setattr(export_cache, "cache_root", lambda: tmp_path)
+    config = SweepConfig(seed=0, batch=2, steps=20, diagnose="none")
+    first, second = (run_scenario(load_scenario("pendulum"), config) for _ in range(2))
+    assert "checks_loaded" not in first.info and second.info["checks_loaded"] == ["transfer"]
+    assert first.info["transfer"] == second.info["transfer"] and second.status == first.status == "pass"
