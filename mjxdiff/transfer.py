@@ -36,6 +36,7 @@ import numpy as np
 from mjxdiff import joints
 from mjxdiff.precision import THRESHOLDS, Precision
 from mjxdiff.errors import one_line
+from mjxdiff.files import atomic_write
 
 __all__ = ["RTOL", "Mismatch", "TransferCheck", "check", "check_scenario_states", "cached_check_scenario_states",
            "CONTACTS_COMPARED"]
@@ -420,8 +421,6 @@ def cached_check_scenario_states(cache: Path | None, m: mujoco.MjModel, qpos: np
             pass
     found = check_scenario_states(m, qpos, qvel, act, ctrl, time, model_path, precision)
     if path is not None:
-        from mjxdiff.files import atomic_write
-
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             atomic_write(path, json.dumps(found.as_dict()))
@@ -433,13 +432,13 @@ def cached_check_scenario_states(cache: Path | None, m: mujoco.MjModel, qpos: np
 def _key(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, ctrl: np.ndarray, time: float,
          model_path: str | Path | None, precision: Precision) -> str:
     """Hex SHA-256 of what :func:`check_scenario_states` reads and runs: the code of MJX and of
-    this module, the versions and JAX settings (:func:`mjxdiff.export_cache.fresh_digest`, as a
-    rollout's artifact is keyed), the precision, the compiled model (``mj_saveModel``), the state
+    this module, the versions and JAX settings (:func:`mjxdiff.export_cache.rollout_digest`, as
+    a rollout's artifact is keyed), the precision, the compiled model (``mj_saveModel``), the state
     and controls, and the model file (its spec gives the ``bind`` checks)."""
     from mjxdiff import export_cache
 
     h = hashlib.sha256()
-    for part in (export_cache.fresh_digest(), export_cache.code_digest((__name__,)), precision, repr(float(time))):
+    for part in (export_cache.rollout_digest(), export_cache.code_digest((__name__,)), precision, repr(float(time))):
         h.update(part.encode() + b"\0")
     model = np.empty(mujoco.mj_sizeModel(m), np.uint8)
     mujoco.mj_saveModel(m, None, model)
