@@ -782,7 +782,9 @@ class MJXEngine:
         """The compiled piece function of :meth:`stream`, its first arguments, the placer and the
         padded controls: (run, (mx, dx, ctrl piece, steps), place, ctrl)."""
         t = export_cache.clock()
-        T = -(-inputs.steps // chunk) * chunk  # every piece runs the compiled function: the work it will do
+        # every piece runs the compiled function: the work it will do, over the planned horizon (a
+        # quick run's XLA options are the full run's: one executable serves both)
+        T = -(-max(inputs.steps, inputs.horizon or 0) // chunk) * chunk
         held = getattr(_HELD, "pieces", None)
         key = (id(self), tuple(map(id, inputs.models)), inputs.batch, chunk, T, inputs.energy)
         if held is not None and key in held:

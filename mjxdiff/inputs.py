@@ -47,6 +47,9 @@ class BatchedInputs:
         (default 0..B-1); per-member draws made later (the noise floor's
         perturbations) are seeded by it, so a member replayed alone gets the
         same ones.
+      horizon: the steps the rollout's compiled function is planned for, when more than
+        ``steps`` (a ``--quick`` run plans for the full run's, so that both compile alike);
+        None: ``steps``.
     """
 
     qpos: np.ndarray
@@ -58,6 +61,7 @@ class BatchedInputs:
     seed: int
     energy: bool = False
     member_ids: np.ndarray | None = None
+    horizon: int | None = None
 
     @property
     def ids(self) -> np.ndarray:

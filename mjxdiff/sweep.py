@@ -159,6 +159,7 @@ def _prepare(scenario: Scenario, config: SweepConfig) -> _Prepared:
     if config.quick and not info.get("plan", {}).get("changed") and (
             info.get("estimate", {}).get("step_s", 0.0) < SLOW_STEP_S):
         prepared.plan_for = dataclasses.replace(config, quick=False).sizes(scenario)
+        prepared.inputs = dataclasses.replace(inputs, horizon=prepared.plan_for[1])
     return prepared
 
 

@@ -174,6 +174,25 @@ def test_pieces_of_a_stream_share_one_compiled_function(saved, monkeypatch):
     assert choice["level"] in ("fast", "balanced")
 
 
+def test_xla_options_follow_the_planned_horizon(monkeypatch):
+    """A short run planned for a longer horizon (``--quick`` after the full run's plan) chooses
+    XLA's options for the planned stepping, so both compile one executable; a run planned for
+    its own steps chooses for those (before, the quick run of a scenario stepped in pieces got
+    ``fast`` where the full run got ``balanced``, and XLA compiled the loaded rollout again)."""
+    from mjxdiff import engines
+
+    asked = []
+    choose = engines.xla_options
+    monkeypatch.setattr(engines, "xla_options", lambda mode, steps: asked.append(steps) or choose(mode, steps))
+    scenario = load_scenario("pendulum")
+    inputs = make_inputs(scenario, load_model(scenario), seed=0, batch=2, steps=10)
+    engine = MJXEngine()
+    engine.first_piece(inputs, 10)
+    engine.first_piece(dataclasses.replace(inputs, horizon=35), 10)
+    engine.first_piece(dataclasses.replace(inputs.members(np.array([0, 0])), horizon=35), 10)
+    assert asked == [10, 40, 40]
+
+
 def test_automatic_split_needs_enough_members_per_device():
     from mjxdiff.engines import MEMBERS_PER_DEVICE, SPLIT_MIN_MEMBERS, device_count
 
