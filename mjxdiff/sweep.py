@@ -29,7 +29,7 @@ from mjxdiff.compat import enable_x64
 from mjxdiff.config import IMPLS, NOISE_FLOOR_MODES, SweepConfig  # noqa: F401 - public here
 from mjxdiff.precision import Precision
 from mjxdiff.errors import one_line
-from mjxdiff import adjust, cost, diagnose, engines, export_cache, onestep, report, reproducer, transfer
+from mjxdiff import adjust, cost, diagnose, engines, export_cache, onestep, reference, report, reproducer, transfer
 from mjxdiff.engines import CEngine, MJXEngine, UnsupportedError
 from mjxdiff.trajectory import Engine, Trajectory
 from mjxdiff.inputs import BatchedInputs, make_inputs
@@ -698,6 +698,8 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
             result = _diagnose(result, case, traj_c, drill)
     if config.reference == "c" and result.status in ("pass", "fail"):
         result = _sharp(result, case, traj_c, info, bundled)
+    if config.reference == "c":
+        result = _suspect_reference(result, m, info)
     if counts.get("xla") is not None:
         info["xla"] = counts.pop("xla")
     info.update(mjx_code=export_cache.code_digest(),
@@ -822,6 +824,16 @@ def _sharp(result: ScenarioResult, case: _Case, traj_c: Trajectory | None, info:
     if result.status == "pass" and excused:
         result = _truncation(result, case.m, info["solver_floor"], found, twin, bundled=bundled)
     return result
+
+
+def _suspect_reference(result: ScenarioResult, m, info: dict) -> ScenarioResult:
+    """A failure on a model where the installed C is known to be wrong (:func:`reference.suspect`)
+    says so, with what to run to rule C out (``info['suspect_reference']``); a pass is left alone."""
+    found = reference.suspect(m) if result.status == "fail" else None
+    if found is None:
+        return result
+    info["suspect_reference"] = found
+    return dataclasses.replace(result, message=f"{result.message}; {reference.caveat(found)}")
 
 
 def _drilled(found: dict, drill: Callable[[], diagnose.DrillDown]) -> diagnose.DrillDown | None:
