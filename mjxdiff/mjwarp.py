@@ -125,9 +125,10 @@ def put_models(models: tuple[mujoco.MjModel, ...]):
 
 def capacity(inputs: BatchedInputs) -> tuple[int, int]:
     """(nconmax, njmax) per world for these inputs: MJWarp's defaults, or more where C's own run
-    of the same members needs it (most contacts of any member at any step, x 1.5, + 8; rows: that
-    many contacts at the model's widest friction cone plus every other constraint row C had).
-    MJWarp drops contacts and rows beyond its capacity, which would read as a divergence."""
+    of the same members needs it (most contacts of any member at any step, x 2, + 8, as MuJoCo's
+    parity method sizes them; rows: that many contacts at the model's widest friction cone plus
+    every other constraint row C had). MJWarp drops contacts and rows beyond its capacity, which
+    would read as a divergence: :func:`buffer_overflow` is checked after every step."""
     from mjxdiff.compat import Batch
     from mujoco_warp._src import io
 
@@ -145,9 +146,31 @@ def capacity(inputs: BatchedInputs) -> tuple[int, int]:
     dims = np.concatenate([m.geom_condim, m.pair_dim]) if m.npair else m.geom_condim
     condim = int(dims.max(initial=1))
     rows = condim if m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC else max(2 * (condim - 1), 1)
-    nconmax = max(io._default_nconmax(m), int(1.5 * ncon) + 8)  # noqa: SLF001
+    nconmax = max(io._default_nconmax(m), 2 * ncon + 8)  # noqa: SLF001
     njmax = max(io._default_njmax(m), nefc + (nconmax - ncon) * rows + 8)  # noqa: SLF001
     return nconmax, njmax
+
+
+def buffer_overflow(d) -> str | None:
+    """The buffers MJWarp's data ``d`` overflowed in any world so far (its ``overflow`` bitmask,
+    solver iteration limits left out: those are the verdict's to see), as ``OverflowType``'s
+    names; None when none did (or this MJWarp keeps no bitmask)."""
+    import mujoco_warp as mjw
+
+    bits = getattr(d, "overflow", None)
+    if bits is None:
+        return None
+    solver = int(mjw.OverflowType.ITERATIONS) | int(mjw.OverflowType.LS_ITERATIONS)
+    found = int(np.bitwise_or.reduce(np.asarray(bits.numpy()).ravel(), initial=0)) & ~solver
+    return str(mjw.OverflowType(found)) if found else None
+
+
+def _check_buffers(d, where: str) -> None:
+    """Raises where MJWarp dropped contacts or rows (an engine ``error``, never a divergence)."""
+    overflow = buffer_overflow(d)
+    if overflow is not None:
+        raise RuntimeError(f"MJWarp's buffers overflowed {where} ({overflow}): its results there are not "
+                           "the model's; MuJoCo's parity method sizes them at 2x C's peak counts")
 
 
 def forward(m: mujoco.MjModel, d: mujoco.MjData) -> mujoco.MjData:
@@ -166,6 +189,7 @@ def forward(m: mujoco.MjModel, d: mujoco.MjData) -> mujoco.MjData:
         mw = mjw.put_model(m)
         dw = mjw.put_data(m, d, nconmax=max(2 * probe.ncon + 8, 16), njmax=max(2 * probe.nefc + 8, 16))
         mjw.forward(mw, dw)
+        _check_buffers(dw, "in forward")
         out = mujoco.MjData(m)
         mjw.get_data_into(out, m, dw)
     return out
@@ -219,6 +243,7 @@ class MJWarpEngine(Streaming):
         if n >= d.naconmax or int(d.nefc.numpy().max(initial=0)) >= d.njmax:
             raise RuntimeError(f"MJWarp ran out of contact or constraint rows at step {t} (naconmax "
                                f"{d.naconmax}, njmax {d.njmax} per world): its results there are not the model's")
+        _check_buffers(d, f"at step {t}")
         rec["ncon"].append(np.bincount(d.contact.worldid.numpy()[:n], minlength=d.nworld)[:d.nworld])
 
     @staticmethod

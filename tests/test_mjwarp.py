@@ -104,3 +104,31 @@ def test_the_higher_priority_geom_s_solref_wins_over_a_direct_one():
         mjw.step(mw, dw)
         qvel = dw.qvel.numpy()[0]
     np.testing.assert_allclose(qvel, d.qvel, atol=1e-5)
+
+
+def test_an_overflowed_buffer_is_named_and_sized_buffers_do_not_overflow():
+    """MJWarp's overflow bitmask is read after every step: data sized as the engine sizes it
+    (2x C's peak contacts) stays clear; the same model with room for one contact overflows, and
+    the check names the buffer instead of letting the dropped contacts read as a divergence."""
+    import warp as wp
+
+    from mjxdiff.inputs import make_inputs
+
+    scenario = load_scenario("primitives_on_plane")
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, 0, 1, 5)
+    nconmax, njmax = mjwarp.capacity(inputs)
+    with wp.ScopedDevice("cpu"):
+        mw = mjw.put_model(m)
+        for size, expect in (((nconmax, njmax), None), ((1, njmax), "overflow")):
+            d = mjw.make_data(m, nworld=1, nconmax=size[0], njmax=size[1])
+            mjwarp._set_state(d, m, inputs.qpos, inputs.qvel, inputs.act, np.zeros(1))
+            for _ in range(3):
+                mjw.step(mw, d)
+            found = mjwarp.buffer_overflow(d)
+            if expect is None:
+                assert found is None, found
+            else:
+                assert found, "one contact slot for a resting pile: an overflow"
+                with pytest.raises(RuntimeError, match=r"MJWarp's buffers overflowed at step 2 \("):
+                    mjwarp._check_buffers(d, "at step 2")
