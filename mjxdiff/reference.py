@@ -26,7 +26,7 @@ __all__ = ["SPARSE_CHOLESKY", "suspect"]
 #: The known C bug a model can meet: the release it is in, the fix, and what to run to rule it out.
 SPARSE_CHOLESKY = dict(
     release="4.0.0", fixed_in="4.0.1", issue="google-deepmind/mujoco#3767",
-    what="C's sparse Cholesky gives Newton a wrong Hessian factor on branching trees with a sparse Jacobian",
+    what="sparse Cholesky gives Newton a wrong Hessian factor on branching trees with a sparse Jacobian",
     check="pip install --no-deps mujoco-core==4.0.1, then sweep again: a verdict that changes was C's")
 
 
@@ -58,5 +58,5 @@ def suspect(m: mujoco.MjModel, version: str | None = None) -> dict[str, Any] | N
 
 def caveat(found: dict[str, Any]) -> str:
     """The clause a failing verdict gains from :func:`suspect`'s finding."""
-    return (f"the reference may be wrong here: MuJoCo C {found['release']}'s {found['what'].split(' ', 1)[1]}, "
+    return (f"the reference may be wrong here: MuJoCo C {found['release']}'s {found['what']}, "
             f"and this model is one ({found['issue']}, fixed in {found['fixed_in']}); to rule C out: {found['check']}")
