@@ -59,9 +59,11 @@ STAGE_RTOL = {p: t.stage_rtol for p, t in THRESHOLDS.items()}
 
 @dataclasses.dataclass(frozen=True)
 class StageDiff:
-    """One field of one stage: worst scaled error and the object it belongs to; for the
-    ``contact`` field, the worst geom pair as data (:func:`contact_detail`), what known entries
-    and the shrinker match on (never the object's text)."""
+    """One field of one stage: worst scaled error ``|mjx - c| / (1 + max|c|)`` and the object it
+    belongs to; ``bound``, the largest ``|mjx - c|`` the stage allows (the precision's
+    :meth:`~mjxdiff.precision.Thresholds.stage_bound`, field units; NaN for ``contact``, judged
+    on its own scale); for the ``contact`` field, the worst geom pair as data
+    (:func:`contact_detail`), what known entries and the shrinker match on (never the object's text)."""
 
     stage: str
     field: str
@@ -69,6 +71,7 @@ class StageDiff:
     object: str
     differs: bool
     contact: dict[str, Any] | None = None
+    bound: float = float("nan")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -163,7 +166,8 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
     Args:
       m: the member's C model.
       qpos, qvel, act, ctrl, time: the state and controls before the step.
-      precision: sets the relative threshold, :data:`STAGE_RTOL`.
+      precision: sets each stage's threshold (:meth:`mjxdiff.precision.Thresholds.stage_bound`:
+        ``max|mjx - c| <= atol + rtol max|c|``, per stage under float32).
       qacc_warmstart: the solver's warm start there (both engines start from it); None: zero.
       engine: the engine under test (default MJX), whose ``forward`` (:meth:`mjxdiff.trajectory.Engine.forward`)
         is compared with C's.
@@ -179,7 +183,8 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
     values_x, contacts_x = dict(under_test.values, qM=under_test.qM.ravel()), under_test.contacts
     reference = CEngine().forward(m, d, fields)
     values_c = dict(reference.values, qM=reference.qM.ravel())
-    rtol = STAGE_RTOL[precision]
+    thresholds = THRESHOLDS[precision]
+    rtol = thresholds.stage_rtol
     diffs = []
     for stage, fields in STAGES:
         for f in fields:
@@ -190,10 +195,12 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
             c, x = values_c[f], values_x[f]
             if c.size == 0:
                 continue
-            scaled = np.abs(x - c) / (1 + np.max(np.abs(c)))
-            i = int(np.nanargmax(np.where(np.isnan(scaled), np.inf, scaled)))
-            err = float(scaled[i])
-            diffs.append(StageDiff(stage, f, err, _object(m, f, i), not err <= rtol))
+            scale = float(np.max(np.abs(c)))
+            gap = np.abs(x - c)
+            i = int(np.nanargmax(np.where(np.isnan(gap), np.inf, gap)))
+            bound = thresholds.stage_bound(stage, scale)
+            diffs.append(StageDiff(stage, f, float(gap[i]) / (1 + scale), _object(m, f, i), not gap[i] <= bound,
+                                   bound=bound))
     first = next((s for s in diffs if s.differs), None)
     return DrillDown(member=member, step=step, first_stage=first and first.stage, first_field=first and first.field,
                      object=first.object if first else "", fields=tuple(diffs), contact=first and first.contact)

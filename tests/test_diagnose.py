@@ -218,3 +218,33 @@ def test_the_drill_down_compares_contact_tangents_where_they_turn_the_friction_c
         assert "(plane-capsule: C 1, MJX 1 contacts; tangent frame differs by" in drill.object, drill
     else:
         assert drill.first_stage != "collision", drill
+
+
+def test_each_stage_is_judged_by_its_own_tolerance_under_float32(fresh_mjx, monkeypatch):
+    """The bias force 0.05% too large: float64's one threshold (1e-9 of the field's scale) names
+    the bias stage; float32's per-stage tolerances (MuJoCo's parity method: forces 1e-3 + 1e-3 of
+    the scale) let it pass as float32 rounding, where the uniform 1e-4 would have named it, and
+    the bound reported is that stage's."""
+    import mujoco
+
+    from mjxdiff import diagnose
+    from mjxdiff.precision import THRESHOLDS
+
+    orig = mjx_smooth.rne
+    monkeypatch.setattr(mjx_smooth, "rne", lambda m, d, *a, **k: (lambda d: d.replace(
+        qfrc_bias=d.qfrc_bias * (1 + 5e-4)))(orig(m, d, *a, **k)))
+    m = mujoco.MjModel.from_xml_string(
+        "<mujoco><worldbody><body pos='0 0 1'><joint name='j' type='hinge' axis='0 1 0'/>"
+        "<geom type='capsule' fromto='0 0 0 0 0 -0.5' size='0.03' mass='1'/></body></worldbody>"
+        "<actuator><motor joint='j' name='m'/></actuator></mujoco>")
+    state = (np.array([0.7]), np.array([1.5]), np.zeros(0), np.array([0.3]), 0.0)
+    f64 = diagnose.drill_down(m, *state, precision="float64")
+    f32 = diagnose.drill_down(m, *state, precision="float32")
+    assert (f64.first_stage, f64.first_field) == ("bias", "qfrc_bias"), f64
+    bias = next(s for s in f32.fields if s.field == "qfrc_bias")
+    assert f32.first_stage is None and 1e-4 < bias.error < 1e-3, f32
+    atol, rtol = THRESHOLDS["float32"].stage_tolerance["bias"]
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:], d.ctrl[:] = state[0], state[1], state[3]
+    mujoco.mj_forward(m, d)
+    assert bias.bound == pytest.approx(atol + rtol * np.abs(d.qfrc_bias).max())
