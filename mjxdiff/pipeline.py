@@ -382,6 +382,8 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
         if writer is not None:
             writer.close()
     results = list(bad) + [done[i] for i in sorted(done)]
+    if options.impl == "both":
+        results = _c_outliers(results)
     seconds = time.perf_counter() - t0
     swept = _clocks()
 
@@ -405,6 +407,34 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
 
 
 _STARTED: dict[str, bool] = {}
+
+
+def _c_outliers(results: list[ScenarioResult]) -> list[ScenarioResult]:
+    """``impl="both"``'s verdicts, where C is the odd one out of a scenario's three
+    (:func:`mjxdiff.reference.c_outlier`) its two failures against C saying so
+    (``info["reference_outlier"]``), instead of blaming MJX and MuJoCo Warp alone."""
+    from mjxdiff import reference
+
+    status: dict[str, dict[str, str]] = {}
+    for r in results:
+        base, suffix = _pair_of(r.name)
+        status.setdefault(base, {})[suffix] = r.status
+    out = []
+    for r in results:
+        base, suffix = _pair_of(r.name)
+        if suffix in ("", "@warp") and reference.c_outlier(status[base]):
+            r = dataclasses.replace(r, message=f"{r.message}; {reference.outlier_clause(base)}",
+                                    info=dict(r.info, reference_outlier=True))
+        out.append(r)
+    return out
+
+
+def _pair_of(name: str) -> tuple[str, str]:
+    """(scenario, pair suffix) of a result's name under ``impl="both"`` (:data:`_PAIRS`)."""
+    for suffix in ("@mjx-warp", "@warp"):
+        if name.endswith(suffix):
+            return name[:-len(suffix)], suffix
+    return name, ""
 
 
 def _clocks() -> tuple[float, float]:

@@ -21,7 +21,7 @@ from typing import Any
 
 import mujoco
 
-__all__ = ["SPARSE_CHOLESKY", "suspect"]
+__all__ = ["PAIRS", "SPARSE_CHOLESKY", "c_outlier", "caveat", "outlier_clause", "suspect"]
 
 #: The known C bug a model can meet: the release it is in, the fix, and what to run to rule it out.
 SPARSE_CHOLESKY = dict(
@@ -60,3 +60,28 @@ def caveat(found: dict[str, Any]) -> str:
     """The clause a failing verdict gains from :func:`suspect`'s finding."""
     return (f"the reference may be wrong here: MuJoCo C {found['release']}'s {found['what']}, "
             f"and this model is one ({found['issue']}, fixed in {found['fixed_in']}); to rule C out: {found['check']}")
+
+
+#: ``impl="both"``'s three pairs of one scenario, by their name's suffix (``mjxdiff.pipeline``).
+PAIRS = ("", "@warp", "@mjx-warp")
+
+
+def c_outlier(statuses: dict[str, str]) -> bool:
+    """Whether C is the odd one out of ``impl="both"``'s three verdicts of one scenario, ``suffix ->
+    status`` (:data:`PAIRS`): MJX against C and MuJoCo Warp against C both ``fail``, while MuJoCo
+    Warp against MJX (C's own rounding envelope as the floor, float32 tolerances) ``pass``es.
+
+    >>> c_outlier({"": "fail", "@warp": "fail", "@mjx-warp": "pass"})
+    True
+    >>> c_outlier({"": "fail", "@warp": "pass", "@mjx-warp": "pass"})  # MJWarp within float32 of C
+    False
+    """
+    return (statuses.get("") == "fail" and statuses.get("@warp") == "fail"
+            and statuses.get("@mjx-warp") == "pass")
+
+
+def outlier_clause(name: str) -> str:
+    """What a failing verdict of scenario ``name`` gains where :func:`c_outlier` holds."""
+    return (f"C is the outlier: MJX and MuJoCo Warp agree with each other ({name}@mjx-warp passes) and both part "
+            "from C beyond their bounds, so C is wrong here or both share this difference from it; "
+            "check it on another MuJoCo C (`mjxdiff versions`, or pip install --no-deps mujoco-core==NEWER)")

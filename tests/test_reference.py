@@ -67,3 +67,25 @@ def test_a_failure_on_a_suspect_model_says_how_to_rule_c_out(monkeypatch):
     assert sweep._suspect_reference(passed, m, {}) is passed
     monkeypatch.setattr(reference.mujoco, "__version__", "4.0.1")
     assert sweep._suspect_reference(failed, m, {}) is failed
+
+
+def test_c_is_named_the_outlier_only_where_mjx_and_mjwarp_agree_and_both_fail_against_c():
+    """``--impl both``'s three verdicts of a scenario: both failures against C gain the clause
+    (and ``info["reference_outlier"]``) only where MuJoCo Warp against MJX passes; MJWarp passing
+    against C, or failing against MJX, leaves every verdict as it was."""
+    from mjxdiff.pipeline import _c_outliers
+
+    def three(name, vs_c, warp_vs_c, warp_vs_mjx):
+        return [ScenarioResult(name + suffix, status, "m") for suffix, status in
+                zip(reference.PAIRS, (vs_c, warp_vs_c, warp_vs_mjx))]
+
+    results = three("tree", "fail", "fail", "pass") + three("box", "fail", "fail", "fail") + three(
+        "arm", "fail", "pass", "pass")
+    out = {r.name: r for r in _c_outliers(results)}
+    assert [r.name for r in _c_outliers(results)] == [r.name for r in results]
+    for name in ("tree", "tree@warp"):
+        assert out[name].info["reference_outlier"] and "C is the outlier" in out[name].message, out[name]
+        assert "tree@mjx-warp passes" in out[name].message
+    unchanged = [r for r in results if not r.name.startswith("tree")] + [r for r in results if r.name == "tree@mjx-warp"]
+    for r in unchanged:
+        assert out[r.name] == r
