@@ -110,8 +110,10 @@ sweep in each; print one table, scenario x version, with status, worst ratio to 
 step out and known-divergence label, each cell marked where it changed since the previous
 version. Each version's report.json, and its run in one history (see 'mjxdiff history
 --by-version'), stay under --out. A version that cannot be installed or swept is one error line;
-the others still run. Exit 0 when every version ran and no scenario failed outside the known
-divergences, else 1; 2 bad input.""",
+the others still run. A target with +coreC changes only the reference: the same MJX judged
+against another MuJoCo C (3.17.0 3.17.0+core4.0.1: a verdict that changes between them was C's).
+Exit 0 when every version ran and no scenario failed outside the known divergences, else 1; 2
+bad input.""",
     "replay": """\
 Re-run a reproducer file (written under DIR/reproducers/ by 'sweep --out DIR' for each failing
 scenario, or by 'grad --out DIR' for a state whose Jacobians disagree) and print its diagnosis. Exit
@@ -175,6 +177,7 @@ examples:
   python -m mjxdiff versions 3.9.0/0.7.2 3.17.0 --quick           # a playground pin against the newest
   python -m mjxdiff versions 3.3.5/0.7.0 3.9.0/0.7.2 3.17.0 --scenarios pendulum humanoid
   python -m mjxdiff versions 3.12.0 3.17.0 --scenarios my_robot.toml --out upgrade-check
+  python -m mjxdiff versions 3.17.0 3.17.0+core4.0.1 --quick   # the same MJX against C 4.0.0 and 4.0.1
 
 The first run of a version installs it (a minute or two, about 1 GB per environment); later runs
 reuse it while mjxdiff's requirements are unchanged."""
@@ -649,9 +652,11 @@ def _versions_parser(sub) -> argparse.ArgumentParser:
     ve = sub.add_parser("versions", help="run the same sweep on several MJX releases and tabulate the verdicts",
                         description=_DESCRIPTIONS["versions"], epilog=_VERSIONS_EPILOG,
                         formatter_class=argparse.RawDescriptionHelpFormatter)
-    ve.add_argument("targets", nargs="+", metavar="MJX[/JAX]", type=_target,
+    ve.add_argument("targets", nargs="+", metavar="MJX[/JAX][+coreC]", type=_target,
                     help="an MJX release (3.9.0; its MuJoCo is installed with it, 4.0 for MJX 3.17), optionally with "
-                         "the JAX to pair it with (3.9.0/0.7.2; default: the newest pip finds within mjxdiff's range)")
+                         "the JAX to pair it with (3.9.0/0.7.2; default: the newest pip finds within mjxdiff's range) "
+                         "and the MuJoCo C to judge it against (3.17.0+core4.0.1: mujoco-core 4.0.1 over the pinned "
+                         "4.0.0, MJX unchanged, to see whether C is the one that moved)")
     ve.add_argument("--scenarios", nargs="+", default=[], metavar="SCENARIO",
                     help="bundled scenario names, scenario .toml or MJCF .xml files to sweep on every version "
                          "(default: every bundled scenario)")

@@ -403,8 +403,19 @@ def clear() -> None:
 
 @functools.cache
 def _versions() -> tuple[str, ...]:
+    # mujoco-core (MuJoCo 4.0 on) is the C library itself, which `mujoco` pins but a user can
+    # replace alone (pip install --no-deps mujoco-core==4.0.1): its model compiler feeds put_model
     return (*(importlib.metadata.version(p) for p in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")),
+            _installed("mujoco-core"),
             sys.version)  # with jax, jaxlib, numpy and the standard library left out of dependencies
+
+
+def _installed(dist: str) -> str:
+    """``dist``'s installed version, or ``""`` where it is not installed."""
+    try:
+        return importlib.metadata.version(dist)
+    except importlib.metadata.PackageNotFoundError:
+        return ""
 
 
 def _structure(treedef, h) -> None:

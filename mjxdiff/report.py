@@ -39,7 +39,8 @@ _SYMBOL = {"pass": "PASS", "fail": "FAIL", "unsupported": "UNSUP", "error": "ERR
 def versions() -> dict[str, str]:
     """Versions of everything that decides the numbers."""
     out = {"python": platform.python_version()}
-    for dist in ("mjxdiff", "jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy"):
+    # mujoco-core: MuJoCo C itself from 4.0 on (`mujoco` pins it, a user can replace it alone)
+    for dist in ("mjxdiff", "jax", "jaxlib", "mujoco", "mujoco-core", "mujoco-mjx", "numpy"):
         try:
             out[dist] = metadata.version(dist)
         except metadata.PackageNotFoundError:

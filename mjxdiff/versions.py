@@ -1,6 +1,7 @@
 """``mjxdiff versions``: the same sweep on several MJX releases, one table.
 
-Each target (``3.9.0``, or ``3.9.0/0.7.2`` for MJX 3.9.0 with JAX 0.7.2) gets an environment
+Each target (``3.9.0``, or ``3.9.0/0.7.2`` for MJX 3.9.0 with JAX 0.7.2; ``3.17.0+core4.0.1`` for
+MJX 3.17.0 judged against MuJoCo C 4.0.1, the reference alone changed) gets an environment
 of its own, a venv under ``~/.cache/mjxdiff/versions/`` (``--envs``) made with the standard library's ``venv`` and
 filled by pip from the package index: MuJoCo and MJX of that release (MJX 3.17 is MuJoCo 4.0's),
 JAX as pinned or as pip resolves within mjxdiff's range, and mjxdiff's other dependencies. The
@@ -46,10 +47,14 @@ class VersionsError(RuntimeError):
 @dataclasses.dataclass(frozen=True)
 class Target:
     """One MJX release to sweep, with the JAX to pair it with (None: pip's choice within
-    mjxdiff's range)."""
+    mjxdiff's range) and the MuJoCo C to judge it against (``core``: ``mujoco-core`` of that
+    release installed over the one ``mujoco`` pins, without its dependencies; None: the pinned one).
+    MuJoCo 4.0's ``mujoco`` pins its ``mujoco-core`` exactly, so a patch release of C (4.0.1 fixes
+    4.0.0's sparse Cholesky, :mod:`mjxdiff.reference`) reaches MJX users only this way."""
 
     mjx: str
     jax: str | None = None
+    core: str | None = None
 
     @property
     def mujoco(self) -> str:
@@ -60,15 +65,19 @@ class Target:
 
     @property
     def label(self) -> str:
-        return self.mjx if self.jax is None else f"{self.mjx}/jax{self.jax}"
+        return ((self.mjx if self.jax is None else f"{self.mjx}/jax{self.jax}")
+                + (f"+core{self.core}" if self.core else ""))
 
 
 def parse_target(text: str) -> Target:
-    """``3.9.0`` or ``3.9.0/0.7.2`` (MJX, then JAX); ValueError naming the form otherwise."""
-    mjx, slash, jax = text.partition("/")
-    if not _VERSION.fullmatch(mjx) or (slash and not _VERSION.fullmatch(jax)):
-        raise ValueError(f"{text!r} is not MJX[/JAX], e.g. 3.9.0 or 3.9.0/0.7.2")
-    return Target(mjx, jax or None)
+    """``3.9.0``, ``3.9.0/0.7.2`` (MJX, then JAX), either with ``+core4.0.1`` (the MuJoCo C to judge
+    against); ValueError naming the form otherwise."""
+    rest, plus, core = text.partition("+core")
+    mjx, slash, jax = rest.partition("/")
+    if (not _VERSION.fullmatch(mjx) or (slash and not _VERSION.fullmatch(jax))
+            or (plus and not _VERSION.fullmatch(core))):
+        raise ValueError(f"{text!r} is not MJX[/JAX][+coreC], e.g. 3.9.0, 3.9.0/0.7.2 or 3.17.0+core4.0.1")
+    return Target(mjx, jax or None, core or None)
 
 
 def requirements(target: Target, extras: Sequence[str] = ()) -> list[str]:
@@ -86,6 +95,11 @@ def requirements(target: Target, extras: Sequence[str] = ()) -> list[str]:
             continue
         out.append(spec.strip())
     return out
+
+
+def core_requirement(target: Target) -> str:
+    """The ``mujoco-core`` a C-only target installs over the pinned one (:attr:`Target.core`)."""
+    return f"mujoco-core=={target.core}"
 
 
 def _python(env: Path) -> Path:
@@ -107,12 +121,14 @@ def prepare(target: Target, cache: Path, extras: Sequence[str] = (), say: Callab
     VersionsError in one line (with the log) when it cannot be made."""
     env = cache / re.sub(r"[^A-Za-z0-9._-]", "_", f"mjx-{target.label}")
     reqs = requirements(target, extras)
+    stamped = reqs + ([f"{core_requirement(target)} --no-deps"] if target.core else [])
     stamp = env / "mjxdiff-requirements.json"
-    if stamp.is_file() and set(reqs) <= set(json.loads(stamp.read_text())) and _python(env).exists():
+    if stamp.is_file() and set(stamped) <= set(json.loads(stamp.read_text())) and _python(env).exists():
         say(f"versions: {target.label}: reusing {env}")
     else:
         say(f"versions: {target.label}: installing MuJoCo {target.mujoco}, MJX {target.mjx}"
-            f"{', JAX ' + target.jax if target.jax else ''} into {env}")
+            f"{', JAX ' + target.jax if target.jax else ''}"
+            f"{', MuJoCo C ' + target.core if target.core else ''} into {env}")
         env.mkdir(parents=True, exist_ok=True)
         log = env / "install.log"
         made = subprocess.run([sys.executable, "-m", "venv", "--clear", str(env)], capture_output=True, text=True)
@@ -120,7 +136,9 @@ def prepare(target: Target, cache: Path, extras: Sequence[str] = (), say: Callab
             raise VersionsError(f"venv failed: {' '.join((made.stderr or made.stdout).split())}")
         log.write_text("")
         _pip(env, ["install", "--disable-pip-version-check", "--quiet", *reqs], log)
-        atomic_write(stamp, json.dumps(reqs))
+        if target.core:  # over the pinned core: pip's resolver would refuse it beside `mujoco`
+            _pip(env, ["install", "--disable-pip-version-check", "--quiet", "--no-deps", core_requirement(target)], log)
+        atomic_write(stamp, json.dumps(stamped))
     _link(env)  # the mjxdiff running now, wherever it lives
     return env
 

@@ -11,25 +11,28 @@ from mjxdiff import cli, report, versions
 from mjxdiff.versions import Target, parse_target
 
 
-@pytest.mark.parametrize("text, mjx, jax, mujoco", [
-    ("3.9.0", "3.9.0", None, "3.9.0"),
-    ("3.9.0/0.7.2", "3.9.0", "0.7.2", "3.9.0"),
-    ("3.17.0", "3.17.0", None, "4.0.0"),
-    ("3.17.1/0.10.2", "3.17.1", "0.10.2", "4.0.1"),
+@pytest.mark.parametrize("text, mjx, jax, mujoco, core", [
+    ("3.9.0", "3.9.0", None, "3.9.0", None),
+    ("3.9.0/0.7.2", "3.9.0", "0.7.2", "3.9.0", None),
+    ("3.17.0", "3.17.0", None, "4.0.0", None),
+    ("3.17.1/0.10.2", "3.17.1", "0.10.2", "4.0.1", None),
+    ("3.17.0+core4.0.1", "3.17.0", None, "4.0.0", "4.0.1"),
+    ("3.17.0/0.10.2+core4.0.1", "3.17.0", "0.10.2", "4.0.0", "4.0.1"),
 ])
-def test_a_target_names_mjx_its_mujoco_and_a_jax(text, mjx, jax, mujoco):
+def test_a_target_names_mjx_its_mujoco_and_a_jax(text, mjx, jax, mujoco, core):
     t = parse_target(text)
-    assert (t.mjx, t.jax, t.mujoco) == (mjx, jax, mujoco)
+    assert (t.mjx, t.jax, t.mujoco, t.core) == (mjx, jax, mujoco, core)
+    assert parse_target(t.label.replace("/jax", "/")) == t  # the label names the target
 
 
-@pytest.mark.parametrize("text", ["3.9", "latest", "3.9.0/", "3.9.0/jax", "3.9.0/0.7"])
+@pytest.mark.parametrize("text", ["3.9", "latest", "3.9.0/", "3.9.0/jax", "3.9.0/0.7", "3.17.0+core", "3.17.0+core4.0"])
 def test_a_malformed_target_exits_2_in_one_line(text, capsys, monkeypatch):
     monkeypatch.setattr(versions, "run", lambda *a, **k: pytest.fail(f"{text!r} was taken for a target"))
     with pytest.raises(SystemExit) as e:
         cli.main(["versions", text])
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "is not MJX[/JAX]" in err[0]
+    assert len(err) == 1 and "is not MJX[/JAX][+coreC]" in err[0]
 
 
 def test_requirements_pin_the_release_and_keep_the_rest_as_declared():
