@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 from typing import TYPE_CHECKING, Any, Callable, Protocol, Self, TypeVar
@@ -26,7 +27,7 @@ import numpy as np
 from mjxdiff.stages import Contacts, contacts_c as _contacts_c, contacts_mjx as _contacts_mjx  # noqa: F401
 from mjxdiff.precision import THRESHOLDS, Precision
 from mjxdiff.errors import one_line
-from mjxdiff.compat import sensor_types
+from mjxdiff.compat import full_inertia, sensor_types
 from mjxdiff import metrics
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory
 from mjxdiff.inputs import BatchedInputs
@@ -185,6 +186,7 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
     values_c = dict(reference.values, qM=reference.qM.ravel())
     thresholds = THRESHOLDS[precision]
     rtol = thresholds.stage_rtol
+    extra = float32_rounding(m, d) if precision == "float32" else {}
     diffs = []
     for stage, fields in STAGES:
         for f in fields:
@@ -197,13 +199,114 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
                 continue
             scale = float(np.max(np.abs(c)))
             gap = np.abs(x - c)
-            i = int(np.nanargmax(np.where(np.isnan(gap), np.inf, gap)))
-            bound = thresholds.stage_bound(stage, scale)
-            diffs.append(StageDiff(stage, f, float(gap[i]) / (1 + scale), _object(m, f, i), not gap[i] <= bound,
-                                   bound=bound))
+            bound = thresholds.stage_bound(stage, scale) + extra.get(f, 0.0)  # scalar, or per component
+            over = np.where(np.isnan(gap), np.inf, gap - bound)
+            i = int(np.argmax(over))
+            diffs.append(StageDiff(stage, f, float(gap[i]) / (1 + scale), _object(m, f, i), not over[i] <= 0,
+                                   bound=float(np.broadcast_to(bound, gap.shape)[i])))
     first = next((s for s in diffs if s.differs), None)
     return DrillDown(member=member, step=step, first_stage=first and first.stage, first_field=first and first.field,
                      object=first.object if first else "", fields=tuple(diffs), contact=first and first.contact)
+
+
+#: How many float32 roundings a rounding bound allows (MuJoCo's parity method's factor).
+FLOAT32_ROUNDING_FACTOR = 8.0
+
+
+def float32_rounding(m: mujoco.MjModel, d: mujoco.MjData) -> dict[str, np.ndarray]:
+    """Per-component float32 rounding bounds (field units) that the float32 drill-down adds to a
+    stage's tolerance where rounding is amplified beyond the field's scale (MuJoCo's parity method,
+    ``mujoco/doc/skills/parity/SKILL.md``; ``F = FLOAT32_ROUNDING_FACTOR``, ``eps`` float32's):
+
+    - stiff affine actuators: a force is a difference of large terms, so rounding ``L``
+      (``actuator_length``) or ``V`` (``actuator_velocity``) costs
+      ``actuator_force: F eps (|g0| + |g1 L| + |g2 V|) |u| + F eps (|b0| + |b1 L| + |b2 V|)``
+      (``u`` the clamped control, or the activation), and
+      ``qfrc_actuator: |moment|^T actuator_force's bound``;
+    - an ill-conditioned mass matrix: ``M`` sums parallel-axis terms far larger than its entries,
+      and solving with it amplifies their rounding by ``|M^-1|``:
+      ``qM: F eps S`` and ``qacc_smooth, qacc: F eps |M^-1| (S |qacc| + |qfrc|)``, ``S`` the
+      magnitude of the spatial-inertia terms summed into each entry of ``M``.
+
+    ``d``: the state before the step (a copy is forwarded here). Shapes: each field's, ``qM``
+    (nv * nv) row-major as the drill-down reads it.
+    """
+    d = copy.copy(d)
+    mujoco.mj_forward(m, d)
+    eps = float(np.finfo(np.float32).eps)
+    out: dict[str, np.ndarray] = {}
+    if m.nu and not m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_ACTUATION:
+        out.update(_actuator_rounding(m, d, eps))
+    if m.nv:
+        out.update(_mass_rounding(m, d, eps))
+    return out
+
+
+def _actuator_rounding(m: mujoco.MjModel, d: mujoco.MjData, eps: float) -> dict[str, np.ndarray]:
+    length, velocity = d.actuator_length, d.actuator_velocity
+    gain, bias = m.actuator_gainprm, m.actuator_biasprm
+    ctrl = d.ctrl.copy()
+    if not m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL:
+        lim = m.actuator_ctrllimited.astype(bool)
+        ctrl[lim] = np.clip(ctrl[lim], m.actuator_ctrlrange[lim, 0], m.actuator_ctrlrange[lim, 1])
+    drive = np.abs(ctrl)
+    stateful = m.actuator_actnum > 0
+    if stateful.any():
+        act = d.act[m.actuator_actadr[stateful] + m.actuator_actnum[stateful] - 1].copy()
+        lim = m.actuator_actlimited[stateful].astype(bool)
+        act[lim] = np.clip(act[lim], m.actuator_actrange[stateful][lim, 0], m.actuator_actrange[stateful][lim, 1])
+        drive[stateful] = np.abs(act)
+    affine_gain = m.actuator_gaintype == mujoco.mjtGain.mjGAIN_AFFINE
+    affine_bias = m.actuator_biastype == mujoco.mjtBias.mjBIAS_AFFINE
+    gains = np.abs(gain[:, 0]) + np.where(affine_gain, np.abs(gain[:, 1] * length) + np.abs(gain[:, 2] * velocity), 0)
+    biases = np.where(affine_bias, np.abs(bias[:, 0]) + np.abs(bias[:, 1] * length) + np.abs(bias[:, 2] * velocity), 0)
+    affine = ((affine_gain | (m.actuator_gaintype == mujoco.mjtGain.mjGAIN_FIXED))
+              & (affine_bias | (m.actuator_biastype == mujoco.mjtBias.mjBIAS_NONE)))
+    force = np.where(affine, FLOAT32_ROUNDING_FACTOR * eps * (gains * drive + biases), 0.0)
+    moment = np.zeros((m.nu, m.nv))
+    mujoco.mju_sparse2dense(moment, d.actuator_moment, d.moment_rownnz, d.moment_rowadr, d.moment_colind)
+    return {"actuator_force": force, "qfrc_actuator": np.abs(moment).T @ force}
+
+
+def _mass_scale(m: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
+    """(nv, nv): magnitude of the spatial-inertia terms summed into each entry of ``M``."""
+    cinert = np.abs(d.cinert)
+    inertia = np.zeros((m.nbody, 6, 6))
+    for k, (r, c) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
+        inertia[:, r, c] = inertia[:, c, r] = cinert[:, k]
+    mc = cinert[:, 6:9]
+    skew = np.zeros((m.nbody, 3, 3))
+    skew[:, 0, 1] = skew[:, 1, 0] = mc[:, 2]
+    skew[:, 0, 2] = skew[:, 2, 0] = mc[:, 1]
+    skew[:, 1, 2] = skew[:, 2, 1] = mc[:, 0]
+    inertia[:, :3, 3:] = skew
+    inertia[:, 3:, :3] = skew
+    inertia[:, 3:, 3:] = cinert[:, 9, None, None] * np.eye(3)
+    for b in range(m.nbody - 1, 0, -1):
+        inertia[m.body_parentid[b]] += inertia[b]
+    cdof = np.abs(d.cdof)
+    scale = np.zeros((m.nv, m.nv))
+    for i in range(m.nv):
+        crb_cdof = inertia[m.dof_bodyid[i]] @ cdof[i]
+        j = i
+        while j >= 0:
+            scale[i, j] = scale[j, i] = cdof[j] @ crb_cdof
+            j = m.dof_parentid[j]
+    scale[np.diag_indices(m.nv)] += m.dof_armature
+    return scale
+
+
+def _mass_rounding(m: mujoco.MjModel, d: mujoco.MjData, eps: float) -> dict[str, np.ndarray]:
+    mass = full_inertia(m, d)
+    scale = _mass_scale(m, d)
+    abs_inv = np.abs(np.linalg.inv(mass))
+
+    def bound(x: np.ndarray, f: np.ndarray) -> np.ndarray:
+        return FLOAT32_ROUNDING_FACTOR * eps * (abs_inv @ (scale @ np.abs(x) + f))
+
+    return {"qM": FLOAT32_ROUNDING_FACTOR * eps * scale.ravel(),
+            "qacc_smooth": bound(d.qacc_smooth, np.abs(d.qfrc_smooth)),
+            "qacc": bound(d.qacc, np.abs(d.qfrc_smooth) + np.abs(d.qfrc_constraint))}
 
 
 def state_before(inputs: BatchedInputs, traj_c: Trajectory, member: int, step: int):

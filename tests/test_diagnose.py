@@ -248,3 +248,35 @@ def test_each_stage_is_judged_by_its_own_tolerance_under_float32(fresh_mjx, monk
     d.qpos[:], d.qvel[:], d.ctrl[:] = state[0], state[1], state[3]
     mujoco.mj_forward(m, d)
     assert bias.bound == pytest.approx(atol + rtol * np.abs(d.qfrc_bias).max())
+
+
+STIFF_SERVO = """<mujoco><worldbody><body pos="0 0 1"><joint name="a" type="hinge" axis="0 1 0"/>
+  <geom type="capsule" fromto="0 0 0 0.05 0 0" size="0.005" mass="0.001"/></body></worldbody>
+  <actuator><position joint="a" kp="100000" kv="10"/></actuator></mujoco>"""
+
+
+def test_the_float32_actuator_bound_covers_float32_arithmetic_that_the_stage_tolerance_does_not():
+    """A stiff position servo (kp 1e5): its force computed in float32 from C's own length,
+    velocity and control (as a float32 engine computes it) is off by more than the actuation
+    stage's tolerance (1e-3 + 1e-3 of the force) in some states, so a float32 drill-down would
+    name the actuation stage for rounding alone; within the rounding bound in every state."""
+    import mujoco
+
+    from mjxdiff import diagnose
+    from mjxdiff.precision import THRESHOLDS
+
+    m = mujoco.MjModel.from_xml_string(STIFF_SERVO)
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(0)
+    f32 = np.float32
+    beyond_stage = 0
+    for _ in range(50):
+        d.qpos[:], d.qvel[:] = rng.uniform(-3, 3, 1), rng.uniform(-2, 2, 1)
+        d.ctrl[:] = d.qpos + rng.normal(0, 1e-4, 1)
+        mujoco.mj_forward(m, d)
+        kp, kv = f32(m.actuator_gainprm[0, 0]), f32(-m.actuator_biasprm[0, 2])
+        force32 = kp * f32(d.ctrl[0]) - kp * f32(d.actuator_length[0]) - kv * f32(d.actuator_velocity[0])
+        gap = abs(float(force32) - d.actuator_force[0])
+        assert gap <= diagnose.float32_rounding(m, d)["actuator_force"][0], (gap, d.qpos)
+        beyond_stage += gap > THRESHOLDS["float32"].stage_bound("actuation", abs(d.actuator_force[0]))
+    assert beyond_stage >= 10, beyond_stage  # 0 would leave the bound untested
