@@ -459,12 +459,15 @@ def _sweep_parser(sub) -> argparse.ArgumentParser:
                     help="run only the I-th of N deterministic slices of the sweep's units (scenario x judged "
                          "pair, every N-th from the I-th); 'mjxdiff merge' joins the shards' --out directories "
                          "into one report (a CI matrix: one job per shard)")
-    sw.add_argument("--impl", choices=("mjx", "warp", "both"), default="mjx",
+    sw.add_argument("--impl", choices=("mjx", "warp", "mjx.warp", "both", "all"), default="mjx",
                     help="what is judged against MuJoCo C: MJX (default), MuJoCo Warp on Warp's CPU device "
                          "(float32, so float32 tolerance floors; needs pip install 'mjxdiff[warp]'; kernels "
-                         "compile on first use, ~30 s, then load from the cache), or both: one verdict per "
+                         "compile on first use, ~30 s, then load from the cache), mjx.warp: MJX's own warp "
+                         "implementation (mjx.put_model(m, impl='warp'), MJX's vendored MuJoCo Warp through JAX; "
+                         "float32, needs the warp extra too), or both: one verdict per "
                          "pair, MJX vs C ('NAME'), MJWarp vs C ('NAME@warp') and MJWarp vs MJX ('NAME@mjx-warp', "
-                         "float32, C's envelope as the floor)")
+                         "float32, C's envelope as the floor); all: both, and MJX's warp implementation vs C "
+                         "('NAME@mjx.warp')")
     sw.add_argument("--plots", choices=("failing", "all", "none"), default="failing",
                     help="report.html's error-vs-time plots: of failing scenarios (default), of all, or none")
     _shared(sw, "history", history=

@@ -15,7 +15,7 @@ __all__ = ["IMPLS", "NOISE_FLOOR_MODES", "SweepConfig"]
 #: When C's perturbed rerun runs (:attr:`SweepConfig.noise_floor`).
 NOISE_FLOOR_MODES = ("on-demand", "always")
 #: Implementations a sweep can judge against MuJoCo C.
-IMPLS = ("mjx", "warp")
+IMPLS = ("mjx", "warp", "mjx.warp")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +70,9 @@ class SweepConfig:
         floors, the perturbation of C's rerun and the metrics are float32's; no host-interface
         check; the drill-down compares MJWarp's forward stages with C's, the local error
         restarts MJWarp from C's states, the cause attribution runs its ablations on MJWarp).
+        ``mjx.warp``: MJX's own warp implementation (``mjx.put_model(m, impl='warp')``, MJX's
+        vendored MuJoCo Warp under ``jit(vmap(scan(mjx.step)))``, :class:`mjxdiff.engines.MJXWarpEngine`),
+        float32 likewise.
       reference: what ``impl`` is judged against: ``c``, or ``mjx`` (with ``impl='warp'``:
         MJWarp against MJX, in float32, still with C's own envelope and solver floor).
       budget: seconds a scenario may take (None: no limit). A compile estimated past it
@@ -110,7 +113,7 @@ class SweepConfig:
     def __post_init__(self):
         if self.impl not in IMPLS:
             raise ValueError(f"impl must be one of {IMPLS}, not {self.impl!r}")
-        if self.impl == "warp":  # MJWarp computes in float32: judged, perturbed and toleranced as such
+        if self.impl in ("warp", "mjx.warp"):  # MuJoCo Warp computes in float32: judged, perturbed and toleranced so
             object.__setattr__(self, "precision", "float32")
         if self.reference not in ("c", "mjx") or (self.reference == "mjx" and self.impl != "warp"):
             raise ValueError(f"reference must be 'c', or 'mjx' with impl='warp', not {self.reference!r}")

@@ -66,7 +66,7 @@ with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import 
     from mujoco import mjx
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
 from mjxdiff.compat import (BALANCED_COMPILE, FAST_COMPILE, Batch, SimulationError, data_impl,  # noqa: E402,F401
-                            disable_bit, fast_compile_validated, jaxlib_validated, jit_for_few_calls)
+                            disable_bit, fast_compile_validated, full_inertia, jaxlib_validated, jit_for_few_calls)
 
 from mjxdiff.precision import Precision  # noqa: E402
 from mjxdiff import export_cache, joints, stages  # noqa: E402
@@ -79,6 +79,7 @@ __all__ = [
     "CEngine",
     "Engine",
     "MJXEngine",
+    "MJXWarpEngine",
     "Trajectory",
     "UnsupportedError",
     "compile_count",
@@ -317,7 +318,8 @@ def _c_fields(m: mujoco.MjModel) -> dict[str, np.ndarray]:
     return out
 
 
-def _patched_columns(models: list[mujoco.MjModel], mx0: mjx.Model) -> dict[int, list[np.ndarray]] | None:
+def _patched_columns(models: list[mujoco.MjModel], mx0: mjx.Model, impl: str = "jax"
+                     ) -> dict[int, list[np.ndarray]] | None:
     """Per-member values of the MJX leaves that differ, read from the C models, without
     ``put_model`` per member; None when that is not safe.
 
@@ -339,15 +341,15 @@ def _patched_columns(models: list[mujoco.MjModel], mx0: mjx.Model) -> dict[int, 
                 fields[0][name].reshape(leaves0[k].shape), leaves0[k]):
             return None
         columns[k] = [f[name].reshape(leaves0[k].shape).astype(leaves0[k].dtype) for f in fields]
-    probe = [np.asarray(x) for x in jax.tree.leaves(mjx.put_model(models[-1]))]
+    probe = [np.asarray(x) for x in jax.tree.leaves(mjx.put_model(models[-1], impl=impl))]
     if len(probe) != len(leaves0) or any(not np.array_equal(p, columns[k][-1] if k in columns else leaves0[k])
                                          for k, p in enumerate(probe)):
         return None
     return columns
 
 
-def put_models(models: tuple[mujoco.MjModel, ...]) -> tuple[mjx.Model, tuple[bool, ...]]:
-    """``mjx.put_model`` of every member, with varying leaves stacked.
+def put_models(models: tuple[mujoco.MjModel, ...], impl: str = "jax") -> tuple[mjx.Model, tuple[bool, ...]]:
+    """``mjx.put_model`` of every member (MJX's ``impl``), with varying leaves stacked.
 
     Members usually differ only in randomized parameters that MJX copies
     straight from the C model; those leaves are read from the C models and
@@ -367,15 +369,15 @@ def put_models(models: tuple[mujoco.MjModel, ...]) -> tuple[mjx.Model, tuple[boo
         raise UnsupportedError("a model without degrees of freedom (nv = 0): MJX cannot step it "
                                "('Scan across Model with zero DoFs unsupported')")
     with _unsupported():
-        mx0 = mjx.put_model(models[0])
+        mx0 = mjx.put_model(models[0], impl=impl)
     leaves0, treedef = jax.tree.flatten(mx0)
     distinct = list({id(mi): mi for mi in models}.values())
     index = {id(mi): i for i, mi in enumerate(distinct)}
-    columns = _patched_columns(distinct, mx0) if len(distinct) > 1 else {}
+    columns = _patched_columns(distinct, mx0, impl) if len(distinct) > 1 else {}
     if columns is None:  # put_model per distinct member, and compare every leaf
         per_member = [leaves0]
         for mi in distinct[1:]:
-            leaves, td = jax.tree.flatten(mjx.put_model(mi))
+            leaves, td = jax.tree.flatten(mjx.put_model(mi, impl=impl))
             if td != treedef:
                 first, this = _c_fields(distinct[0]), _c_fields(mi)
                 leaves = {jax.tree_util.keystr(p).lstrip(".") for p, _ in jax.tree_util.tree_flatten_with_path(mx0)[0]}
@@ -451,10 +453,15 @@ def clear_compiled() -> None:
     forward.clear_cache()  # pyright: ignore[reportAttributeAccessIssue]
 
 
-def _contact_count(mx: mjx.Model, dx: mjx.Data) -> jax.Array:
+def _contact_count(mx: mjx.Model, dx: mjx.Data, world: jax.Array | None = None) -> jax.Array:
     """C's ``d.ncon`` from MJX's contacts: those with ``dist < includemargin + gap``
-    (:func:`mjxdiff.stages.contact_gap`; C keeps a gap's inactive contacts, MJX does not)."""
+    (:func:`mjxdiff.stages.contact_gap`; C keeps a gap's inactive contacts, MJX does not).
+    Under MJX's warp implementation, MuJoCo Warp's active contacts of world ``world`` (the
+    member's index in the batch): its contact buffer holds every world's, each tagged."""
     impl = data_impl(dx)  # MJX's contacts
+    if world is not None:
+        active = jnp.arange(impl.contact__worldid.shape[0]) < jnp.asarray(impl.nacon).reshape(-1)[0]
+        return jnp.sum(active & (impl.contact__worldid == world)).astype(jnp.int32)
     c = impl.contact  # pyright: ignore[reportAttributeAccessIssue] - the JAX implementation's Data
     if c.dist.shape[0] == 0:
         return jnp.zeros((), jnp.int32)
@@ -496,7 +503,7 @@ def energy(mx: mjx.Model, dx: mjx.Data, qpos: jax.Array, qvel: jax.Array) -> jax
     return jnp.stack([pot, kin])
 
 
-def _scan_steps(mx, dx, ctrl, with_energy, n=None):
+def _scan_steps(mx, dx, ctrl, with_energy, n=None, world=None):
     """One member: ``mjx.step`` over ``ctrl`` (T, nu) from ``dx``; returns (last dx, (T, ...) records).
 
     With ``n`` (a traced integer, at most T), only the first ``n`` steps are taken (a loop with
@@ -505,7 +512,7 @@ def _scan_steps(mx, dx, ctrl, with_energy, n=None):
     one-step check runs the sweep's own rollout with ``n = 1``."""
     def record(dx, energy_):
         rec = dict(qpos=dx.qpos, qvel=dx.qvel, act=dx.act, sensordata=dx.sensordata,
-                   time=dx.time, ncon=_contact_count(mx, dx))
+                   time=dx.time, ncon=_contact_count(mx, dx, world))
         if with_energy:
             rec["energy"] = energy_
         return rec
@@ -551,12 +558,15 @@ def _split(fn, mesh: Mesh | None, mx, varying, batched: tuple[bool, ...]):
         b if split else shared for split in batched), out_specs=b, check_vma=False)
 
 
-@functools.partial(jax.jit, static_argnames=("varying", "with_energy", "mesh"))
-def _rollout(mx, dx, ctrl, n, varying, with_energy=False, mesh=None):
+@functools.partial(jax.jit, static_argnames=("varying", "with_energy", "mesh", "shared"))
+def _rollout(mx, dx, ctrl, n, varying, with_energy=False, mesh=None, shared=None):
     """B members stepped from their data ``dx`` (leaves (B, ...)) over ``ctrl`` (B, T, nu), the
     first ``n`` (an int32 scalar, at most T) steps of it (:func:`_scan_steps`):
-    (last data, (B, T, ...) records)."""
+    (last data, (B, T, ...) records). ``shared`` (MJX's warp implementation, :func:`_warp_shared`):
+    per leaf of ``dx``, whether it is one for all members (MuJoCo Warp's buffers of every world)."""
     _traced()  # runs only while tracing
+    if shared is not None:
+        return _warp_rollout(mx, dx, ctrl, n, varying, with_energy, shared)
 
     def batch(mx, dx, ctrl, n):
         def member(mx, dx, ctrl, n):
@@ -566,20 +576,52 @@ def _rollout(mx, dx, ctrl, n, varying, with_energy=False, mesh=None):
     return _split(batch, mesh, mx, varying, (True, True, False))(mx, dx, ctrl, n)
 
 
+def _warp_rollout(mx, dx, ctrl, n, varying, with_energy, shared):
+    """:func:`_rollout` under MJX's warp implementation: buffers shared by the worlds go in
+    unbatched and come out as one (the batched copies MJX's FFI returns are equal)."""
+    leaves, treedef = jax.tree.flatten(dx)  # as a list: per-leaf axes of a Data tree are not a prefix vmap takes
+
+    def member(mx, leaves, ctrl, world):
+        return _scan_steps(mx, jax.tree.unflatten(treedef, leaves), ctrl, with_energy, n, world)
+    out, rec = jax.vmap(member, in_axes=(_model_axes(mx, varying), [None if s else 0 for s in shared], 0, 0))(
+        mx, leaves, ctrl, jnp.arange(ctrl.shape[0]))
+    out = jax.tree.unflatten(jax.tree.structure(out), [
+        x[0] if s and x.shape[1:] == leaf.shape else x for x, s, leaf in zip(jax.tree.leaves(out), shared, leaves)])
+    return out, rec
+
+
+def _warp_shared(dx: mjx.Data) -> tuple[bool, ...]:
+    """Per leaf of a warp-implementation ``dx``: whether MJX's FFI takes it unbatched (a buffer
+    of every world, or an index), from MJX's own tables (``mujoco.mjx.warp.types``)."""
+    from mujoco.mjx.warp import ffi, types as warp_types
+
+    out = []
+    for path, _ in jax.tree_util.tree_flatten_with_path(dx)[0]:
+        ndim = ffi._get_mapping_from_tree_path(path, warp_types._NDIM["Data"])  # noqa: SLF001
+        batched = ffi._get_mapping_from_tree_path(path, warp_types._BATCH_DIM["Data"])  # noqa: SLF001
+        out.append(ndim is not None and ndim >= 0 and not batched)
+    return tuple(out)
+
+
 @functools.partial(jax.jit, static_argnames=("varying", "mesh"))
 def _resync_rollout(mx, dx0, qpos, qvel, act, time, ctrl, varying, mesh=None):
     """(B, S, k, ...) records of B members restarted from S given states, k steps each."""
     _traced()
 
+    warp = hasattr(data_impl(dx0), "nacon")  # MJX's warp implementation: contacts counted per world
+
     def batch(mx, dx0, qpos, qvel, act, time, ctrl):
-        def member(mx, q, v, a, t, u):
+        def member(mx, q, v, a, t, u, world=None):
             # restarts one after another (scan), members side by side (vmap): the shape of
             # _rollout, rather than a (B x S)-wide nested vmap, which hung XLA CPU here
             def restart(_, start):
                 q, v, a, t, u = start
-                return None, _scan_steps(mx, dx0.replace(qpos=q, qvel=v, act=a, time=t), u, False)[1]
+                return None, _scan_steps(mx, dx0.replace(qpos=q, qvel=v, act=a, time=t), u, False, world=world)[1]
             return jax.lax.scan(restart, None, (q, v, a, t, u))[1]
 
+        if warp:
+            return jax.vmap(member, in_axes=(_model_axes(mx, varying), 0, 0, 0, 0, 0, 0))(
+                mx, qpos, qvel, act, time, ctrl, jnp.arange(qpos.shape[0]))
         return jax.vmap(member, in_axes=(_model_axes(mx, varying), 0, 0, 0, 0, 0))(mx, qpos, qvel, act, time, ctrl)
 
     return _split(batch, mesh, mx, varying, (False,) + (True,) * 5)(mx, dx0, qpos, qvel, act, time, ctrl)
@@ -708,6 +750,22 @@ class MJXEngine:
         return Forward({f: np.asarray(getattr(dx, f)).ravel() for f in fields}, np.asarray(mjx.full_m(mx, dx)),
                        stages.contacts_mjx(m, dx))
 
+    #: MJX's implementation (``mjx.put_model(m, impl=...)``): its JAX one.
+    impl = "jax"
+
+    def _shared(self, dx0) -> tuple[bool, ...] | None:
+        """Per leaf of the data, whether the members share it (None: none do)."""
+        return None
+
+    def _make_data(self, inputs: BatchedInputs) -> mjx.Data:
+        """One member's initial data, the scan carry's dtypes fixed."""
+        return _canonical_ints(mjx.make_data(inputs.models[0]))
+
+    def _bind(self, fn, args: tuple, static: dict[str, Any], steps: int):
+        """``fn`` compiled for ``args`` (:func:`export_cache.bind`: keyed on the code it traces,
+        saved for later runs), XLA's options chosen for ``steps`` steps of stepping."""
+        return export_cache.bind(fn, args, static, xla_options(self.compile, steps), (self.compile, steps))
+
     def __init__(self, devices: int | None = None, compile: str = "auto"):
         _ensure_safe_backend()
         if compile not in COMPILE_MODES:
@@ -742,8 +800,8 @@ class MJXEngine:
         """
         mesh = self._mesh(inputs.batch)
         pad = -inputs.batch % mesh.size if mesh else 0
-        mx, varying = put_models(inputs.models + (inputs.models[-1],) * pad)
-        dx0 = _canonical_ints(mjx.make_data(inputs.models[0]))
+        mx, varying = put_models(inputs.models + (inputs.models[-1],) * pad, self.impl)
+        dx0 = self._make_data(inputs)
         if mesh is None:
             # committed, as _rollout's outputs are: the next piece's call then hits the same compiled function
             device = jax.devices("cpu")[0]
@@ -793,7 +851,7 @@ class MJXEngine:
         else:
             prepared = self._prepare(inputs)
             (fn, args, static), place, ctrl = self.piece(inputs, chunk, prepared)
-            run = export_cache.bind(fn, args, static, xla_options(self.compile, T), (self.compile, T))
+            run = self._bind(fn, args, static, T)
             if held is not None:
                 held[key] = inputs.models, run, prepared  # the models kept: their ids stay theirs
         # the model and state put on the devices, the code and key digested: a compile phase, not stepping
@@ -810,12 +868,19 @@ class MJXEngine:
         mx, varying, dx0, place, mesh = prepared or self._prepare(inputs)
         dtype = dx0.qpos.dtype
         state = dict(qpos=inputs.qpos, qvel=inputs.qvel, act=inputs.act)
-        dx = jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (B, *x.shape)), jax.device_get(dx0))
+        shared = self._shared(dx0)
+        host = jax.device_get(dx0)
+        dx = jax.tree.unflatten(jax.tree.structure(host), [
+            np.asarray(x) if s else np.broadcast_to(np.asarray(x), (B, *np.shape(x)))
+            for x, s in zip(jax.tree.leaves(host), shared or [False] * len(jax.tree.leaves(host)))])
         dx = place(dx.replace(**{k: np.asarray(v, dtype) for k, v in state.items()}))
         ctrl = np.zeros((B, -(-T // chunk) * chunk, inputs.ctrl.shape[2]), dtype)
         ctrl[:, :T] = inputs.ctrl
         args = (mx, dx, *place((ctrl[:, :chunk], np.int32(min(chunk, T)))))
-        return (_rollout, args, dict(varying=varying, with_energy=inputs.energy, mesh=mesh)), place, ctrl
+        static = dict(varying=varying, with_energy=inputs.energy, mesh=mesh)
+        if shared is not None:
+            static["shared"] = shared
+        return (_rollout, args, static), place, ctrl
 
     def compile_ahead(self, inputs: BatchedInputs, chunk: int) -> None:
         """Compiles what :meth:`stream` of ``inputs`` in pieces of ``chunk`` steps will run, so
@@ -888,10 +953,69 @@ class MJXEngine:
             arrays = place(tuple(np.asarray(x, dx0.qpos.dtype) for x in batched))
             if mesh is not None:
                 dx0 = jax.device_put(dx0, NamedSharding(mesh, PartitionSpec()))
-            rec = export_cache.call(_resync_rollout, (mx, dx0, *arrays), dict(varying=varying, mesh=mesh),
-                                    xla_options(self.compile, S * k), (self.compile, S * k))
+            rec = self._bind(_resync_rollout, (mx, dx0, *arrays), dict(varying=varying, mesh=mesh), S * k)(
+                mx, dx0, *arrays)
         rec = {key: np.asarray(v)[:B].reshape(B, S * k, *v.shape[3:])[:, :T] for key, v in rec.items()}
         return _trajectory(rec, B, T)
+
+
+class MJXWarpEngine(MJXEngine):
+    """MJX's warp implementation: ``mjx.put_model(m, impl='warp')`` stepped by ``jit(vmap(scan(mjx.step)))``,
+    the rollout :class:`MJXEngine` compiles, so the code an MJX user selects with ``impl='warp'``
+    (MJX's vendored MuJoCo Warp, ``mujoco/mjx/third_party/mujoco_warp``, through JAX's FFI, float32
+    whatever JAX's precision) is what is compared with C. Differs from :class:`MJXEngine` in:
+    one device (Warp's kernels batch the members themselves), compiled with ``jax.jit`` alone (its
+    kernels run through FFI handlers registered by this process, which no saved artifact may
+    outlive: nothing is saved, and the vendored Warp code is read at run time), contacts counted
+    by MuJoCo Warp (``nacon``), and the drill-down's forward read back with ``mjx.get_data``.
+    Kernels compile on first use into Warp's cache (``~/.cache/warp``; pendulum 17 s cold here)."""
+
+    name = "mjx.warp"
+    impl = "warp"
+    capabilities: frozenset[str] = frozenset()
+
+    @property
+    def precision(self) -> Precision:
+        return "float32"
+
+    def __init__(self, devices: int | None = None, compile: str = "auto"):
+        super().__init__(devices=1, compile=compile)
+
+    def _bind(self, fn, args: tuple, static: dict[str, Any], steps: int):
+        return functools.partial(fn, **static)
+
+    def _shared(self, dx0) -> tuple[bool, ...] | None:
+        return _warp_shared(dx0)
+
+    def _make_data(self, inputs: BatchedInputs) -> mjx.Data:
+        """Warp's data, its int32 kept (its kernels take them so), its contact and constraint
+        buffers sized from C's own run of the members (:func:`mjxdiff.mjwarp.capacity`: 2x C's
+        most contacts + 8; MuJoCo Warp drops what does not fit), contacts for all the worlds."""
+        from mjxdiff.mjwarp import capacity
+
+        nconmax, njmax = capacity(inputs)
+        return mjx.make_data(inputs.models[0], impl="warp", naconmax=nconmax * inputs.batch, njmax=njmax)
+
+    def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]) -> Forward:
+        """``mjx.forward`` of the warp implementation from C's ``d``, read back with ``mjx.get_data``,
+        but for the mass matrix and the contacts, which it gets wrong (:func:`stages.contacts_mjx_warp`)."""
+        with _unsupported():
+            mx, dx = mjx.put_model(m, impl="warp"), mjx.put_data(m, d, impl="warp")
+            dx = _forward_once(mx, dx)
+            read = mjx.get_data(m, dx)
+            out = stages.read(m, read, fields)
+        # get_data leaves the mass matrix at zero: the implementation's own M, in C's sparse layout
+        # (mjx.full_m returns it as it is), made dense as C's is
+        M = np.asarray(data_impl(dx).M).ravel()  # pyright: ignore[reportAttributeAccessIssue]
+        if M.size == m.nv * m.nv:
+            qM = M.reshape(m.nv, m.nv)
+        else:
+            read.M[:] = M
+            qM = full_inertia(m, read)
+        return dataclasses.replace(out, qM=qM, contacts=stages.contacts_mjx_warp(m, dx))
+
+
+_forward_once = jax.jit(mjx.forward)
 
 
 def _host_piece(rec, batch: int, steps: int) -> Trajectory:

@@ -69,7 +69,7 @@ class SweepOptions:
     compile: Literal["auto", "fast", "optimized"] = "auto"
     compile_workers: int | None = None
     out: str | None = None
-    impl: Literal["mjx", "warp", "both"] = "mjx"
+    impl: Literal["mjx", "warp", "mjx.warp", "both", "all"] = "mjx"
     plots: Literal["failing", "all", "none"] = "failing"
     history: str | None = None
     no_history: bool = False
@@ -167,6 +167,10 @@ _PAIRS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
     # MJWarp against MJX: C's envelope as the floor
     "both": (("", {}), ("@warp", dict(impl="warp")),
              ("@mjx-warp", dict(impl="warp", reference="mjx", diagnose="none", reproducers=None))),
+    "mjx.warp": (("", dict(impl="mjx.warp")),),
+    # every implementation against C, and MJWarp against MJX
+    "all": (("", {}), ("@warp", dict(impl="warp")), ("@mjx.warp", dict(impl="mjx.warp")),
+            ("@mjx-warp", dict(impl="warp", reference="mjx", diagnose="none", reproducers=None))),
 }
 
 
@@ -174,8 +178,8 @@ def _pair_configs(config, impl: str) -> list[tuple[str, Any]]:
     """(name suffix, SweepConfig) of each judged pair of ``impl``."""
     out = []
     for suffix, change in _PAIRS[impl]:
-        if change.get("impl") == "warp" and "reproducers" not in change and config.reproducers:
-            change = dict(change, reproducers=str(Path(config.reproducers) / "warp"))
+        if change.get("impl") in ("warp", "mjx.warp") and "reproducers" not in change and config.reproducers:
+            change = dict(change, reproducers=str(Path(config.reproducers) / change["impl"]))
         out.append((suffix, dataclasses.replace(config, **change)))
     return out
 
@@ -324,7 +328,7 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
                 if options.baseline else None)
     except (known.KnownError, baseline.BaselineError) as e:
         raise OptionsError(str(e)) from e
-    if options.impl in ("warp", "both"):
+    if options.impl != "mjx":
         from mjxdiff import mjwarp
 
         why = mjwarp.available()
@@ -382,7 +386,7 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
         if writer is not None:
             writer.close()
     results = list(bad) + [done[i] for i in sorted(done)]
-    if options.impl == "both":
+    if options.impl in ("both", "all"):
         results = _c_outliers(results)
     seconds = time.perf_counter() - t0
     swept = _clocks()
@@ -431,7 +435,7 @@ def _c_outliers(results: list[ScenarioResult]) -> list[ScenarioResult]:
 
 def _pair_of(name: str) -> tuple[str, str]:
     """(scenario, pair suffix) of a result's name under ``impl="both"`` (:data:`_PAIRS`)."""
-    for suffix in ("@mjx-warp", "@warp"):
+    for suffix in ("@mjx-warp", "@mjx.warp", "@warp"):
         if name.endswith(suffix):
             return name[:-len(suffix)], suffix
     return name, ""

@@ -12,7 +12,7 @@ import numpy as np
 
 from mjxdiff.compat import data_impl, full_inertia
 
-__all__ = ["Contacts", "Forward", "contact_gap", "contacts_c", "contacts_mjx", "frame", "read"]
+__all__ = ["Contacts", "Forward", "contact_gap", "contacts_c", "contacts_mjx", "contacts_mjx_warp", "frame", "read"]
 
 
 Contacts = dict[tuple[int, ...], list[tuple[float, ...]]]
@@ -80,6 +80,23 @@ def contacts_mjx(m: mujoco.MjModel, dx: Any) -> Contacts:
     margin = margin + contact_gap(m, geom)
     out: Contacts = {}
     for i in np.flatnonzero(dist < margin):
+        key = tuple(sorted(int(g) for g in geom[i]))
+        out.setdefault(key, []).append((float(dist[i]), *map(float, pos[i]), float(friction[i, 0]),
+                                        float(friction[i, 1]), *frame(m, frames[i], friction[i], geom[i])))
+    return out
+
+
+def contacts_mjx_warp(m: mujoco.MjModel, dx: Any) -> Contacts:
+    """:func:`contacts_c` of MJX's warp implementation's data (one world): its ``nacon`` active
+    contacts read from its own buffers (``contact__geom``, ...). Not through ``mjx.get_data``: in
+    MJX 3.17 that returns the warp implementation's contacts with garbage geom ids (a sphere on a
+    plane came back as geoms (22013, 0), geom1 -2004796448) while the buffers hold C's."""
+    impl = data_impl(dx)
+    n = int(np.asarray(impl.nacon).ravel()[0])
+    dist, geom, pos, friction, frames = (np.asarray(getattr(impl, f"contact__{f}"))[:n]
+                                         for f in ("dist", "geom", "pos", "friction", "frame"))
+    out: Contacts = {}
+    for i in range(n):
         key = tuple(sorted(int(g) for g in geom[i]))
         out.setdefault(key, []).append((float(dist[i]), *map(float, pos[i]), float(friction[i, 0]),
                                         float(friction[i, 1]), *frame(m, frames[i], friction[i], geom[i])))

@@ -1241,7 +1241,8 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
 
 #: The engines judged against C, by ``SweepConfig.impl``: module and class, imported on first use
 #: (MuJoCo Warp is an extra).
-ENGINES = {"mjx": ("mjxdiff.engines", "MJXEngine"), "warp": ("mjxdiff.mjwarp", "MJWarpEngine")}
+ENGINES = {"mjx": ("mjxdiff.engines", "MJXEngine"), "warp": ("mjxdiff.mjwarp", "MJWarpEngine"),
+           "mjx.warp": ("mjxdiff.engines", "MJXWarpEngine")}
 
 
 def engine_class(impl: str) -> type:

@@ -132,3 +132,34 @@ def test_an_overflowed_buffer_is_named_and_sized_buffers_do_not_overflow():
                 assert found, "one contact slot for a resting pile: an overflow"
                 with pytest.raises(RuntimeError, match=r"MJWarp's buffers overflowed at step 2 \("):
                     mjwarp._check_buffers(d, "at step 2")
+
+
+def _bias_slip(monkeypatch):
+    """MJX's vendored MuJoCo Warp (what ``mjx.put_model(m, impl='warp')`` runs) computes the bias
+    force 2% high: its ``smooth.rne``, patched where its forward looks it up at run time."""
+    from mujoco.mjx.third_party.mujoco_warp._src import smooth
+
+    rne = smooth.rne
+
+    def slipped(m, d, *args, **kwargs):
+        rne(m, d, *args, **kwargs)
+        d.qfrc_bias.numpy()[:] *= 1.02  # Warp's CPU arrays: the view is the array itself
+    monkeypatch.setattr(smooth, "rne", slipped)
+
+
+def test_mjx_s_warp_implementation_passes_unmodified_and_a_bug_in_its_vendored_warp_is_caught(monkeypatch):
+    """``--impl mjx.warp``: MJX's own warp implementation (its vendored MuJoCo Warp through JAX's
+    FFI) against C. The pendulum passes unmodified; with a 2% bias force in the vendored Warp the
+    same scenario fails, the rollout naming the hinge within the quick horizon and the drill-down
+    naming the bias stage's qfrc_bias."""
+    config = SweepConfig(impl="mjx.warp", quick=True, transfer=False, diagnose="basic", compile_workers=0)
+    clean = run_scenario(load_scenario("pendulum"), config)
+    assert clean.status == "pass", clean.message
+    assert clean.info["impl"] == "mjx.warp" and clean.tolerances["qpos"] >= 1e-4  # float32 floors
+    _bias_slip(monkeypatch)
+    result = run_scenario(load_scenario("pendulum"), config)
+    assert result.status == "fail", result.message
+    first = result.first_divergence
+    assert first["field"] in ("qpos", "qvel") and 0 <= first["step"] < 50 and "hinge" in first["object"], first
+    drill = result.diagnosis["drill_down"]
+    assert (drill["first_stage"], drill["first_field"]) == ("bias", "qfrc_bias"), drill
