@@ -598,7 +598,7 @@ def _warp_shared(dx: mjx.Data) -> tuple[bool, ...]:
     out = []
     for path, _ in jax.tree_util.tree_flatten_with_path(dx)[0]:
         ndim = ffi._get_mapping_from_tree_path(path, warp_types._NDIM["Data"])  # noqa: SLF001
-        batched = ffi._get_mapping_from_tree_path(path, warp_types._BATCH_DIM["Data"])  # noqa: SLF001
+        batched = ffi._get_mapping_from_tree_path(path, warp_types._BATCH_DIM["Data"])  # pyright: ignore[reportArgumentType]  # noqa: SLF001, E501
         out.append(ndim is not None and ndim >= 0 and not batched)
     return tuple(out)
 
@@ -1010,7 +1010,7 @@ class MJXWarpEngine(MJXEngine):
         if M.size == m.nv * m.nv:
             qM = M.reshape(m.nv, m.nv)
         else:
-            read.M[:] = M
+            read.M[:] = M  # pyright: ignore[reportAttributeAccessIssue] - one MjData: get_data of unbatched data
             qM = full_inertia(m, read)
         return dataclasses.replace(out, qM=qM, contacts=stages.contacts_mjx_warp(m, dx))
 
