@@ -163,3 +163,13 @@ def test_mjx_s_warp_implementation_passes_unmodified_and_a_bug_in_its_vendored_w
     assert first["field"] in ("qpos", "qvel") and 0 <= first["step"] < 50 and "hinge" in first["object"], first
     drill = result.diagnosis["drill_down"]
     assert (drill["first_stage"], drill["first_field"]) == ("bias", "qfrc_bias"), drill
+
+
+def test_all_judges_every_implementation_against_c_and_mjwarp_against_mjx():
+    """``--impl all``: ``both``'s three pairs and MJX's warp implementation against C, by suffix
+    (swept for real, pendulum --quick: four passes, in the closing note of the stop that added it)."""
+    from mjxdiff.pipeline import _pair_configs
+
+    pairs = {suffix: (c.impl, c.reference, c.precision) for suffix, c in _pair_configs(SweepConfig(), "all")}
+    assert pairs == {"": ("mjx", "c", "float64"), "@warp": ("warp", "c", "float32"),
+                     "@mjx.warp": ("mjx.warp", "c", "float32"), "@mjx-warp": ("warp", "mjx", "float32")}
