@@ -88,6 +88,7 @@ __all__ = [
     "configure_jax",
     "device_count",
     "put_models",
+    "warp_capacity",
 ]
 
 
@@ -989,11 +990,11 @@ class MJXWarpEngine(MJXEngine):
 
     def _make_data(self, inputs: BatchedInputs) -> mjx.Data:
         """Warp's data, its int32 kept (its kernels take them so), its contact and constraint
-        buffers sized from C's own run of the members (:func:`mjxdiff.mjwarp.capacity`: 2x C's
+        buffers sized from C's own run of the members (:func:`warp_capacity`: 2x C's
         most contacts + 8; MuJoCo Warp drops what does not fit), contacts for all the worlds."""
-        from mjxdiff.mjwarp import capacity
+        from mujoco.mjx.third_party.mujoco_warp._src import io
 
-        nconmax, njmax = capacity(inputs)
+        nconmax, njmax = warp_capacity(inputs, io)
         return mjx.make_data(inputs.models[0], impl="warp", naconmax=nconmax * inputs.batch, njmax=njmax)
 
     def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]) -> Forward:
@@ -1016,6 +1017,32 @@ class MJXWarpEngine(MJXEngine):
 
 
 _forward_once = jax.jit(mjx.forward)
+
+
+def warp_capacity(inputs: BatchedInputs, io) -> tuple[int, int]:
+    """(nconmax, njmax) per world for these inputs: MJWarp's defaults, or more where C's own run
+    of the same members needs it (most contacts of any member at any step, x 2, + 8, as MuJoCo's
+    parity method sizes them; rows: that many contacts at the model's widest friction cone plus
+    every other constraint row C had). MJWarp drops contacts and rows beyond its capacity, which
+    would read as a divergence. ``io``: the MuJoCo Warp whose defaults are the least (the installed
+    ``mujoco_warp._src.io``, or MJX's vendored copy)."""
+    m, B = inputs.models[0], inputs.batch
+    b = Batch(m, B)
+    b.set_models(list(inputs.models))
+    b.qpos[:], b.qvel[:] = inputs.qpos, inputs.qvel
+    if m.na:
+        b.act[:] = inputs.act
+    try:
+        out = b.rollout(inputs.steps, control=inputs.ctrl, record=("ncon", "nefc"))
+        ncon, nefc = int(np.max(out["ncon"], initial=0)), int(np.max(out["nefc"], initial=0))
+    except Exception:  # noqa: BLE001 - C unstable here: the defaults, checked at every step anyway
+        ncon = nefc = 0
+    dims = np.concatenate([m.geom_condim, m.pair_dim]) if m.npair else m.geom_condim
+    condim = int(dims.max(initial=1))
+    rows = condim if m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC else max(2 * (condim - 1), 1)
+    nconmax = max(io._default_nconmax(m), 2 * ncon + 8)  # noqa: SLF001
+    njmax = max(io._default_njmax(m), nefc + (nconmax - ncon) * rows + 8)  # noqa: SLF001
+    return nconmax, njmax
 
 
 def _host_piece(rec, batch: int, steps: int) -> Trajectory:

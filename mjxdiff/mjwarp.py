@@ -27,7 +27,7 @@ import mujoco
 import numpy as np
 
 from mjxdiff.errors import one_line
-from mjxdiff.engines import _unsupported
+from mjxdiff.engines import _unsupported, warp_capacity
 from mjxdiff import stages
 from mjxdiff.precision import Precision
 from mjxdiff.stages import Forward
@@ -124,31 +124,11 @@ def put_models(models: tuple[mujoco.MjModel, ...]):
 
 
 def capacity(inputs: BatchedInputs) -> tuple[int, int]:
-    """(nconmax, njmax) per world for these inputs: MJWarp's defaults, or more where C's own run
-    of the same members needs it (most contacts of any member at any step, x 2, + 8, as MuJoCo's
-    parity method sizes them; rows: that many contacts at the model's widest friction cone plus
-    every other constraint row C had). MJWarp drops contacts and rows beyond its capacity, which
-    would read as a divergence: :func:`buffer_overflow` is checked after every step."""
-    from mjxdiff.compat import Batch
+    """(nconmax, njmax) per world for MJWarp: :func:`mjxdiff.engines.warp_capacity` with the
+    installed ``mujoco_warp``'s defaults. :func:`buffer_overflow` is checked after every step."""
     from mujoco_warp._src import io
 
-    m, B = inputs.models[0], inputs.batch
-    b = Batch(m, B)
-    b.set_models(list(inputs.models))
-    b.qpos[:], b.qvel[:] = inputs.qpos, inputs.qvel
-    if m.na:
-        b.act[:] = inputs.act
-    try:
-        out = b.rollout(inputs.steps, control=inputs.ctrl, record=("ncon", "nefc"))
-        ncon, nefc = int(np.max(out["ncon"], initial=0)), int(np.max(out["nefc"], initial=0))
-    except Exception:  # noqa: BLE001 - C unstable here: the defaults, checked at every step anyway
-        ncon = nefc = 0
-    dims = np.concatenate([m.geom_condim, m.pair_dim]) if m.npair else m.geom_condim
-    condim = int(dims.max(initial=1))
-    rows = condim if m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC else max(2 * (condim - 1), 1)
-    nconmax = max(io._default_nconmax(m), 2 * ncon + 8)  # noqa: SLF001
-    njmax = max(io._default_njmax(m), nefc + (nconmax - ncon) * rows + 8)  # noqa: SLF001
-    return nconmax, njmax
+    return warp_capacity(inputs, io)
 
 
 def buffer_overflow(d) -> str | None:
