@@ -967,8 +967,10 @@ class MJXWarpEngine(MJXEngine):
     whatever JAX's precision) is what is compared with C. Differs from :class:`MJXEngine` in:
     one device (Warp's kernels batch the members themselves), compiled with ``jax.jit`` alone (its
     kernels run through FFI handlers registered by this process, which no saved artifact may
-    outlive: nothing is saved, and the vendored Warp code is read at run time), contacts counted
-    by MuJoCo Warp (``nacon``), and the drill-down's forward read back with ``mjx.get_data``.
+    outlive: nothing is saved, and the vendored Warp code is read at run time), the buffers Warp
+    keeps for all worlds passed unbatched (:func:`_warp_shared`), contacts counted per world from
+    Warp's buffer (:func:`_contact_count`), and the drill-down's mass matrix and contacts read
+    from the implementation's buffers rather than ``mjx.get_data`` (see :meth:`forward`).
     Kernels compile on first use into Warp's cache (``~/.cache/warp``; pendulum 17 s cold here)."""
 
     name = "mjx.warp"
