@@ -202,33 +202,70 @@ batch. MJXDIFF_DEVICES=N (in the environment) sets the number of devices."""
 
 class _Parser(argparse.ArgumentParser):
     """argparse with a one-line error and exit code 2, no usage dump; a mistyped flag gets the
-    flag it most likely meant."""
+    flag it most likely meant, and another command's flag says whose it is."""
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        self._argv = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
 
     def error(self, message: str) -> None:  # type: ignore[override]
         if message.startswith("unrecognized arguments: "):
-            message += _did_you_mean(message.removeprefix("unrecognized arguments: ").split(), self._flags())
+            given = message.removeprefix("unrecognized arguments: ").split()
+            command = self._command()
+            message += _did_you_mean(given, self._owners(), command, self._positional_args(command))
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
-    def _flags(self) -> list[str]:
-        """Every option string of this parser and of its commands' parsers."""
+    def _commands(self) -> dict[str, argparse.ArgumentParser]:
         # argparse keeps no public list of a parser's actions
-        flags = [o for a in self._actions for o in a.option_strings]
-        for action in self._actions:
-            if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
-                flags += [o for p in action.choices.values() for a in p._actions  # noqa: SLF001
-                          for o in a.option_strings]
-        return sorted(set(flags))
+        return {name: p for a in self._actions if isinstance(a, argparse._SubParsersAction)  # noqa: SLF001
+                for name, p in a.choices.items()}
+
+    def _command(self) -> str:
+        """The command this parse was for ('' for none): the first argument that names one."""
+        commands = self._commands()
+        return next((word for word in getattr(self, "_argv", []) if word in commands), "")
+
+    def _owners(self) -> dict[str, list[str]]:
+        """Every option string of this parser ('' as owner) and of its commands' parsers -> who has it."""
+        owners: dict[str, list[str]] = {}
+        for name, p in [("", self), *self._commands().items()]:
+            for a in p._actions:  # noqa: SLF001
+                for flag in a.option_strings:
+                    owners.setdefault(flag, []).append(name)
+        return owners
+
+    def _positional_args(self, command: str) -> dict[str, str]:
+        """``command``'s positional arguments: dest -> metavar."""
+        p = self._commands().get(command)
+        return {a.dest: str(a.metavar or a.dest) for a in (p._actions if p else [])  # noqa: SLF001
+                if not a.option_strings}
 
 
-def _did_you_mean(given: list[str], flags: list[str]) -> str:
-    """``"; did you mean --quick?"`` for the first unrecognized flag close to a known one, else ''."""
+def _did_you_mean(given: list[str], owners: dict[str, list[str]], command: str = "",
+                  positionals: dict[str, str] | None = None) -> str:
+    """A hint for the first unrecognized flag: where ``command`` takes it as a positional argument, how
+    (``"; 'mjxdiff sweep' takes SCENARIO ... as arguments, without a flag"``); else ``command``'s flag
+    closest to it (``"; did you mean --quick?"``); else, for another command's flag, whose it is
+    (``"; --scenarios is a flag of 'mjxdiff versions'"``); else the closest flag of any command; else ''."""
     import difflib
 
+    own = [flag for flag, who in owners.items() if command in who or "" in who]
     for word in given:
-        if word.startswith("--"):
-            close = difflib.get_close_matches(word.split("=")[0], flags, n=1, cutoff=0.7)
-            if close:
-                return f"; did you mean {close[0]}?"
+        if not word.startswith("--"):
+            continue
+        name = word.split("=")[0]
+        dest = name.lstrip("-").replace("-", "_")
+        positional = next((positionals[d] for d in (dest, dest + "s") if positionals and d in positionals), "")
+        if positional:
+            return f"; 'mjxdiff {command}' takes {positional} ... as arguments, without a flag"
+        close = difflib.get_close_matches(name, own, n=1, cutoff=0.7)
+        if close:
+            return f"; did you mean {close[0]}?"
+        if name in owners:
+            return "; {} is a flag of {}".format(name, " and ".join(f"'mjxdiff {c}'" for c in owners[name] if c))
+        close = difflib.get_close_matches(name, list(owners), n=1, cutoff=0.7)
+        if close:
+            return f"; did you mean {close[0]}?"
     return ""
 
 

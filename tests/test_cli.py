@@ -23,6 +23,8 @@ def _run(*args):
 @pytest.mark.parametrize("args, message", [
     (["sweep", "--bogus"], "unrecognized arguments: --bogus (see"),
     (["sweep", "--quik"], "unrecognized arguments: --quik; did you mean --quick?"),
+    (["sweep", "--scenarios", "pendulum"], "'mjxdiff sweep' takes SCENARIO ... as arguments, without a flag"),
+    (["list", "--impl", "mjx"], "--impl is a flag of 'mjxdiff sweep'"),
     (["sweep", "--batch", "0"], "expected a positive integer"),
     (["sweep", "--precision", "float16"], "invalid choice"),
     (["sweep", "--noise-floor", "sometimes"], "invalid choice"),
