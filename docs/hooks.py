@@ -110,6 +110,8 @@ def _matching(entry) -> str:
         rules.append("integrator " + " or ".join(f"`{i}`" for i in entry.integrator))
     if entry.only_on:
         rules.append("MJX release " + ", ".join(f"`{v}*`" for v in entry.only_on))
+    if getattr(entry, "impl", ()):
+        rules.append("implementation under test " + " or ".join(f"`{i}`" for i in entry.impl))
     return "; ".join(rules) or "never by itself"
 
 

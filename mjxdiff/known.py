@@ -26,7 +26,9 @@ matches in full the geom types of a contact pair that a drill-down found differi
 ``kind:type`` (``sensor:accelerometer``, ``joint:free``), all three read from the report's
 data; ``pattern`` is found in the message plus the drill-down's object (text: for what has no
 field of its own), ``cause`` equals the attributed cause (``--diagnose full``), ``integrator``
-is among the model's integrators, ``scenario`` matches the scenario's name.
+is among the model's integrators, ``scenario`` matches the scenario's name, ``impl`` lists the
+implementations under test the entry is about (``mjx``, ``warp``, ``mjx.warp``; ``info.impl``;
+left out, any: the catalogue's entries about MJX's code say ``mjx``).
 """
 
 from __future__ import annotations
@@ -57,7 +59,7 @@ def load_entries(path: str | Path) -> tuple[Entry, ...]:
         for t in data.get("known", []):
             t = dict(t)
             t["integrator"] = tuple(t.get("integrator", ()))
-            for key in ("versions", "only_on"):
+            for key in ("versions", "only_on", "impl"):
                 if key in t:
                     t[key] = tuple(t[key])
             entries.append(Entry(**t))

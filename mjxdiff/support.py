@@ -271,6 +271,11 @@ class Entry:
     #: A regular expression the first divergence's element, as ``kind:type``, must match in full
     #: (``sensor:accelerometer``, ``joint:free``; :func:`mjxdiff.verdict.component_elements`).
     element: str | None = None
+    #: The implementations under test this entry is about (a report's ``info.impl``: ``mjx`` for
+    #: MJX's JAX implementation, ``warp`` for MuJoCo Warp, ``mjx.warp`` for MJX's warp
+    #: implementation); empty: any. The catalogue's entries about MJX's own code say ``mjx``:
+    #: MuJoCo Warp computes those stages with other code, so the label and its advice would mislead.
+    impl: tuple[str, ...] = ()
 
     def _element_fits(self, first: dict[str, Any]) -> bool:
         if self.element is None:
@@ -296,6 +301,7 @@ class Entry:
                                          one.get("stage_object", "")))
         checks = [
             not self.only_on or any(_mjx_version().startswith(v) for v in self.only_on),
+            not self.impl or (s.get("info") or {}).get("impl", "mjx") in self.impl,
             self.stage is None or self.stage in (drill.get("first_stage"), one.get("first_stage")),
             self.field is None or first.get("field") == self.field,
             self._contact_fits(s),
@@ -325,9 +331,13 @@ def _releases_before(minor: int) -> tuple[str, ...]:
 #: Why a fixed bug has no bundle.
 FIXED_SINCE = "none: fixed in later releases, so the installed MJX cannot show it; the versions sweep is its evidence"
 
+#: The catalogue's entries about any implementation under test (the solver settings part MJX, MuJoCo
+#: Warp and C alike); every other entry is about MJX's JAX code (``impl=("mjx",)``).
+ANY_IMPL = ("solver-truncation", "truncated-solver")
+
 #: What mjxdiff has measured of MJX 3.17 against MuJoCo 4.0 (README, "Known C/MJX divergences";
 #: scenario notes). Approximations by design first, then bugs; the first matching entry wins.
-CATALOGUE: tuple[Entry, ...] = (
+_MEASURED: tuple[Entry, ...] = (
     Entry("solver-truncation", "solver settings capped short of convergence: MJX and C part where each stops",
           "tests/test_solver_floor.py: a 1-iteration quadruped parts by radians over 200 steps; with a converged "
           "solver (the twin) and one step from C's states the engines agree to rounding", cause="solver truncation",
@@ -480,3 +490,5 @@ CATALOGUE: tuple[Entry, ...] = (
           remedy="read contacts from MJX's own data (dx._impl.contact, dist < includemargin) rather than "
                  "mjx.get_data where geoms have a margin"),
 )
+CATALOGUE: tuple[Entry, ...] = tuple(e if e.id in ANY_IMPL else dataclasses.replace(e, impl=("mjx",))
+                                     for e in _MEASURED)

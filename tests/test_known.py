@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from mjxdiff import known
+from mjxdiff import known, support
 from mjxdiff.cli import main
 
 
@@ -74,6 +74,20 @@ def test_entries_match_on_what_the_diagnosis_says():
     inertia = dict(failing, message="first field to differ: qM (inertia, joint 'j1')",
                    diagnosis=dict(drill_down=dict(first_stage="inertia", object="joint 'j1'")))
     assert known.match(inertia) is None
+
+
+def test_an_entry_about_mjx_s_code_does_not_label_another_implementation():
+    """MuJoCo Warp (``--impl warp``) and MJX's warp implementation compute contacts with other code:
+    the same box-box signature gets no MJX label there, while the solver's settings label any."""
+    box_box = dict(pair="box-box", geoms=["a", "b"], c=2, mjx=4, part="count")
+    failing = dict(name="s", status="fail", message="", info=dict(impl="mjx"),
+                   diagnosis=dict(drill_down=dict(first_stage="collision", contact=box_box)))
+    assert known.match(failing).id == "box-box-manifold"
+    for impl in ("warp", "mjx.warp"):
+        assert known.match(dict(failing, info=dict(impl=impl))) is None, impl
+    truncated = dict(name="s", status="fail", message="", info=dict(impl="warp"),
+                     diagnosis=dict(cause=dict(cause="solver convergence")))
+    assert known.match(truncated).id in support.ANY_IMPL
 
 
 def test_every_mjx_bug_of_the_catalogue_has_a_minimal_bundle(repo_root):
