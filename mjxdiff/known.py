@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 # the catalogue and its Entry live in mjxdiff.support; public here too, as before
-from mjxdiff.support import CATALOGUE, Entry
+from mjxdiff.support import CATALOGUE, WARP_UPSTREAM, Entry
 
 __all__ = ["Entry", "CATALOGUE", "advice", "entries", "load_entries", "match", "KnownError"]
 
@@ -108,7 +108,10 @@ def advice(entry: Entry) -> str:
     else:
         parts.append("to fail only on what is new, sweep with --baseline REF --fail-on new (or accept it: "
                      "accepted = true in your --known file)")
-    if entry.kind == "bug" and entry.bundle.startswith("tests/"):
+    if entry.kind == "bug" and entry.bundle.startswith("tests/") and "::" in entry.bundle:
+        parts.append(f"a MuJoCo Warp bug: report it at {WARP_UPSTREAM} with the reproducer {entry.bundle} of "
+                     "mjxdiff's repository (a strict xfail while MuJoCo Warp and C differ)")
+    elif entry.kind == "bug" and entry.bundle.startswith("tests/"):
         parts.append(f"an MJX bug: report it at {UPSTREAM} with the reproducer in {entry.bundle} of mjxdiff's "
                      "repository, or your own from mjxdiff shrink --bundle")
     return "; ".join(parts)

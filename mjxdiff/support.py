@@ -15,7 +15,8 @@ from typing import Any, NamedTuple
 import mujoco
 
 __all__ = ["CATALOGUE", "HARMLESS_ENABLE_FLAGS", "KNOWN_DIVERGENCES", "SUPPORTED_PAIRS", "UNSUPPORTED_FEATURES",
-           "UNSUPPORTED_PAIRS", "Entry", "UnsupportedFeature", "pair_supported", "refused_features"]
+           "UNSUPPORTED_PAIRS", "Entry", "UnsupportedFeature", "model_features", "pair_supported",
+           "refused_features"]
 
 
 # -- geom pairs -----------------------------------------------------------------------------------
@@ -276,6 +277,9 @@ class Entry:
     #: implementation); empty: any. The catalogue's entries about MJX's own code say ``mjx``:
     #: MuJoCo Warp computes those stages with other code, so the label and its advice would mislead.
     impl: tuple[str, ...] = ()
+    #: A regular expression one of the model's features (:func:`model_features`, ``info.features``)
+    #: must match in full: what a divergence needs in the model that no drill-down shows.
+    feature: str | None = None
 
     def _element_fits(self, first: dict[str, Any]) -> bool:
         if self.element is None:
@@ -302,6 +306,8 @@ class Entry:
         checks = [
             not self.only_on or any(_mjx_version().startswith(v) for v in self.only_on),
             not self.impl or (s.get("info") or {}).get("impl", "mjx") in self.impl,
+            self.feature is None or any(re.fullmatch(self.feature, f) is not None
+                                        for f in (s.get("info") or {}).get("features", ())),
             self.stage is None or self.stage in (drill.get("first_stage"), one.get("first_stage")),
             self.field is None or first.get("field") == self.field,
             self._contact_fits(s),
@@ -312,6 +318,19 @@ class Entry:
             self.scenario is None or re.fullmatch(self.scenario, s.get("name", "")) is not None,
         ]
         return all(checks)
+
+
+def model_features(m: mujoco.MjModel) -> tuple[str, ...]:
+    """What a catalogue entry may need of the model that no drill-down shows (:attr:`Entry.feature`):
+
+    * ``contact:direct-solref-under-priority``: a geom with a direct (negative) solref, and a geom
+      of higher priority (C then takes the higher-priority geom's solref alone).
+    """
+    found = []
+    direct = m.geom_solref[:, 0] < 0
+    if m.ngeom and direct.any() and (m.geom_priority > m.geom_priority[direct].min()).any():
+        found.append("contact:direct-solref-under-priority")
+    return tuple(found)
 
 
 def contacts_shown(s: dict[str, Any]) -> list[dict[str, Any]]:
@@ -490,5 +509,22 @@ _MEASURED: tuple[Entry, ...] = (
           remedy="read contacts from MJX's own data (dx._impl.contact, dist < includemargin) rather than "
                  "mjx.get_data where geoms have a margin"),
 )
+#: Where MuJoCo Warp's bugs are reported.
+WARP_UPSTREAM = "https://github.com/google-deepmind/mujoco_warp/issues"
+
+#: What mjxdiff has measured of MuJoCo Warp 4.0 (``--impl warp``) and of MJX 3.17's vendored copy of
+#: it (``--impl mjx.warp``) against MuJoCo C 4.0 (docs/findings.md, "MuJoCo Warp").
+_MEASURED_WARP: tuple[Entry, ...] = (
+    Entry("warp-solref-priority", "MuJoCo Warp: a direct solref on the lower-priority geom overrides the "
+          "higher-priority geom's",
+          "tests/test_mjwarp.py: a sphere 9.5 mm into a priority-1 floor, one step's qvel 0.066 apart (0.0028 at "
+          "0.5 mm), 2e-8 with positive solrefs; contact_parameters fails at step 0 under --impl warp and --impl "
+          "mjx.warp (MJX's vendored copy shares it), first field qfrc_constraint of joint 'puck'",
+          stage="constraint", feature="contact:direct-solref-under-priority", impl=("warp", "mjx.warp"),
+          kind="bug", bundle="tests/test_mjwarp.py::test_the_higher_priority_geom_s_solref_wins_over_a_direct_one",
+          remedy="give a geom that meets a higher-priority geom a positive solref (timeconst, dampratio), or none: "
+                 "C takes the higher-priority geom's solref, MuJoCo Warp the direct one"),
+)
+
 CATALOGUE: tuple[Entry, ...] = tuple(e if e.id in ANY_IMPL else dataclasses.replace(e, impl=("mjx",))
-                                     for e in _MEASURED)
+                                     for e in _MEASURED) + _MEASURED_WARP

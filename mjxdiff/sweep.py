@@ -29,7 +29,8 @@ from mjxdiff.compat import enable_x64
 from mjxdiff.config import IMPLS, NOISE_FLOOR_MODES, SweepConfig  # noqa: F401 - public here
 from mjxdiff.precision import Precision
 from mjxdiff.errors import one_line
-from mjxdiff import adjust, cost, diagnose, engines, export_cache, onestep, reference, report, reproducer, transfer
+from mjxdiff import (adjust, cost, diagnose, engines, export_cache, onestep, reference, report, reproducer, support,
+                     transfer)
 from mjxdiff.engines import CEngine, MJXEngine, UnsupportedError
 from mjxdiff.trajectory import Engine, Trajectory
 from mjxdiff.inputs import BatchedInputs, make_inputs
@@ -666,6 +667,7 @@ def _run_inputs(name: str, m, inputs: BatchedInputs, tol: Tolerances, config: Sw
     base: dict[str, Any] = dict(name=name, tolerances=tol.as_dict(), info=info)
     under_test, c_engine = under_test or simulator(config), c_engine or CEngine()
     info["impl"] = under_test.name
+    info["features"] = list(support.model_features(m))
     clock: dict[str, Any] = {}  # seconds per engine and for the verdict, and how far the stepping got
     cpu = info.setdefault("cpu_seconds", {})
     case = _Case(name, m, inputs, tol, config, under_test, c_engine, plan_for)

@@ -88,6 +88,26 @@ def test_an_entry_about_mjx_s_code_does_not_label_another_implementation():
     truncated = dict(name="s", status="fail", message="", info=dict(impl="warp"),
                      diagnosis=dict(cause=dict(cause="solver convergence")))
     assert known.match(truncated).id in support.ANY_IMPL
+    # MuJoCo Warp's own: the model must have what the divergence needs
+    solref = dict(name="s", status="fail", message="", info=dict(impl="mjx.warp", features=[]),
+                  diagnosis=dict(drill_down=dict(first_stage="constraint")))
+    assert known.match(solref) is None
+    feature = dict(solref["info"], features=["contact:direct-solref-under-priority"])
+    assert known.match(dict(solref, info=feature)).id == "warp-solref-priority"
+    assert known.match(dict(solref, info=dict(feature, impl="mjx"))) is None
+
+
+def test_model_features_name_a_direct_solref_under_a_higher_priority_geom():
+    import mujoco
+
+    def features(floor: str, ball: str) -> tuple[str, ...]:
+        return support.model_features(mujoco.MjModel.from_xml_string(
+            f'<mujoco><worldbody><geom type="plane" size="1 1 .1" {floor}/><body><freejoint/>'
+            f'<geom size=".05" {ball}/></body></worldbody></mujoco>'))
+
+    assert features('priority="1"', 'solref="-2000 -40"') == ("contact:direct-solref-under-priority",)
+    assert features('priority="1"', 'solref="0.01 1"') == ()
+    assert features('', 'solref="-2000 -40"') == ()
 
 
 def test_every_mjx_bug_of_the_catalogue_has_a_minimal_bundle(repo_root):
@@ -108,6 +128,9 @@ def test_every_mjx_bug_of_the_catalogue_has_a_minimal_bundle(repo_root):
             assert e.bundle == "", e.id
         elif e.kind == "fixed":
             assert e.bundle == FIXED_SINCE, e.id
+        elif "mjx" not in e.impl:  # a MuJoCo Warp bug: a strict xfail of the suite is its reproducer
+            path, name = e.bundle.split("::")
+            assert path.startswith("tests/") and f"def {name}(" in (repo_root / path).read_text(), e.id
         else:
             where = repo_root / e.bundle
             assert e.bundle == f"tests/data/bundles/{e.id}", e.id
@@ -127,9 +150,10 @@ def test_known_list_shows_each_entry_with_its_bundle(capsys, tmp_path):
     for e in known.CATALOGUE:
         assert f"{e.id} " in out and e.title in out, e.id
         assert e.remedy and f"what to do: {known.advice(e)}\n" in out, e.id
-        assert ("report it at https://github.com/google-deepmind/mujoco/issues" in known.advice(e)) == (
+        upstream = "mujoco_warp" if "mjx" not in e.impl else "mujoco"
+        assert (f"report it at https://github.com/google-deepmind/{upstream}/issues" in known.advice(e)) == (
             e.kind == "bug" and e.bundle.startswith("tests/")), e.id
-    for e in (e for e in known.CATALOGUE if e.kind == "bug"):
+    for e in (e for e in known.CATALOGUE if e.kind == "bug" and "mjx" in e.impl):
         assert f"bundle: tests/data/bundles/{e.id}\n" in out
     assert out.splitlines()[-1].startswith(f"{len(known.CATALOGUE)} entries: ")
     (tmp_path / "bad.toml").write_text("[[known]]\nid = 3\n")
