@@ -746,6 +746,26 @@ def _drill(result: ScenarioResult, inputs: BatchedInputs, traj_c: Trajectory, pr
                                precision=precision, member=member, step=step, engine=engine)
 
 
+#: How many states before the first divergence the drill-down tries where every stage agrees at it.
+DRILL_BACK = 16
+
+
+def _earlier_difference(result: ScenarioResult, inputs: BatchedInputs, traj_c: Trajectory, precision: Precision,
+                        engine: Engine | None = None) -> diagnose.DrillDown | None:
+    """The drill-down at the latest of the :data:`DRILL_BACK` states before the first divergent step
+    where a stage differs, or None: where every stage agrees at the state the error left its bound,
+    the step that set it off (a contact made one step apart, a landing) lies before it."""
+    assert result.first_divergence is not None
+    member: int = result.first_divergence["member"]
+    step: int = result.first_divergence["step"]
+    for k in range(step - 1, max(step - DRILL_BACK, 0) - 1, -1):
+        drill = diagnose.drill_down(inputs.models[member], *diagnose.state_before(inputs, traj_c, member, k),
+                                    precision=precision, member=member, step=k, engine=engine)
+        if drill.first_field:
+            return drill
+    return None
+
+
 def _solver_floor(result: ScenarioResult, case: _Case, clock: dict[str, float]):
     """A second look at a failure that starts in the constraint stage (or in no forward stage at
     all, the step's own use of the solver): judged again against the
@@ -1068,7 +1088,16 @@ def _diagnose(result: ScenarioResult, case: _Case, traj_c: Trajectory | None = N
             drill = dataclasses.replace(drill, first_stage="integration", first_field="qpos/qvel update")
             message += "; every forward stage agrees, the one-step error does not: integration"
         else:
-            message += "; every stage agrees at that state (an accumulation of small differences)"
+            earlier = attempt("the search of earlier states", lambda: _earlier_difference(
+                result, inputs, traj_c, config.precision, under_test))
+            if earlier is not None:
+                drill = earlier
+                message += (f"; every stage agrees at that state; the last to differ before it is step "
+                            f"{earlier.step}: first field to differ: {earlier.first_field} ({earlier.first_stage}, "
+                            f"{earlier.object})")
+            else:
+                message += (f"; every stage agrees at that state and at the {DRILL_BACK} before it (an accumulation "
+                            "of small differences)")
         diagnosis["drill_down"] = dataclasses.asdict(drill)
     if config.diagnose == "full" and config.quick:
         notes.append(QUICK_SKIPS["ablations"])

@@ -280,3 +280,60 @@ def test_the_float32_actuator_bound_covers_float32_arithmetic_that_the_stage_tol
         assert gap <= diagnose.float32_rounding(m, d)["actuator_force"][0], (gap, d.qpos)
         beyond_stage += gap > THRESHOLDS["float32"].stage_bound("actuation", abs(d.actuator_force[0]))
     assert beyond_stage >= 10, beyond_stage  # 0 would leave the bound untested
+
+
+class _LimitedPendulum:
+    """MuJoCo C as the engine under test, its hinge limited to |q| < 0.3 rad where C's is free: the
+    constraint stage differs at states past 0.3 rad and nowhere else (an injected difference that
+    comes and goes with the state)."""
+
+    name = "c-limited"
+
+    def forward(self, m, d, fields):
+        import mujoco
+
+        from mjxdiff.engines import CEngine
+
+        limited = mujoco.MjModel.from_xml_string(PENDULUM.replace('range="-3 3"', 'range="-0.3 0.3"'))
+        return CEngine().forward(limited, d, fields)
+
+
+PENDULUM = """<mujoco><compiler angle="radian"/><option timestep="0.01"/><worldbody><body>
+  <joint name="hinge" type="hinge" axis="0 1 0" limited="true" range="-3 3"/>
+  <geom type="capsule" fromto="0 0 0 0 0 -1" size="0.05"/></body></worldbody></mujoco>"""
+
+
+def test_where_every_stage_agrees_at_the_failing_state_the_drill_down_names_the_last_state_that_differs():
+    """A pendulum swinging down from 0.5 rad: while the engine under test's limit pushes (past 0.3
+    rad, moving out), its constraint stage differs, and agrees from the step it stops; a failure
+    seen after that is traced back to the last state where the limit pushed."""
+    import dataclasses
+
+    import mujoco
+
+    from mjxdiff.engines import CEngine
+    from mjxdiff.inputs import BatchedInputs
+    from mjxdiff.result import ScenarioResult
+    from mjxdiff.sweep import DRILL_BACK, _earlier_difference
+
+    m = mujoco.MjModel.from_xml_string(PENDULUM)
+    limited = mujoco.MjModel.from_xml_string(PENDULUM.replace('range="-3 3"', 'range="-0.3 0.3"'))
+    steps = 40
+    inputs = BatchedInputs(qpos=np.array([[0.5]]), qvel=np.zeros((1, 1)), act=np.zeros((1, 0)),
+                           ctrl=np.zeros((1, steps, 0)), models=(m,), factors={}, seed=0)
+    traj_c = CEngine().rollout(inputs)
+
+    def pushes(k: int) -> bool:  # the limit's force at the state before step k
+        d = mujoco.MjData(limited)
+        d.qpos[:], d.qvel[:] = (traj_c.qpos[0, k - 1], traj_c.qvel[0, k - 1]) if k else (inputs.qpos[0], 0)
+        mujoco.mj_forward(limited, d)
+        return bool(np.abs(d.qfrc_constraint).max() > 1e-6)
+
+    last = max(k for k in range(steps) if pushes(k))
+    assert pushes(0) and last + 6 < steps
+    failing = ScenarioResult(name="pendulum", status="fail", message="", first_divergence=dict(member=0, step=last + 6))
+    earlier = _earlier_difference(failing, inputs, traj_c, "float64", _LimitedPendulum())
+    assert earlier is not None and (earlier.step, earlier.first_stage) == (last, "constraint"), earlier
+    # out of reach: nothing differs in the DRILL_BACK states before a later failure
+    late = dataclasses.replace(failing, first_divergence=dict(member=0, step=last + 1 + DRILL_BACK))
+    assert _earlier_difference(late, inputs, traj_c, "float64", _LimitedPendulum()) is None
