@@ -1088,8 +1088,9 @@ def _diagnose(result: ScenarioResult, case: _Case, traj_c: Trajectory | None = N
             drill = dataclasses.replace(drill, first_stage="integration", first_field="qpos/qvel update")
             message += "; every forward stage agrees, the one-step error does not: integration"
         else:
-            earlier = attempt("the search of earlier states", lambda: _earlier_difference(
-                result, inputs, traj_c, config.precision, under_test))
+            whole = traj_c
+            earlier = None if whole is None else attempt("the search of earlier states", lambda: _earlier_difference(
+                result, inputs, whole, config.precision, under_test))
             if earlier is not None:
                 drill = earlier
                 message += (f"; every stage agrees at that state; the last to differ before it is step "
