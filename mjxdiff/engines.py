@@ -845,7 +845,9 @@ class MJXEngine:
         # quick run's XLA options are the full run's: one executable serves both)
         T = -(-max(inputs.steps, inputs.horizon or 0) // chunk) * chunk
         held = getattr(_HELD, "pieces", None)
-        key = (id(self), tuple(map(id, inputs.models)), inputs.batch, chunk, T, inputs.energy)
+        # this thread's precision too: a float32 sweep's float64 ablation steps the same model objects
+        key = (id(self), tuple(map(id, inputs.models)), inputs.batch, chunk, T, inputs.energy,
+               jax.dtypes.canonicalize_dtype(np.float64))
         if held is not None and key in held:
             _, run, prepared = held[key]
             (_, args, _), place, ctrl = self.piece(inputs, chunk, prepared)

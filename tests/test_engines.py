@@ -242,3 +242,23 @@ def test_a_held_piece_is_bound_once_and_steps_as_a_fresh_one(monkeypatch):
     np.testing.assert_array_equal(first.qpos[:, 0], fresh[:, 0])
     engine.first_piece(inputs, 10, steps=1)
     assert len(binds) == 3, "outside the block: bound afresh"
+
+
+def test_a_held_piece_is_not_shared_across_precisions():
+    """A float32 sweep's float64 ablation steps the same model objects within the scenario's
+    ``holding()`` block: it gets a float64 piece of its own, not the float32 one held (which made
+    every float32 failure's ``precision`` ablation fail, and named another cause)."""
+    from mjxdiff.compat import enable_x64
+
+    scenario = load_scenario("pendulum")
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, seed=0, batch=2, steps=10)
+    engine = MJXEngine()
+    with engine.holding():
+        with enable_x64(False):
+            single = engine.first_piece(inputs, 10, steps=10)
+        with enable_x64(True):
+            double = engine.first_piece(inputs, 10, steps=10)
+    assert single.qpos.dtype == np.float32 and double.qpos.dtype == np.float64
+    c = CEngine().rollout(inputs).qpos
+    assert np.abs(double.qpos - c).max() < 1e-12 < np.abs(single.qpos - c).max()
