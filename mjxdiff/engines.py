@@ -87,6 +87,7 @@ __all__ = [
     "concat",
     "configure_jax",
     "device_count",
+    "overflow_names",
     "put_models",
     "warp_capacity",
 ]
@@ -516,6 +517,8 @@ def _scan_steps(mx, dx, ctrl, with_energy, n=None, world=None):
                    time=dx.time, ncon=_contact_count(mx, dx, world))
         if with_energy:
             rec["energy"] = energy_
+        if world is not None:  # MJX's warp implementation: the buffers it overflowed so far, a bitmask
+            rec["overflow"] = jnp.asarray(data_impl(dx).overflow).reshape(-1)[0]  # pyright: ignore[reportAttributeAccessIssue]
         return rec
 
     def step(dx, u):
@@ -1056,8 +1059,31 @@ def _host_piece(rec, batch: int, steps: int) -> Trajectory:
     return _trajectory(rec, batch, steps)
 
 
+def overflow_names(bits, overflow_type) -> str | None:
+    """The buffers a MuJoCo Warp ``overflow`` bitmask (any shape, OR-ed) names, as
+    ``overflow_type``'s member names (``"NEFC, NARROWPHASE"``; that enum's ``str`` is the bare
+    number); the solver's iteration limits left out (those are the verdict's to see); None for none."""
+    solver = int(overflow_type.ITERATIONS) | int(overflow_type.LS_ITERATIONS)
+    found = int(np.bitwise_or.reduce(np.asarray(bits, np.int64).ravel(), initial=0)) & ~solver
+    return ", ".join(str(t.name) for t in overflow_type if found & int(t)) if found else None
+
+
+def _warp_overflow(bits: np.ndarray) -> str | None:
+    """:func:`overflow_names` of MJX's warp implementation's recorded bitmasks (its vendored MuJoCo Warp)."""
+    from mujoco.mjx.third_party.mujoco_warp import OverflowType
+
+    return overflow_names(bits, OverflowType)
+
+
 def _trajectory(rec: dict[str, np.ndarray], batch: int, steps: int) -> Trajectory:
-    """A Trajectory from (batch, steps, ...) MJX records, with non-finite states located."""
+    """A Trajectory from (batch, steps, ...) MJX records, with non-finite states located; raises
+    where MJX's warp implementation overflowed its buffers (its results are then not the model's:
+    an engine error, never a divergence)."""
+    overflow = _warp_overflow(rec["overflow"]) if "overflow" in rec else None
+    if overflow is not None:
+        raise RuntimeError(f"MJX's warp implementation overflowed its buffers ({overflow}): its results are not "
+                           "the model's; sized at 2x C's peak contacts and rows (MuJoCo's parity method), they "
+                           "held too few here")
     nonfinite = ~np.isfinite(rec["qpos"]).all(-1) | ~np.isfinite(rec["qvel"]).all(-1)
     return Trajectory(qpos=rec["qpos"], qvel=rec["qvel"], act=rec["act"],
                       sensordata=rec["sensordata"], time=rec["time"], ncon=rec["ncon"].astype(np.int64),

@@ -27,7 +27,7 @@ import mujoco
 import numpy as np
 
 from mjxdiff.errors import one_line
-from mjxdiff.engines import _unsupported, warp_capacity
+from mjxdiff.engines import _unsupported, overflow_names, warp_capacity
 from mjxdiff import stages
 from mjxdiff.precision import Precision
 from mjxdiff.stages import Forward
@@ -138,11 +138,7 @@ def buffer_overflow(d) -> str | None:
     import mujoco_warp as mjw
 
     bits = getattr(d, "overflow", None)
-    if bits is None:
-        return None
-    solver = int(mjw.OverflowType.ITERATIONS) | int(mjw.OverflowType.LS_ITERATIONS)
-    found = int(np.bitwise_or.reduce(np.asarray(bits.numpy()).ravel(), initial=0)) & ~solver
-    return str(mjw.OverflowType(found)) if found else None
+    return None if bits is None else overflow_names(bits.numpy(), mjw.OverflowType)
 
 
 def _check_buffers(d, where: str) -> None:
