@@ -9,13 +9,15 @@ from mjxdiff.engines import COMPILE_MODES
 from mjxdiff.precision import Precision
 from mjxdiff.scenario import Scenario
 
-__all__ = ["IMPLS", "NOISE_FLOOR_MODES", "SweepConfig"]
+__all__ = ["IMPLS", "NOISE_FLOOR_MODES", "WARP_IMPLS", "SweepConfig"]
 
 
 #: When C's perturbed rerun runs (:attr:`SweepConfig.noise_floor`).
 NOISE_FLOOR_MODES = ("on-demand", "always")
 #: Implementations a sweep can judge against MuJoCo C.
 IMPLS = ("mjx", "warp", "mjx.warp")
+#: The implementations that run MuJoCo Warp (itself, or MJX's vendored copy): float32 only.
+WARP_IMPLS = ("warp", "mjx.warp")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -113,7 +115,7 @@ class SweepConfig:
     def __post_init__(self):
         if self.impl not in IMPLS:
             raise ValueError(f"impl must be one of {IMPLS}, not {self.impl!r}")
-        if self.impl in ("warp", "mjx.warp"):  # MuJoCo Warp computes in float32: judged, perturbed and toleranced so
+        if self.impl in WARP_IMPLS:  # MuJoCo Warp computes in float32: judged, perturbed and toleranced so
             object.__setattr__(self, "precision", "float32")
         if self.reference not in ("c", "mjx") or (self.reference == "mjx" and self.impl != "warp"):
             raise ValueError(f"reference must be 'c', or 'mjx' with impl='warp', not {self.reference!r}")

@@ -174,11 +174,17 @@ _PAIRS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
 }
 
 
+#: Every pair's name suffix, longest first (``@mjx-warp`` before ``@warp``).
+_SUFFIXES = sorted({suffix for pairs in _PAIRS.values() for suffix, _ in pairs if suffix}, key=len, reverse=True)
+
+
 def _pair_configs(config, impl: str) -> list[tuple[str, Any]]:
     """(name suffix, SweepConfig) of each judged pair of ``impl``."""
+    from mjxdiff.config import WARP_IMPLS  # imports the engines: with the config, never before it
+
     out = []
     for suffix, change in _PAIRS[impl]:
-        if change.get("impl") in ("warp", "mjx.warp") and "reproducers" not in change and config.reproducers:
+        if change.get("impl") in WARP_IMPLS and "reproducers" not in change and config.reproducers:
             change = dict(change, reproducers=str(Path(config.reproducers) / change["impl"]))
         out.append((suffix, dataclasses.replace(config, **change)))
     return out
@@ -435,7 +441,7 @@ def _c_outliers(results: list[ScenarioResult]) -> list[ScenarioResult]:
 
 def _pair_of(name: str) -> tuple[str, str]:
     """(scenario, pair suffix) of a result's name under ``impl="both"`` (:data:`_PAIRS`)."""
-    for suffix in ("@mjx-warp", "@mjx.warp", "@warp"):
+    for suffix in _SUFFIXES:
         if name.endswith(suffix):
             return name[:-len(suffix)], suffix
     return name, ""

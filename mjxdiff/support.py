@@ -328,7 +328,7 @@ def model_features(m: mujoco.MjModel) -> tuple[str, ...]:
     """
     found = []
     direct = m.geom_solref[:, 0] < 0
-    if m.ngeom and direct.any() and (m.geom_priority > m.geom_priority[direct].min()).any():
+    if direct.any() and (m.geom_priority > m.geom_priority[direct].min()).any():
         found.append("contact:direct-solref-under-priority")
     return tuple(found)
 

@@ -737,13 +737,14 @@ def _stopped(info: dict, clock: dict[str, float]) -> str:
 
 
 def _drill(result: ScenarioResult, inputs: BatchedInputs, traj_c: Trajectory, precision: Precision,
-           engine: Engine | None = None) -> diagnose.DrillDown:
-    """The stage drill-down at the state before the first divergent step."""
+           engine: Engine | None = None, step: int | None = None) -> diagnose.DrillDown:
+    """The stage drill-down at the state before the first divergent step (or before ``step``, of
+    the same member)."""
     assert result.first_divergence is not None  # drilled down only for a failure
     member: int = result.first_divergence["member"]
-    step: int = result.first_divergence["step"]
-    return diagnose.drill_down(inputs.models[member], *diagnose.state_before(inputs, traj_c, member, step),
-                               precision=precision, member=member, step=step, engine=engine)
+    at: int = result.first_divergence["step"] if step is None else step
+    return diagnose.drill_down(inputs.models[member], *diagnose.state_before(inputs, traj_c, member, at),
+                               precision=precision, member=member, step=at, engine=engine)
 
 
 #: How many states before the first divergence the drill-down tries where every stage agrees at it.
@@ -756,11 +757,9 @@ def _earlier_difference(result: ScenarioResult, inputs: BatchedInputs, traj_c: T
     where a stage differs, or None: where every stage agrees at the state the error left its bound,
     the step that set it off (a contact made one step apart, a landing) lies before it."""
     assert result.first_divergence is not None
-    member: int = result.first_divergence["member"]
     step: int = result.first_divergence["step"]
     for k in range(step - 1, max(step - DRILL_BACK, 0) - 1, -1):
-        drill = diagnose.drill_down(inputs.models[member], *diagnose.state_before(inputs, traj_c, member, k),
-                                    precision=precision, member=member, step=k, engine=engine)
+        drill = _drill(result, inputs, traj_c, precision, engine, step=k)
         if drill.first_field:
             return drill
     return None
@@ -1097,7 +1096,8 @@ def _diagnose(result: ScenarioResult, case: _Case, traj_c: Trajectory | None = N
                             f"{earlier.step}: first field to differ: {earlier.first_field} ({earlier.first_stage}, "
                             f"{earlier.object})")
             else:
-                message += (f"; every stage agrees at that state and at the {DRILL_BACK} before it (an accumulation "
+                before = min(DRILL_BACK, result.first_divergence["step"]) if result.first_divergence else 0
+                message += (f"; every stage agrees at that state and at the {before} before it (an accumulation "
                             "of small differences)")
         diagnosis["drill_down"] = dataclasses.asdict(drill)
     if config.diagnose == "full" and config.quick:
