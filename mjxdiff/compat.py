@@ -18,6 +18,8 @@ branches on versions:
 * :func:`data_impl`, :func:`with_impl`, :func:`impl_fields`: from MJX 3.3.x (3.3.5 has it,
   3.3.0 not) the JAX implementation's fields of ``Data`` (contacts, constraint rows, ``qM``)
   live in ``Data._impl`` (``types.DataJAX``); before, on ``Data`` itself.
+* :func:`put_model`: ``mjx.put_model(m, impl=...)`` takes ``impl`` from MJX 3.3.x (or so);
+  3.3.0 has only the JAX implementation and no such argument.
 * :func:`later_feature`: a model that an older MuJoCo cannot compile because its XML uses
   something a later release added (``<flag spring=...>`` before 3.4) is ``unsupported`` there,
   not bad input: ``scenario.load_model`` raises ``LaterFeatureError`` with this text, so every
@@ -51,7 +53,7 @@ import numpy as np
 
 __all__ = ["jaxlib_validated", "fast_compile_validated", "jit_for_few_calls", "FAST_COMPILE", "BALANCED_COMPILE",
            "later_feature", "enable_x64", "disable_bit", "sensor_types",
-           "full_inertia", "mjx_lacks", "data_impl", "with_impl", "impl_fields", "Batch", "LoopBatch",
+           "full_inertia", "put_model", "mjx_lacks", "data_impl", "with_impl", "impl_fields", "Batch", "LoopBatch",
            "SimulationError", "SUPPORTED", "JAX_CEILING", "REFERENCE", "VALIDATED_JAXLIB", "VALIDATED_FAST_MJX",
            "installed", "check_versions", "gate", "UntestedVersions", "HAS_BATCH", "matching_mujoco"]
 
@@ -248,6 +250,13 @@ def full_inertia(m: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
 
 
 _FULLM_TAKES_DATA = "d: mujoco._structs.MjData" in (mujoco.mj_fullM.__doc__ or "")
+
+
+def put_model(m: mujoco.MjModel, impl: str = "jax") -> Any:
+    """``mjx.put_model(m, impl=impl)``; the JAX implementation without the argument, which MJX 3.3.0 lacks."""
+    from mujoco import mjx
+
+    return mjx.put_model(m) if impl == "jax" else mjx.put_model(m, impl=impl)
 
 
 def data_impl(dx: Any) -> Any:

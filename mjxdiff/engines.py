@@ -69,7 +69,7 @@ from mjxdiff.compat import (BALANCED_COMPILE, FAST_COMPILE, Batch, SimulationErr
                             disable_bit, fast_compile_validated, full_inertia, jaxlib_validated, jit_for_few_calls)
 
 from mjxdiff.precision import Precision  # noqa: E402
-from mjxdiff import export_cache, joints, stages  # noqa: E402
+from mjxdiff import compat, export_cache, joints, stages  # noqa: E402
 from mjxdiff.stages import Forward  # noqa: E402
 from mjxdiff.inputs import BatchedInputs  # noqa: E402
 # Trajectory and Engine live in mjxdiff.trajectory (no MJX there); kept importable from here
@@ -343,7 +343,7 @@ def _patched_columns(models: list[mujoco.MjModel], mx0: mjx.Model, impl: str = "
                 fields[0][name].reshape(leaves0[k].shape), leaves0[k]):
             return None
         columns[k] = [f[name].reshape(leaves0[k].shape).astype(leaves0[k].dtype) for f in fields]
-    probe = [np.asarray(x) for x in jax.tree.leaves(mjx.put_model(models[-1], impl=impl))]
+    probe = [np.asarray(x) for x in jax.tree.leaves(compat.put_model(models[-1], impl))]
     if len(probe) != len(leaves0) or any(not np.array_equal(p, columns[k][-1] if k in columns else leaves0[k])
                                          for k, p in enumerate(probe)):
         return None
@@ -371,7 +371,7 @@ def put_models(models: tuple[mujoco.MjModel, ...], impl: str = "jax") -> tuple[m
         raise UnsupportedError("a model without degrees of freedom (nv = 0): MJX cannot step it "
                                "('Scan across Model with zero DoFs unsupported')")
     with _unsupported():
-        mx0 = mjx.put_model(models[0], impl=impl)
+        mx0 = compat.put_model(models[0], impl)
     leaves0, treedef = jax.tree.flatten(mx0)
     distinct = list({id(mi): mi for mi in models}.values())
     index = {id(mi): i for i, mi in enumerate(distinct)}
@@ -379,7 +379,7 @@ def put_models(models: tuple[mujoco.MjModel, ...], impl: str = "jax") -> tuple[m
     if columns is None:  # put_model per distinct member, and compare every leaf
         per_member = [leaves0]
         for mi in distinct[1:]:
-            leaves, td = jax.tree.flatten(mjx.put_model(mi, impl=impl))
+            leaves, td = jax.tree.flatten(compat.put_model(mi, impl))
             if td != treedef:
                 first, this = _c_fields(distinct[0]), _c_fields(mi)
                 leaves = {jax.tree_util.keystr(p).lstrip(".") for p, _ in jax.tree_util.tree_flatten_with_path(mx0)[0]}
