@@ -24,8 +24,9 @@ matches in full the geom types of a contact pair that a drill-down found differi
 ``part`` is what differs most there (``count``, ``dist``, ``position``, ``friction``,
 ``normal``, ``tangent frame``), ``element`` matches in full the first divergence's element as
 ``kind:type`` (``sensor:accelerometer``, ``joint:free``), all three read from the report's
-data; ``pattern`` is found in the message plus the drill-down's object (text: for what has no
-field of its own), ``cause`` equals the attributed cause (``--diagnose full``), ``integrator``
+data; ``pattern`` is found in the message plus the drill-down's object (text, for what has no
+field of its own: a reworded message can change the label, so the catalogue uses none, and
+loading an entry that has one warns once), ``cause`` equals the attributed cause (``--diagnose full``), ``integrator``
 is among the model's integrators, ``scenario`` matches the scenario's name, ``impl`` lists the
 implementations under test the entry is about (``mjx``, ``warp``, ``mjx.warp``; ``info.impl``;
 left out, any: the catalogue's entries about MJX's code say ``mjx``).
@@ -35,6 +36,7 @@ from __future__ import annotations
 
 import re
 import tomllib
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -64,9 +66,13 @@ def load_entries(path: str | Path) -> tuple[Entry, ...]:
                     t[key] = tuple(t[key])
             entries.append(Entry(**t))
         for e in entries:
-            for regex in (e.pattern, e.pair, e.element):
+            for regex in (e.pattern, e.pair, e.element, e.feature):
                 if regex:
                     re.compile(regex)
+        worded = [e.id for e in entries if e.pattern]
+        if worded:
+            warnings.warn(f"{path}: {', '.join(worded)} match the message's wording (pattern), which a new "
+                          "mjxdiff may reword; prefer stage, field, pair, part, element or cause", stacklevel=2)
         return tuple(entries)
     except (OSError, tomllib.TOMLDecodeError, TypeError, re.error) as e:
         raise KnownError(f"{path}: not a known-divergences file ({type(e).__name__}: {' '.join(str(e).split())}); "
