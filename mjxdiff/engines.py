@@ -213,6 +213,39 @@ def _with_energy(m: mujoco.MjModel) -> mujoco.MjModel:
     return m
 
 
+class _Shake:
+    """The per-step moves of :meth:`CEngine.stream`'s ``jitter``: one generator per member and field."""
+
+    def __init__(self, inputs: BatchedInputs, jitter: np.ndarray):
+        self.rows = np.flatnonzero(jitter)
+        self.size = jitter[self.rows, None]
+        self.rngs = [(np.random.default_rng([inputs.seed, int(inputs.ids[i]), 1]),
+                      np.random.default_rng([inputs.seed, int(inputs.ids[i]), 2])) for i in self.rows]
+
+    def move(self, x: np.ndarray, field: int) -> None:
+        """Moves the jittered rows of ``x`` (B, n) in place, one step's worth."""
+        signs = np.stack([2.0 * rng[field].integers(0, 2, x.shape[1]) - 1.0 for rng in self.rngs])
+        rows = x[self.rows]
+        x[self.rows] = rows + signs * self.size * np.maximum(np.abs(rows), 1.0)
+
+
+def _rollout_shaken(b: Any, k: int, control: np.ndarray, record: tuple, out: dict, shake: _Shake) -> np.ndarray:
+    """``b.rollout(k, ...)`` one step at a time, ``shake`` moving the state after each step.
+    Returns the ids of the members MuJoCo raised a :class:`SimulationError` for."""
+    one = {item: np.zeros_like(buf[:, :1]) for item, buf in out.items()}
+    raised: list[np.ndarray] = []
+    for i in range(k):
+        try:
+            b.rollout(1, control=control[:, i:i + 1], record=record, out=one)
+        except SimulationError as e:
+            raised.append(np.asarray(e.ids))
+        for item, buf in out.items():
+            buf[:, i] = one[item][:, 0]
+        shake.move(b.qpos, 0)  # views of the batch's state: moved in place
+        shake.move(b.qvel, 1)
+    return np.concatenate(raised) if raised else np.zeros(0, int)
+
+
 class CEngine(Streaming):
     """MuJoCo C: :class:`mujoco.batch.Batch` over all cores, one model per member."""
 
@@ -253,13 +286,19 @@ class CEngine(Streaming):
         time = np.asarray(traj.time) + flat["time"][:, None]
         return Trajectory(**fields, time=back(time), diverged_at=np.where(first < T, first, -1))
 
-    def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
+    def stream(self, inputs: BatchedInputs, chunk: int, jitter: np.ndarray | None = None) -> Iterator[Trajectory]:
         """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
 
         One :class:`~mujoco.batch.Batch` carries on from where the previous
         piece stopped, so the pieces concatenate to :meth:`rollout`'s result
         bit for bit. ``diverged_at`` counts steps from the start of the
         rollout and may repeat in later pieces; the first one counts.
+
+        ``jitter``: (B,) relative sizes; after every step, member ``i``'s ``qpos`` and ``qvel``
+        move by ``jitter[i] * max(|x|, 1)`` per component with a random sign (drawn from
+        generators seeded by (seed, member id), so the pieces are the same however the steps are
+        cut): MuJoCo's parity method's float32 shadow of C (:data:`mjxdiff.noise.STEP_JITTER`).
+        Records are taken before the move.
         """
         models = inputs.models
         if inputs.energy:  # C computes d.energy itself; MJX refuses the flag, so only C's copies get it
@@ -276,12 +315,16 @@ class CEngine(Streaming):
         d = mujoco.MjData(m)
         raised = np.zeros(B, bool)
         last_time = np.zeros((B, 1))
+        shake = None if jitter is None or not np.any(jitter) else _Shake(inputs, np.asarray(jitter, float))
         for start in range(0, inputs.steps, chunk):
             k = min(chunk, inputs.steps - start)
             # preallocated, so that records survive a SimulationError in some members
             out = {item: _record_buffer(m, d, item, B, k) for item in record}
             try:
-                b.rollout(k, control=inputs.ctrl[:, start:start + k], record=record, out=out)
+                if shake is None:
+                    b.rollout(k, control=inputs.ctrl[:, start:start + k], record=record, out=out)
+                else:
+                    raised[_rollout_shaken(b, k, inputs.ctrl[:, start:start + k], record, out, shake)] = True
             except SimulationError as e:
                 raised[np.asarray(e.ids)] = True
             time = out[time_spec][..., 0]

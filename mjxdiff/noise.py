@@ -43,12 +43,19 @@ from mjxdiff.trajectory import Trajectory
 from mjxdiff.inputs import BatchedInputs
 
 __all__ = ["EPS", "FLOORS", "SOLVER_MARGIN", "NoiseFloor", "combine", "converge_solver", "converged",
-           "has_constraints", "noise_floor", "perturb"]
+           "has_constraints", "noise_floor", "perturb", "STEP_JITTER"]
 
 #: Unit roundoff of each precision MJX can run in.
 EPS = {p: t.eps for p, t in THRESHOLDS.items()}
 #: Perturbation size, in units of the precision's eps (relative to |x|, absolute below 1).
 ULPS = 4.0
+#: Relative size of the move C's perturbed rerun takes after every step (:meth:`mjxdiff.engines.CEngine.stream`'s
+#: ``jitter``), per precision under test. float32: MuJoCo's parity method's shadow of C, whose state
+#: is rounded as a float32 engine's would be at every step, so that a contact or a tendon's wrap
+#: that float32 rounding alone decides shows in C's own spread (measured on the bundled scenarios,
+#: ``--precision float32``: docs/explanation/float64.md). float64: none, the rerun is perturbed
+#: at its start only; float64 rounding is what C itself does.
+STEP_JITTER: dict[Precision, float] = {"float64": 0.0, "float32": ULPS * EPS["float32"]}
 #: How far above the self-divergence an MJX error may sit and still count as rounding.
 MARGIN = 1e3
 #: How far above C's divergence from its converged self an MJX error may sit and still count as

@@ -35,7 +35,7 @@ from mjxdiff.engines import CEngine, MJXEngine, UnsupportedError
 from mjxdiff.trajectory import Engine, Trajectory
 from mjxdiff.inputs import BatchedInputs, make_inputs
 from mjxdiff.scenario import LaterFeatureError, Scenario, ScenarioError, Tolerances, is_bundled, load_model
-from mjxdiff.noise import SOLVER_MARGIN, NoiseFloor, combine, converged, has_constraints, perturb
+from mjxdiff.noise import SOLVER_MARGIN, STEP_JITTER, NoiseFloor, combine, converged, has_constraints, perturb
 from mjxdiff.verdict import TRUNCATION, FieldResult, Judge, ScenarioResult, rangefinder_mask
 
 
@@ -508,7 +508,9 @@ class _CPieces:
             return _ahead((p, None, None) for p in _timed(lambda: stream(group, self.chunk), "c", self.seconds))
         batches = [group, perturb(group, self.precision)] + ([converged(group)] if self.solver else [])
         joined = functools.reduce(BatchedInputs.concat, batches)
-        pieces = _timed(lambda: stream(joined, self.chunk), "c", self.seconds)
+        jitter = np.zeros(joined.batch)
+        jitter[group.batch:2 * group.batch] = STEP_JITTER[self.precision]  # the perturbed rerun's rows
+        pieces = _timed(lambda: stream(joined, self.chunk, jitter), "c", self.seconds)
         B = group.batch
         return _ahead(tuple(_rows(p, slice(i * B, (i + 1) * B)) if i < len(batches) else None for i in range(3))
                       for p in pieces)

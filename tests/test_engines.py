@@ -217,6 +217,28 @@ def test_c_members_do_not_depend_on_their_batch_neighbours():
             np.testing.assert_array_equal(getattr(both, field)[rows], getattr(part, field), err_msg=field)
 
 
+def test_c_s_float32_shadow_moves_only_its_rows_the_same_however_the_steps_are_cut():
+    """``CEngine.stream``'s ``jitter`` (the sweep's float32 shadow of C): a row with none is the
+    plain rollout bit for bit, a jittered row parts from it by about its size at the first
+    step, and pieces of any length give the same records."""
+    from mjxdiff.noise import STEP_JITTER
+    from mjxdiff.trajectory import concat
+
+    scenario = load_scenario("cartpole")
+    inputs = make_inputs(scenario, load_model(scenario), seed=4, batch=2, steps=30)
+    both = inputs.concat(inputs)
+    jitter = np.array([0.0, 0.0, STEP_JITTER["float32"], STEP_JITTER["float32"]])
+    whole = concat(list(CEngine().stream(both, 30, jitter)))
+    cut = concat(list(CEngine().stream(both, 7, jitter)))
+    plain = CEngine().rollout(inputs)
+    for field in ("qpos", "qvel", "sensordata", "time", "ncon"):
+        np.testing.assert_array_equal(getattr(whole, field), getattr(cut, field), err_msg=field)
+        np.testing.assert_array_equal(getattr(whole, field)[:2], getattr(plain, field), err_msg=field)
+    first = np.abs(whole.qvel[2:, 1] - plain.qvel[:, 1]).max()  # after one move
+    assert whole.qpos[2:, 0].tobytes() == plain.qpos[:, 0].tobytes()  # records are taken before the move
+    assert 0 < first < 1e3 * STEP_JITTER["float32"] * max(1.0, np.abs(plain.qvel).max())
+
+
 def test_a_held_piece_is_bound_once_and_steps_as_a_fresh_one(monkeypatch):
     """Within ``holding()``, the stream and the one-step check's first piece of the same models
     share one bind (the code digested and the models put on the devices once); outside it every

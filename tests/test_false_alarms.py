@@ -95,3 +95,25 @@ def test_slope_slide_lands_inside_mjx_s_1_mm_corner_skin():
     deepest, dropped = _plane_box_landings("slope_slide", range(1600, 1850), batch=4, steps=40)
     assert dropped == 0 and np.median(deepest) < 0.5e-3 and deepest.max() < 1e-3, (dropped, np.median(deepest),
                                                                                    deepest.max())
+
+
+@pytest.mark.slow
+def test_float32_judged_against_c_s_float32_shadow_passes_a_rounding_landing_and_fails_a_friction_bug(
+        fresh_mjx, monkeypatch):
+    """``--precision float32``, seed 0: the slope's box lands where float32 rounding alone decides
+    its contacts (MJX float32 against C failed at step 314 while C's rerun was perturbed at its
+    start only). C's rerun rounded at every step (:data:`mjxdiff.noise.STEP_JITTER`) shows the same
+    spread, so the landing passes, said to be weak; a friction coefficient 2% low still fails early,
+    before any landing widens the envelope."""
+    from injected_bugs import by_id
+    from mjxdiff.config import SweepConfig
+    from mjxdiff.scenario import load_scenario
+    from mjxdiff.sweep import run_scenario
+
+    config = SweepConfig(seed=0, precision="float32", onestep=False, transfer=False, diagnose="none")
+    clean = run_scenario(load_scenario("slope_slide"), config)
+    assert clean.status == "pass" and "weak" in clean.message, clean.message
+    assert clean.fields and max(f.envelope or 0 for f in clean.fields) > 1.0  # C's own float32 spread
+    by_id("friction_coefficient").patch(monkeypatch)
+    bugged = run_scenario(load_scenario("slope_slide"), config)
+    assert bugged.status == "fail" and bugged.first_divergence["step"] < 100, bugged.message
