@@ -407,7 +407,9 @@ def _sweep_parser(sub) -> argparse.ArgumentParser:
     sw.add_argument("--steps", type=_positive, help="steps per rollout (default: the scenario's)")
     sw.add_argument("--precision", choices=("float64", "float32"), default="float64",
                     help="MJX precision; float64 (default) keeps rounding far below algorithmic "
-                         "differences, float32 uses looser tolerance floors")
+                         "differences; float32 (as most users train) uses looser tolerance floors and judges "
+                         "MJX against C's float32 shadow (C rounded at every step), so a landing that "
+                         "rounding decides passes, said to be weak")
     sw.add_argument("--threshold", type=_fraction, default=0.95,
                     help="least fraction of batch members within tolerance for a scenario to pass (default 0.95)")
     sw.add_argument("--envelope", action=argparse.BooleanOptionalAction, default=True,
