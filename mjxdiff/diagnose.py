@@ -36,8 +36,8 @@ from mjxdiff.noise import converge_solver
 if TYPE_CHECKING:
     from mjxdiff.trajectory import Engine
 
-__all__ = ["STAGES", "StageDiff", "DrillDown", "contact_detail", "drill_down", "local_error", "attribute_cause",
-           "ABLATIONS", "GENUINE", "UNCLASSIFIED"]
+__all__ = ["STAGES", "CONTACT_FREE_STAGES", "StageDiff", "DrillDown", "contact_detail", "drill_down",
+           "first_fields", "local_error", "attribute_cause", "ABLATIONS", "GENUINE", "UNCLASSIFIED"]
 
 #: Pipeline stages in the order ``mj_forward`` computes them, with their fields.
 STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -53,6 +53,10 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("acceleration", ("qacc",)),
     ("sensors", ("sensordata",)),
 )
+
+#: Stages after ``collision`` that read no contact: what they compute from the same state must agree
+#: whatever contacts the engines made.
+CONTACT_FREE_STAGES = ("passive", "bias", "actuation", "smooth acceleration")
 
 #: Relative disagreement (|mjx - c| / (1 + max|c|)) above which a stage differs.
 STAGE_RTOL = {p: t.stage_rtol for p, t in THRESHOLDS.items()}
@@ -95,6 +99,12 @@ class DrillDown:
     fields: tuple[StageDiff, ...]
     #: the first differing field's :attr:`StageDiff.contact`, where that field is ``contact``
     contact: dict[str, Any] | None = None
+    #: where the first stage to differ is ``collision``: the first field of a later stage that
+    #: reads no contact (:data:`CONTACT_FREE_STAGES`) that differs too, as ``stage``, ``field``
+    #: and ``object``; None if none does. A contact difference is then not the whole story: the
+    #: engines part where contacts play no part (a velocity or bias-force bug beside a known
+    #: contact approximation), and no contact entry of the catalogue labels the failure.
+    beside_contacts: dict[str, str] | None = None
 
 
 def _name(m: mujoco.MjModel, obj: mujoco.mjtObj, i: int) -> str:
@@ -205,8 +215,21 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
             diffs.append(StageDiff(stage, f, float(gap[i]) / (1 + scale), _object(m, f, i), not over[i] <= 0,
                                    bound=float(np.broadcast_to(bound, gap.shape)[i])))
     first = next((s for s in diffs if s.differs), None)
+    beside = next((s for s in diffs if s.differs and s.stage in CONTACT_FREE_STAGES), None) if (
+        first is not None and first.stage == "collision") else None
     return DrillDown(member=member, step=step, first_stage=first and first.stage, first_field=first and first.field,
-                     object=first.object if first else "", fields=tuple(diffs), contact=first and first.contact)
+                     object=first.object if first else "", fields=tuple(diffs), contact=first and first.contact,
+                     beside_contacts=beside and dict(stage=beside.stage, field=beside.field, object=beside.object))
+
+
+def first_fields(drill: DrillDown) -> str:
+    """``first field to differ: FIELD (STAGE, OBJECT)``, and the first contact-free field that differs
+    beside a contact (:attr:`DrillDown.beside_contacts`); "" where every stage agrees."""
+    if not drill.first_field:
+        return ""
+    said = f"first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
+    b = drill.beside_contacts
+    return said + (f"; apart from contacts: {b['field']} ({b['stage']}, {b['object']})" if b else "")
 
 
 #: How many float32 roundings a rounding bound allows (MuJoCo's parity method's factor).

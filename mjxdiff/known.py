@@ -29,7 +29,10 @@ field of its own: a reworded message can change the label, so the catalogue uses
 loading an entry that has one warns once), ``cause`` equals the attributed cause (``--diagnose full``), ``integrator``
 is among the model's integrators, ``scenario`` matches the scenario's name, ``impl`` lists the
 implementations under test the entry is about (``mjx``, ``warp``, ``mjx.warp``; ``info.impl``;
-left out, any: the catalogue's entries about MJX's code say ``mjx``).
+left out, any: the catalogue's entries about MJX's code say ``mjx``). An entry with ``pair`` or
+``part`` needs the contacts to be the whole story: it matches no failure that stays with
+contacts disabled (:func:`mjxdiff.support.contacts_ruled_out`) and no drill-down in which a stage
+that reads no contact differs too (``beside_contacts``).
 """
 
 from __future__ import annotations

@@ -290,8 +290,9 @@ class Entry:
     def _contact_fits(self, s: dict[str, Any]) -> bool:
         if self.pair is None and self.part is None:
             return True
-        return any((self.pair is None or re.fullmatch(self.pair, c.get("pair", "")) is not None)
-                   and (self.part is None or c.get("part") == self.part) for c in contacts_shown(s))
+        return not contacts_ruled_out(s) and any(
+            (self.pair is None or re.fullmatch(self.pair, c.get("pair", "")) is not None)
+            and (self.part is None or c.get("part") == self.part) for c in contacts_shown(s))
 
     def matches(self, s: dict[str, Any]) -> bool:
         """Whether a failing scenario (a report's scenario dict) fits this entry."""
@@ -335,11 +336,23 @@ def model_features(m: mujoco.MjModel) -> tuple[str, ...]:
 
 def contacts_shown(s: dict[str, Any]) -> list[dict[str, Any]]:
     """The differing contacts (:func:`mjxdiff.diagnose.contact_detail`) that a failing scenario's
-    drill-downs found: the diagnosis's, the solver floor's, the one-step check's, the twin's."""
+    drill-downs found: the diagnosis's, the solver floor's, the one-step check's, the twin's;
+    not those of a drill-down where a stage that reads no contact differs too
+    (:attr:`mjxdiff.diagnose.DrillDown.beside_contacts`)."""
     info = s.get("info") or {}
-    found = [((s.get("diagnosis") or {}).get("drill_down") or {}).get("contact")]
-    found += [(info.get(check) or {}).get("contact") for check in ("solver_floor", "onestep", "twin")]
-    return [c for c in found if isinstance(c, dict)]
+    drills = [(s.get("diagnosis") or {}).get("drill_down") or {}]
+    drills += [info.get(check) or {} for check in ("solver_floor", "onestep", "twin")]
+    return [d["contact"] for d in drills if isinstance(d.get("contact"), dict) and not d.get("beside_contacts")]
+
+
+def contacts_ruled_out(s: dict[str, Any]) -> bool:
+    """Whether a cause attribution of the failure (the rollout's, the one-step check's) ran with
+    contacts disabled and still failed: the engines part without contacts, so no contact
+    divergence of the catalogue explains it."""
+    info = s.get("info") or {}
+    causes = [(s.get("diagnosis") or {}).get("cause") or {}, (info.get("onestep") or {}).get("cause") or {}]
+    return any(t.get("ablation") == "contacts disabled" and t.get("passed") is False and not t.get("error")
+               for c in causes for t in c.get("tried") or ())
 
 
 def _releases_before(minor: int) -> tuple[str, ...]:

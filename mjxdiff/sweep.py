@@ -788,7 +788,8 @@ def _solver_floor(result: ScenarioResult, case: _Case, clock: dict[str, float]):
         drill = _drill(result, inputs, traj_c, config.precision, case.under_test)
         check: dict[str, Any] = dict(
             first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object, contact=drill.contact,
-            margin=SOLVER_MARGIN, status=f"not needed: the divergence starts in the {drill.first_stage} stage")
+            beside_contacts=drill.beside_contacts, margin=SOLVER_MARGIN,
+            status=f"not needed: the divergence starts in the {drill.first_stage} stage")
         # None: every stage of one forward agrees, so the difference is in what a step does with
         # them, and under RK4 a step solves the constraints four times, from states the drill-down
         # does not see (control-suite cartpole: 1.9e-6 at step 175, gone with a converged solver)
@@ -869,7 +870,7 @@ def _drilled(found: dict, drill: Callable[[], diagnose.DrillDown]) -> diagnose.D
         found["drill_error"] = one_line(e, 300)
         return None
     found.update(first_stage=result.first_stage, first_field=result.first_field, stage_object=result.object,
-                 contact=result.contact)
+                 contact=result.contact, beside_contacts=result.beside_contacts)
     return result
 
 
@@ -907,7 +908,7 @@ def _onestep(result: ScenarioResult, case: _Case, traj_c: Trajectory | None,
     if drill is None:
         where = f"; the drill-down could not run: {found['drill_error']}"
     else:
-        where = (f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
+        where = (f"; {diagnose.first_fields(drill)}"
                  if drill.first_stage else "; every forward stage agrees (the difference is in the integration)")
     if config.diagnose == "full":
         found["cause"] = _onestep_cause(case, traj_c, member, step)
@@ -978,7 +979,7 @@ def _twin(result: ScenarioResult, case: _Case, clock: dict[str, float]) -> tuple
         if drill is None:
             message += f"; the drill-down could not run: {found['drill_error']}"
         elif drill.first_stage:
-            message += f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
+            message += f"; {diagnose.first_fields(drill)}"
     found["seconds"] = time.perf_counter() - t
     status = "fail" if twin.status == "fail" else result.status
     if status == "pass":  # the twin could not be judged (C unstable with a converged solver): say so
@@ -1083,7 +1084,7 @@ def _diagnose(result: ScenarioResult, case: _Case, traj_c: Trajectory | None = N
         diagnosis["local_error"] = local
     if drill is not None:
         if drill.first_field:
-            message += f"; first field to differ: {drill.first_field} ({drill.first_stage}, {drill.object})"
+            message += f"; {diagnose.first_fields(drill)}"
         elif local is not None and max(local[f] / max(getattr(tol, f), 1e-300) for f in local) > 1e-3:
             # mj_forward agrees from the same state, yet one step does not: the update after it
             drill = dataclasses.replace(drill, first_stage="integration", first_field="qpos/qvel update")
@@ -1095,8 +1096,7 @@ def _diagnose(result: ScenarioResult, case: _Case, traj_c: Trajectory | None = N
             if earlier is not None:
                 drill = earlier
                 message += (f"; every stage agrees at that state; the last to differ before it is step "
-                            f"{earlier.step}: first field to differ: {earlier.first_field} ({earlier.first_stage}, "
-                            f"{earlier.object})")
+                            f"{earlier.step}: {diagnose.first_fields(earlier)}")
             else:
                 before = min(DRILL_BACK, result.first_divergence["step"]) if result.first_divergence else 0
                 message += (f"; every stage agrees at that state and at the {before} before it (an accumulation "

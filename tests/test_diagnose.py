@@ -337,3 +337,38 @@ def test_where_every_stage_agrees_at_the_failing_state_the_drill_down_names_the_
     # out of reach: nothing differs in the DRILL_BACK states before a later failure
     late = dataclasses.replace(failing, first_divergence=dict(member=0, step=last + 1 + DRILL_BACK))
     assert _earlier_difference(late, inputs, traj_c, "float64", _LimitedPendulum()) is None
+
+
+def test_a_bias_bug_beside_a_known_contact_approximation_is_named_and_not_labelled_known(fresh_mjx, monkeypatch):
+    """primitive_pairs' first state: MJX's box-box manifold puts the table's contacts 0.28 mm from C's
+    (a catalogued approximation), so the collision stage differs first. Unmodified, nothing else
+    differs, and the failure a sweep would see there is labelled ``box-box-manifold``; with MJX's
+    bias forces 1% high (a stage that reads no contact) the drill-down names the bias stage beside
+    the contacts, and no contact entry labels it (a mutation of MJX's com_vel was labelled so)."""
+    import dataclasses
+
+    from _preconditions import precondition
+    from mjxdiff import diagnose, known
+    from mjxdiff.inputs import make_inputs
+    from mjxdiff.scenario import load_model
+
+    scenario = load_scenario("primitive_pairs")
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, seed=0, batch=1, steps=1)
+    state = (inputs.qpos[0], inputs.qvel[0], inputs.act[0], inputs.ctrl[0, 0], 0.0)
+
+    def failing(drill):
+        return dict(name="primitive_pairs", status="fail", message="", info=dict(impl="mjx"),
+                    diagnosis=dict(drill_down=dataclasses.asdict(drill)))
+
+    clean = diagnose.drill_down(inputs.models[0], *state)
+    precondition(clean.first_stage == "collision" and clean.contact["pair"] == "box-box", "the box-box manifold")
+    assert clean.beside_contacts is None
+    assert known.match(failing(clean)).id == "box-box-manifold"
+    rne = mjx_smooth.rne
+    monkeypatch.setattr(mjx_smooth, "rne", lambda m, d, *a, **k: (lambda r: r.replace(
+        qfrc_bias=r.qfrc_bias * 1.01))(rne(m, d, *a, **k)))
+    bugged = diagnose.drill_down(inputs.models[0], *state)
+    assert bugged.first_stage == "collision" and bugged.beside_contacts["stage"] == "bias", bugged.beside_contacts
+    assert "apart from contacts: qfrc_bias (bias, " in diagnose.first_fields(bugged)
+    assert known.match(failing(bugged)) is None

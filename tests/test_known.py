@@ -198,6 +198,21 @@ REPORTED = [
 ]
 
 
+def test_a_contact_entry_needs_the_contacts_to_be_the_whole_story():
+    """A box-box difference labels a failure only where nothing else says the engines part apart from
+    contacts: not where the failure stays with contacts disabled, nor where a stage that reads no
+    contact differs at the same state (``beside_contacts``)."""
+    failing = dict(REPORTED)["box-box-manifold"]
+    tried = [dict(ablation="contacts disabled", passed=False, error="")]
+    stays = dict(failing, diagnosis=dict(failing["diagnosis"], cause=dict(cause="contact generation", tried=tried)))
+    assert known.match(stays) is None
+    could_not_run = [dict(tried[0], error="MJX failed")]
+    assert known.match(dict(stays, diagnosis=dict(stays["diagnosis"], cause=dict(tried=could_not_run)))
+                       ).id == "box-box-manifold"
+    drill = dict(failing["diagnosis"]["drill_down"], beside_contacts=dict(stage="bias", field="qfrc_bias", object=""))
+    assert known.match(dict(failing, diagnosis=dict(drill_down=drill))) is None
+
+
 def test_a_constraint_failure_the_equality_ablation_removes_is_equality_aref():
     """The Robotiq 2F-85's sweep (its four-bar connects; README, "shrink and bundles"): the drill-down
     names a joint, the equality-constraints ablation names the cause, and that is what matches."""
