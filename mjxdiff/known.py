@@ -21,7 +21,7 @@ drill-down or of the one-step check's (``collision``, ``sensors``, ``constraint`
 first divergent field (``qpos``, ``qvel``, ``sensordata``, ``transfer``, ...), ``pair``
 matches in full the geom types of a contact pair that a drill-down found differing
 (``plane-mesh``, ``box-box``: sorted as MuJoCo numbers them, plane first, a flex ``flex``) and
-``part`` is what differs most there (``count``, ``dist``, ``position``, ``friction``,
+``part`` matches in full what differs most there (``count``, ``dist``, ``position``, ``friction``,
 ``normal``, ``tangent frame``), ``element`` matches in full the first divergence's element as
 ``kind:type`` (``sensor:accelerometer``, ``joint:free``), all three read from the report's
 data; ``pattern`` is found in the message plus the drill-down's object (text, for what has no

@@ -211,6 +211,12 @@ def test_a_contact_entry_needs_the_contacts_to_be_the_whole_story():
                        ).id == "box-box-manifold"
     drill = dict(failing["diagnosis"]["drill_down"], beside_contacts=dict(stage="bias", field="qfrc_bias", object=""))
     assert known.match(dict(failing, diagnosis=dict(drill_down=drill))) is None
+    # MJX's capsule regularisation moves a contact, it makes or drops none: a radius slip (C 1, MJX 0) is not it
+    capsules = dict(pair="capsule-capsule", geoms=["rail", "cap"], c=1, mjx=1, part="normal")
+    moved = dict(failing, diagnosis=dict(drill_down=dict(first_stage="collision", contact=capsules)))
+    assert known.match(moved).id == "capsule-regularisation"
+    dropped = dict(capsules, mjx=0, part="count")
+    assert known.match(dict(moved, diagnosis=dict(drill_down=dict(first_stage="collision", contact=dropped)))) is None
 
 
 def test_a_constraint_failure_the_equality_ablation_removes_is_equality_aref():
