@@ -1,7 +1,8 @@
 """Code the bundled scenarios reach since the coverage round of 2026-11-24 (tendon pulleys and
 geom wrapping, actuators acting in a ball or free joint's parent frame, a rotated mocap body,
 a maxforce contact sensor, tendon armature with a sparse mass matrix, tendon damping under
-implicitfast, a camera in track mode): a one-line slip in each is caught by the scenario that
+implicitfast, a camera in track mode; since 2026-11-29 gravity compensation routed through a
+joint's actuators): a one-line slip in each is caught by the scenario that
 now reaches it, while every other bundled model provably leaves that code out.
 
 Each bug is a monkeypatch of one function inside mujoco.mjx._src that ignores one parameter or
@@ -12,6 +13,7 @@ import mujoco
 import numpy as np
 import pytest
 from mujoco.mjx._src import derivative as mjx_derivative
+from mujoco.mjx._src import passive as mjx_passive
 from mujoco.mjx._src import sensor as mjx_sensor
 from mujoco.mjx._src import smooth as mjx_smooth
 from mujoco.mjx._src import support as mjx_support
@@ -80,6 +82,14 @@ def track_camera_fixed(monkeypatch):
         np.asarray(m.cam_mode))))
 
 
+def actgravcomp_routing_ignored(monkeypatch):
+    """Gravity compensation of a joint with actuatorgravcomp also goes into qfrc_passive: counted twice
+    (a source mutation of MJX's passive that passed every bundled scenario before gravcomp_arm's elbow
+    got actuatorgravcomp)."""
+    model_edited(monkeypatch, mjx_passive, "passive", lambda m: m.replace(
+        jnt_actgravcomp=np.zeros_like(np.asarray(m.jnt_actgravcomp))))
+
+
 def _wraps(m, *kinds) -> bool:
     return bool(np.isin(m.wrap_type, [int(k) for k in kinds]).any())
 
@@ -108,6 +118,7 @@ REACHES = {
     implicit_tendon_damping_ignored: ("integrator_implicitfast", (), lambda m: bool(
         m.opt.integrator == int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST) and np.any(m.tendon_damping > 0))),
     track_camera_fixed: ("sensing", (), lambda m: _camprojection_on(m, mujoco.mjtCamLight.mjCAMLIGHT_TRACK)),
+    actgravcomp_routing_ignored: ("gravcomp_arm", (), lambda m: bool(np.any(m.jnt_actgravcomp))),
 }
 
 
@@ -131,6 +142,7 @@ CATCHES = {
     sparse_tendon_armature_ignored: Expect(_MOVES, r"joint 'pitch'"),
     implicit_tendon_damping_ignored: Expect(_MOVES, r"joint 'j3'"),
     track_camera_fixed: Expect(("sensordata",), r"sensor 'cube_tracked' \(camprojection\)"),
+    actgravcomp_routing_ignored: Expect((*_MOVES, "sensordata"), r"joint 'elbow'|sensor 'elbow_actfrc' \(.*\)"),
 }
 
 
