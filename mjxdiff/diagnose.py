@@ -77,6 +77,8 @@ class StageDiff:
     differs: bool
     contact: dict[str, Any] | None = None
     bound: float = float("nan")
+    #: the element behind :attr:`object`, as data (:func:`_element`); None for a body or a contact
+    element: dict[str, str] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,6 +101,10 @@ class DrillDown:
     fields: tuple[StageDiff, ...]
     #: the first differing field's :attr:`StageDiff.contact`, where that field is ``contact``
     contact: dict[str, Any] | None = None
+    #: the element of :attr:`object` as data (``kind``, ``name``, ``type``: a tendon's ``fixed``,
+    #: ``spatial`` or ``spatial-sidesite``, a joint's type, a sensor's), what catalogue entries
+    #: match on (:attr:`mjxdiff.support.Entry.element`); None for a body or a contact
+    element: dict[str, str] | None = None
     #: where the first stage to differ is ``collision``: the first field of a later stage that
     #: reads no contact (:data:`CONTACT_FREE_STAGES`) that differs too, as ``stage``, ``field``
     #: and ``object``; None if none does. A contact difference is then not the whole story: the
@@ -112,21 +118,43 @@ def _name(m: mujoco.MjModel, obj: mujoco.mjtObj, i: int) -> str:
 
 
 def _object(m: mujoco.MjModel, field: str, index: int) -> str:
-    """The MuJoCo object behind a flat index into ``field``."""
+    """The MuJoCo object behind a flat index into ``field``, as reports name it."""
+    from mjxdiff.verdict import describe
+
     if field in ("xpos", "xquat", "xipos"):
         return f"body '{_name(m, mujoco.mjtObj.mjOBJ_BODY, index)}'"
+    element = _element(m, field, index)
+    return describe(element) if element else ""
+
+
+def _tendon_type(m: mujoco.MjModel, t: int) -> str:
+    """``fixed``, ``spatial``, or ``spatial-sidesite`` (a spatial tendon that wraps a sphere or
+    cylinder on the side of a sidesite)."""
+    wraps = range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t])
+    if any(m.wrap_type[i] == int(mujoco.mjtWrap.mjWRAP_JOINT) for i in wraps):
+        return "fixed"
+    geom = (int(mujoco.mjtWrap.mjWRAP_SPHERE), int(mujoco.mjtWrap.mjWRAP_CYLINDER))
+    return "spatial-sidesite" if any(m.wrap_type[i] in geom and m.wrap_prm[i] >= 0 for i in wraps) else "spatial"
+
+
+def _element(m: mujoco.MjModel, field: str, index: int) -> dict[str, str] | None:
+    """The MuJoCo element behind a flat index into ``field``, as data (``kind``, ``name``, ``type``,
+    as :func:`mjxdiff.verdict.component_elements` gives them for the rollout's fields): a joint's
+    ``free``/``ball``/``slide``/``hinge``, a sensor's ``accelerometer``, ..., a tendon's
+    :func:`_tendon_type`; None for a body or a field without one."""
     if field in ("qM", "qfrc_passive", "qfrc_bias", "qfrc_actuator", "qacc_smooth", "qfrc_constraint", "qacc"):
-        dof = index % m.nv if field == "qM" else index
-        return f"joint '{_name(m, mujoco.mjtObj.mjOBJ_JOINT, m.dof_jntid[dof])}'"
+        j = int(m.dof_jntid[index % m.nv if field == "qM" else index])
+        return dict(kind="joint", name=_name(m, mujoco.mjtObj.mjOBJ_JOINT, j),
+                    type=mujoco.mjtJoint(m.jnt_type[j]).name[len("mjJNT_"):].lower())
     if field == "ten_length":
-        return f"tendon '{_name(m, mujoco.mjtObj.mjOBJ_TENDON, index)}'"
+        return dict(kind="tendon", name=_name(m, mujoco.mjtObj.mjOBJ_TENDON, index), type=_tendon_type(m, index))
     if field == "actuator_force":
-        return f"actuator '{_name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, index)}'"
+        return dict(kind="actuator", name=_name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, index), type="")
     if field == "sensordata":
-        s = int(np.searchsorted(m.sensor_adr, index, side="right") - 1)
-        kind = mujoco.mjtSensor(m.sensor_type[s]).name[len("mjSENS_"):].lower()
-        return f"sensor '{_name(m, mujoco.mjtObj.mjOBJ_SENSOR, s)}' ({kind})"
-    return ""
+        sid = int(np.searchsorted(m.sensor_adr, index, side="right") - 1)
+        return dict(kind="sensor", name=_name(m, mujoco.mjtObj.mjOBJ_SENSOR, sid),
+                    type=mujoco.mjtSensor(m.sensor_type[sid]).name[len("mjSENS_"):].lower())
+    return None
 
 
 def contact_detail(pair: str, geoms: tuple[str, ...], c: int, mjx: int, part: str | None) -> dict[str, Any]:
@@ -213,12 +241,13 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
             over = np.where(np.isnan(gap), np.inf, gap - bound)
             i = int(np.argmax(over))
             diffs.append(StageDiff(stage, f, float(gap[i]) / (1 + scale), _object(m, f, i), not over[i] <= 0,
-                                   bound=float(np.broadcast_to(bound, gap.shape)[i])))
+                                   bound=float(np.broadcast_to(bound, gap.shape)[i]), element=_element(m, f, i)))
     first = next((s for s in diffs if s.differs), None)
     beside = next((s for s in diffs if s.differs and s.stage in CONTACT_FREE_STAGES), None) if (
         first is not None and first.stage == "collision") else None
     return DrillDown(member=member, step=step, first_stage=first and first.stage, first_field=first and first.field,
                      object=first.object if first else "", fields=tuple(diffs), contact=first and first.contact,
+                     element=first and first.element,
                      beside_contacts=beside and dict(stage=beside.stage, field=beside.field, object=beside.object))
 
 

@@ -270,8 +270,10 @@ class Entry:
     #: ``dist``, ``position``, ``friction``, ``normal`` or ``tangent frame``
     #: (:func:`mjxdiff.diagnose.contact_detail`).
     part: str | None = None
-    #: A regular expression the first divergence's element, as ``kind:type``, must match in full
-    #: (``sensor:accelerometer``, ``joint:free``; :func:`mjxdiff.verdict.component_elements`).
+    #: A regular expression an element the failure names, as ``kind:type``, must match in full
+    #: (``sensor:accelerometer``, ``joint:free``, ``tendon:spatial-sidesite``): the first
+    #: divergence's (:func:`mjxdiff.verdict.component_elements`) or a drill-down's first differing
+    #: field's (:func:`elements_shown`).
     element: str | None = None
     #: The implementations under test this entry is about (a report's ``info.impl``: ``mjx`` for
     #: MJX's JAX implementation, ``warp`` for MuJoCo Warp, ``mjx.warp`` for MJX's warp
@@ -282,11 +284,12 @@ class Entry:
     #: must match in full: what a divergence needs in the model that no drill-down shows.
     feature: str | None = None
 
-    def _element_fits(self, first: dict[str, Any]) -> bool:
+    def _element_fits(self, s: dict[str, Any]) -> bool:
         if self.element is None:
             return True
-        e = first.get("element")
-        return isinstance(e, dict) and re.fullmatch(self.element, f"{e.get('kind')}:{e.get('type')}") is not None
+        element = self.element
+        return any(isinstance(e, dict) and re.fullmatch(element, f"{e.get('kind')}:{e.get('type')}") is not None
+                   for e in elements_shown(s))
 
     def _contact_fits(self, s: dict[str, Any]) -> bool:
         if self.pair is None and self.part is None:
@@ -314,7 +317,7 @@ class Entry:
             self.stage is None or self.stage in (drill.get("first_stage"), one.get("first_stage")),
             self.field is None or first.get("field") == self.field,
             self._contact_fits(s),
-            self._element_fits(first),
+            self._element_fits(s),
             self.pattern is None or re.search(self.pattern, text) is not None,
             self.cause is None or (diag.get("cause") or {}).get("cause") == self.cause,
             not self.integrator or (s.get("info") or {}).get("integrator") in self.integrator,
@@ -345,6 +348,18 @@ def contacts_shown(s: dict[str, Any]) -> list[dict[str, Any]]:
     drills = [(s.get("diagnosis") or {}).get("drill_down") or {}]
     drills += [info.get(check) or {} for check in ("solver_floor", "onestep", "twin")]
     return [d["contact"] for d in drills if isinstance(d.get("contact"), dict) and not d.get("beside_contacts")]
+
+
+def elements_shown(s: dict[str, Any]) -> list[dict[str, Any]]:
+    """The elements a failing scenario names as data: its first divergence's
+    (:func:`mjxdiff.verdict.component_elements`) and those of the first differing field of its
+    drill-downs (:attr:`mjxdiff.diagnose.DrillDown.element`: a tendon's ``spatial-sidesite``, ...)."""
+    info = s.get("info") or {}
+    found = [(s.get("first_divergence") or {}).get("element"),
+             ((s.get("diagnosis") or {}).get("drill_down") or {}).get("element"),
+             (info.get("solver_floor") or {}).get("element")]
+    found += [(info.get(check) or {}).get("stage_element") for check in ("onestep", "twin")]
+    return [e for e in found if isinstance(e, dict)]
 
 
 def contacts_ruled_out(s: dict[str, Any]) -> bool:
@@ -483,7 +498,7 @@ _MEASURED: tuple[Entry, ...] = (
           "tendon: ten_length C 1.438173, MJX 1.441468 at step 0. C 4.0 picks the side by the winding of end0 -> "
           "sidesite -> end1 around the wrap geom (MuJoCo Warp 4.0 too), MJX 3.17 by the older rule (the arc "
           "whose middle is nearest the sidesite's direction): near the sidesite's symmetry plane they part",
-          stage="tendons",
+          stage="tendons", element="tendon:spatial-sidesite",
           kind="bug", bundle="tests/data/bundles/tendon-wrap-sidesite",
           remedy="move the tendon's sidesite away from the plane of symmetry between the tendon's ends (the "
                  "engines agree away from it)"),

@@ -788,7 +788,7 @@ def _solver_floor(result: ScenarioResult, case: _Case, clock: dict[str, float]):
         drill = _drill(result, inputs, traj_c, config.precision, case.under_test)
         check: dict[str, Any] = dict(
             first_stage=drill.first_stage, first_field=drill.first_field, object=drill.object, contact=drill.contact,
-            beside_contacts=drill.beside_contacts, margin=SOLVER_MARGIN,
+            element=drill.element, beside_contacts=drill.beside_contacts, margin=SOLVER_MARGIN,
             status=f"not needed: the divergence starts in the {drill.first_stage} stage")
         # None: every stage of one forward agrees, so the difference is in what a step does with
         # them, and under RK4 a step solves the constraints four times, from states the drill-down
@@ -870,7 +870,7 @@ def _drilled(found: dict, drill: Callable[[], diagnose.DrillDown]) -> diagnose.D
         found["drill_error"] = one_line(e, 300)
         return None
     found.update(first_stage=result.first_stage, first_field=result.first_field, stage_object=result.object,
-                 contact=result.contact, beside_contacts=result.beside_contacts)
+                 contact=result.contact, beside_contacts=result.beside_contacts, stage_element=result.element)
     return result
 
 

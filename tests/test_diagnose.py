@@ -372,3 +372,19 @@ def test_a_bias_bug_beside_a_known_contact_approximation_is_named_and_not_labell
     assert bugged.first_stage == "collision" and bugged.beside_contacts["stage"] == "bias", bugged.beside_contacts
     assert "apart from contacts: qfrc_bias (bias, " in diagnose.first_fields(bugged)
     assert known.match(failing(bugged)) is None
+
+
+def test_a_drill_down_names_its_element_as_data_a_tendon_by_its_kind_of_path():
+    """What catalogue entries match on (tendon-wrap-sidesite: a spatial tendon that wraps a geom on a
+    sidesite's side), from the tendons scenario's five tendons."""
+    import mujoco
+
+    from mjxdiff import diagnose
+    from mjxdiff.scenario import load_model
+
+    m = load_model(load_scenario("tendons"))
+    kinds = {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_TENDON, t): diagnose._element(m, "ten_length", t)["type"]
+             for t in range(m.ntendon)}
+    assert kinds == dict(coupling="fixed", cable="spatial", lift="spatial", flexor="spatial",
+                         extensor="spatial-sidesite")
+    assert diagnose._element(m, "qfrc_bias", 0)["kind"] == "joint" and diagnose._element(m, "xpos", 1) is None

@@ -68,9 +68,15 @@ def test_entries_match_on_what_the_diagnosis_says():
                        ).id == "contact-tangent-frame"
     # a tendon's wrap side shows in the tendons stage, named; a tendon's armature as a joint's qM,
     # which an armature or mass bug shows too: that entry labels nothing
+    sided = dict(kind="tendon", name="t0", type="spatial-sidesite")
     wrap = dict(failing, message="first field to differ: ten_length (tendons, tendon 't0')",
-                diagnosis=dict(drill_down=dict(first_stage="tendons", object="tendon 't0'")))
+                diagnosis=dict(drill_down=dict(first_stage="tendons", object="tendon 't0'", element=sided)))
     assert known.match(wrap).id == "tendon-wrap-sidesite"
+    # a fixed tendon's length (a source mutation of MJX dropping its coefficients was labelled so), or
+    # a spatial tendon without a sidesite, is another matter
+    for other in ("fixed", "spatial"):
+        drill = dict(wrap["diagnosis"]["drill_down"], element=dict(sided, type=other))
+        assert known.match(dict(wrap, diagnosis=dict(drill_down=drill))) is None, other
     inertia = dict(failing, message="first field to differ: qM (inertia, joint 'j1')",
                    diagnosis=dict(drill_down=dict(first_stage="inertia", object="joint 'j1'")))
     assert known.match(inertia) is None
