@@ -55,8 +55,8 @@ def test_a_c_crash_mid_stream_is_that_scenarios_engine_error(monkeypatch):
     inputs = make_inputs(scenario, m, seed=0, batch=2, steps=100)
     real = CEngine.stream
 
-    def crashing(self, inputs, chunk):
-        pieces = real(self, inputs, chunk)
+    def crashing(self, inputs, chunk, *args, **kwargs):
+        pieces = real(self, inputs, chunk, *args, **kwargs)
         yield next(pieces)  # a real first piece, then the crash
         raise RuntimeError("mj_step: simulated crash")
 
@@ -78,9 +78,9 @@ def _c_batches(monkeypatch) -> list[int]:
     """The batch size of every C stream the sweep opens, in order."""
     sizes, real = [], CEngine.stream
 
-    def recording(self, inputs, chunk):
+    def recording(self, inputs, chunk, *args, **kwargs):
         sizes.append(inputs.batch)
-        return real(self, inputs, chunk)
+        return real(self, inputs, chunk, *args, **kwargs)
 
     monkeypatch.setattr(CEngine, "stream", recording)
     return sizes
