@@ -38,9 +38,16 @@ def test_bench_unknown_scenario_exits_2(capsys):
 
 
 def test_measure_sees_memory_and_time():
+    import time
+
     import numpy as np
 
-    out, m = measure(lambda: np.ones(64 * 2**20 // 8).sum())  # 64 MiB
+    def hold():  # 64 MiB, held while the sampler (every 5 ms) looks: a busy machine may not schedule it sooner
+        x = np.ones(64 * 2**20 // 8)
+        time.sleep(0.2)
+        return x.sum()
+
+    out, m = measure(hold)
     assert out == 64 * 2**20 // 8
     assert m.seconds > 0 and m.peak_mib > 30
 
