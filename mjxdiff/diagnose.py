@@ -117,13 +117,13 @@ def _name(m: mujoco.MjModel, obj: mujoco.mjtObj, i: int) -> str:
     return mujoco.mj_id2name(m, obj, int(i)) or f"#{int(i)}"
 
 
-def _object(m: mujoco.MjModel, field: str, index: int) -> str:
-    """The MuJoCo object behind a flat index into ``field``, as reports name it."""
+def _object(m: mujoco.MjModel, field: str, index: int, element: dict[str, str] | None) -> str:
+    """The MuJoCo object behind a flat index into ``field``, as reports name it (``element``: its
+    :func:`_element`)."""
     from mjxdiff.verdict import describe
 
     if field in ("xpos", "xquat", "xipos"):
         return f"body '{_name(m, mujoco.mjtObj.mjOBJ_BODY, index)}'"
-    element = _element(m, field, index)
     return describe(element) if element else ""
 
 
@@ -240,8 +240,9 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
             bound = thresholds.stage_bound(stage, scale) + extra.get(f, 0.0)  # scalar, or per component
             over = np.where(np.isnan(gap), np.inf, gap - bound)
             i = int(np.argmax(over))
-            diffs.append(StageDiff(stage, f, float(gap[i]) / (1 + scale), _object(m, f, i), not over[i] <= 0,
-                                   bound=float(np.broadcast_to(bound, gap.shape)[i]), element=_element(m, f, i)))
+            element = _element(m, f, i)
+            diffs.append(StageDiff(stage, f, float(gap[i]) / (1 + scale), _object(m, f, i, element), not over[i] <= 0,
+                                   bound=float(np.broadcast_to(bound, gap.shape)[i]), element=element))
     first = next((s for s in diffs if s.differs), None)
     beside = next((s for s in diffs if s.differs and s.stage in CONTACT_FREE_STAGES), None) if (
         first is not None and first.stage == "collision") else None

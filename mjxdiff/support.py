@@ -287,8 +287,7 @@ class Entry:
     def _element_fits(self, s: dict[str, Any]) -> bool:
         if self.element is None:
             return True
-        element = self.element
-        return any(isinstance(e, dict) and re.fullmatch(element, f"{e.get('kind')}:{e.get('type')}") is not None
+        return any(isinstance(e, dict) and re.fullmatch(self.element, f"{e.get('kind')}:{e.get('type')}") is not None
                    for e in elements_shown(s))
 
     def _contact_fits(self, s: dict[str, Any]) -> bool:
