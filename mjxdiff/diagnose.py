@@ -142,18 +142,16 @@ def _element(m: mujoco.MjModel, field: str, index: int) -> dict[str, str] | None
     as :func:`mjxdiff.verdict.component_elements` gives them for the rollout's fields): a joint's
     ``free``/``ball``/``slide``/``hinge``, a sensor's ``accelerometer``, ..., a tendon's
     :func:`_tendon_type`; None for a body or a field without one."""
+    from mjxdiff.verdict import joint_element, sensor_element
+
     if field in ("qM", "qfrc_passive", "qfrc_bias", "qfrc_actuator", "qacc_smooth", "qfrc_constraint", "qacc"):
-        j = int(m.dof_jntid[index % m.nv if field == "qM" else index])
-        return dict(kind="joint", name=_name(m, mujoco.mjtObj.mjOBJ_JOINT, j),
-                    type=mujoco.mjtJoint(m.jnt_type[j]).name[len("mjJNT_"):].lower())
+        return joint_element(m, int(m.dof_jntid[index % m.nv if field == "qM" else index]))
     if field == "ten_length":
         return dict(kind="tendon", name=_name(m, mujoco.mjtObj.mjOBJ_TENDON, index), type=_tendon_type(m, index))
     if field == "actuator_force":
         return dict(kind="actuator", name=_name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, index), type="")
     if field == "sensordata":
-        sid = int(np.searchsorted(m.sensor_adr, index, side="right") - 1)
-        return dict(kind="sensor", name=_name(m, mujoco.mjtObj.mjOBJ_SENSOR, sid),
-                    type=mujoco.mjtSensor(m.sensor_type[sid]).name[len("mjSENS_"):].lower())
+        return sensor_element(m, int(np.searchsorted(m.sensor_adr, index, side="right") - 1))
     return None
 
 

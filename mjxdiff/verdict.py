@@ -45,22 +45,29 @@ def _name(m: mujoco.MjModel, obj: mujoco.mjtObj, i: int) -> str:
     return mujoco.mj_id2name(m, obj, int(i)) or f"#{int(i)}"
 
 
+def joint_element(m: mujoco.MjModel, j: int) -> dict[str, str]:
+    """Joint ``j`` as data: ``kind`` joint, its ``name``, its ``type`` (``free``, ``ball``, ``slide``, ``hinge``)."""
+    kind = mujoco.mjtJoint(m.jnt_type[j]).name.removeprefix("mjJNT_").lower()
+    return dict(kind="joint", name=_name(m, mujoco.mjtObj.mjOBJ_JOINT, j), type=kind)
+
+
+def sensor_element(m: mujoco.MjModel, s: int) -> dict[str, str]:
+    """Sensor ``s`` as data: ``kind`` sensor, its ``name``, its ``type`` (``accelerometer``, ``touch``, ...)."""
+    kind = mujoco.mjtSensor(m.sensor_type[s]).name.removeprefix("mjSENS_").lower()
+    return dict(kind="sensor", name=_name(m, mujoco.mjtObj.mjOBJ_SENSOR, s), type=kind)
+
+
 def component_elements(m: mujoco.MjModel, layout: metrics.QposLayout) -> dict[str, list[dict[str, str]]]:
     """For each compared field, the MuJoCo element each column belongs to, as data:
     ``kind`` (``joint``, ``sensor``, ``actuator``), ``name`` and ``type`` (a joint's ``free``,
     ``ball``, ``slide`` or ``hinge``, a sensor's ``accelerometer``, ``contact``, ...; an
     actuator's ``""``). What known entries match on (:attr:`mjxdiff.support.Entry.element`)."""
 
-    def jnt(j):
-        kind = mujoco.mjtJoint(m.jnt_type[j]).name.removeprefix("mjJNT_").lower()
-        return dict(kind="joint", name=_name(m, mujoco.mjtObj.mjOBJ_JOINT, j), type=kind)
-
-    qpos = [jnt(j) for j in metrics.qpos_error_joint_ids(layout)]
-    qvel = [jnt(j) for j in m.dof_jntid]
+    qpos = [joint_element(m, j) for j in metrics.qpos_error_joint_ids(layout)]
+    qvel = [joint_element(m, j) for j in m.dof_jntid]
     sens = []
     for s in range(m.nsensor):
-        kind = mujoco.mjtSensor(m.sensor_type[s]).name.removeprefix("mjSENS_").lower()
-        sens += [dict(kind="sensor", name=_name(m, mujoco.mjtObj.mjOBJ_SENSOR, s), type=kind)] * int(m.sensor_dim[s])
+        sens += [sensor_element(m, s)] * int(m.sensor_dim[s])
     act = []
     for a in range(m.nu):
         act += [dict(kind="actuator", name=_name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a), type="")] * max(
