@@ -46,9 +46,9 @@ from jax import export
 
 from mjxdiff.files import atomic_write
 
-__all__ = ["audit", "bind", "call", "check", "clear", "code_digest", "count", "events", "events_since", "evict",
-           "export_dir", "fresh_digest", "loaded_count", "rollout_digest", "settings_digest", "tally", "traced_code",
-           "uncovered", "untraced"]
+__all__ = ["audit", "bind", "call", "check", "clear", "code_digest", "code_read_once", "count", "events",
+           "events_since", "evict", "export_dir", "fresh_digest", "loaded_count", "rollout_digest", "settings_digest",
+           "tally", "traced_code", "uncovered", "untraced"]
 
 # (arguments' key, whole-code digest, options key) -> (output tree structure, compiled call of an
 # Exported, what the options chose)
@@ -103,7 +103,8 @@ def tally():
 
 
 #: Modules whose code a rollout traces: MJX's, and mjxdiff's own traced functions.
-TRACED_MODULES = ("mujoco.mjx", "mjxdiff.engines", "mjxdiff.trajectory", "mjxdiff.joints", "mjxdiff.compat")
+TRACED_MODULES = ("mujoco.mjx", "mjxdiff.engines", "mjxdiff.trajectory", "mjxdiff.joints", "mjxdiff.compat",
+                  "mjxdiff.stages")
 #: JAX settings that change what a trace or XLA produces.
 _JAX_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion",
                  "jax_default_prng_impl", "jax_threefry_partitionable", "jax_use_shardy_partitioner")
@@ -326,12 +327,43 @@ def code_digest(modules: tuple[str, ...] = ("mujoco.mjx",), names: Sequence[str]
 
     ``report.json`` names the MJX that was tested by ``code_digest()``.
     """
+    if not _ONCE["depth"]:
+        return _read_code(modules, names)
+    once = (modules, None if names is None else tuple(sorted(names)))
+    with _ONCE_LOCK:  # threads asking at once wait for the one reading
+        if once not in _ONCE["memo"]:
+            _ONCE["memo"][once] = _read_code(modules, names)
+        return _ONCE["memo"][once]
+
+
+def _read_code(modules: tuple[str, ...], names: Sequence[str] | None) -> str:
     d = _Digest(modules)
     found = _modules(modules) if names is None else [(n, importlib.import_module(n)) for n in sorted(names)]
     for name, module in found:
         d.h.update(b"module " + name.encode())
         _feed_module(d, module)
     return d.h.hexdigest()
+
+
+_ONCE: dict[str, Any] = {"depth": 0, "memo": {}}  # open code_read_once blocks; (modules, names) -> digest
+_ONCE_LOCK = threading.RLock()
+
+
+@contextlib.contextmanager
+def code_read_once() -> Iterator[None]:
+    """While the block runs (in any thread), :func:`code_digest` reads each set of modules once:
+    a sweep judges the code loaded when it began, and an edit or a patch made in the middle of
+    one is seen by the next. A digest costs ~40 ms; a warm sweep asked for one ~130 times
+    (each rollout's bind, each scenario's record), a tenth of its CPU time."""
+    with _ONCE_LOCK:
+        _ONCE["depth"] += 1
+    try:
+        yield
+    finally:
+        with _ONCE_LOCK:
+            _ONCE["depth"] -= 1
+            if not _ONCE["depth"]:
+                _ONCE["memo"].clear()
 
 
 def loaded_modules(modules: tuple[str, ...] = ("mujoco.mjx",)) -> list[str]:

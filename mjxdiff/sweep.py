@@ -1252,24 +1252,25 @@ def sweep(scenarios: Sequence[Scenario], config: SweepConfig = SweepConfig(),
             running[i] = pool.submit(run, i, scenarios[i])
 
     results = []
-    try:
-        for i in range(2 * workers):
-            submit(i)
-        for i, scenario in enumerate(scenarios):
-            submit(i + 2 * workers)
-            bar.start(i, scenario.name)
-            try:
-                result = running.pop(i).result() if i in running else run(i, scenario)
-            except Exception as e:  # noqa: BLE001 - one scenario's trouble stays that scenario's
-                result = ScenarioResult(name=scenario.name, status="error", error_kind="internal",
-                                        message=f"mjxdiff itself failed on this scenario: {one_line(e)}")
-            results.append(result)
-            if on_result:
-                on_result(result)
-            release_compiled_if_crowded()
-    finally:
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+    with export_cache.code_read_once():  # one reading of the code serves the whole sweep
+        try:
+            for i in range(2 * workers):
+                submit(i)
+            for i, scenario in enumerate(scenarios):
+                submit(i + 2 * workers)
+                bar.start(i, scenario.name)
+                try:
+                    result = running.pop(i).result() if i in running else run(i, scenario)
+                except Exception as e:  # noqa: BLE001 - one scenario's trouble stays that scenario's
+                    result = ScenarioResult(name=scenario.name, status="error", error_kind="internal",
+                                            message=f"mjxdiff itself failed on this scenario: {one_line(e)}")
+                results.append(result)
+                if on_result:
+                    on_result(result)
+                release_compiled_if_crowded()
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
     return results
 
 

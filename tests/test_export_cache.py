@@ -201,6 +201,27 @@ def test_the_digest_is_stable_across_rollouts_and_processes(pendulum):
     assert other.stdout.split()[-1] == before, other.stderr[-2000:]
 
 
+def test_inside_code_read_once_the_code_is_read_once_and_a_patch_is_seen_after(monkeypatch):
+    """A sweep reads the code once (a warm sweep asked ~130 times, a tenth of its CPU); a patch
+    made inside is seen as soon as the block ends, and outside every call reads afresh."""
+    before = export_cache.rollout_digest()
+    reads = []
+    feed = export_cache._feed_module
+    monkeypatch.setattr(export_cache, "_feed_module", lambda d, module: (reads.append(module), feed(d, module))[1])
+    with export_cache.code_read_once():
+        assert export_cache.rollout_digest() == before
+        first = len(reads)
+        assert first
+        monkeypatch.setattr(mjx_passive, "_spring_damper", _damping_patch(1e-3))
+        assert export_cache.rollout_digest() == before, "the block's one reading"
+        assert len(reads) == first, "the code was read again inside the block"
+    patched = export_cache.rollout_digest()
+    assert patched != before
+    assert len(reads) == 2 * first
+    monkeypatch.setattr(mjx_passive, "_spring_damper", _damping_patch(2e-3))
+    assert export_cache.rollout_digest() != patched
+
+
 def _artifact():
     """The file of the one rollout compiled in this process (artifacts live in a directory named by
     the arguments' key, one file per set of traced code)."""

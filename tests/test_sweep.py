@@ -166,13 +166,20 @@ def test_contact_count_mismatches_start_the_rerun(tmp_path, monkeypatch):
     assert runs["on-demand"].field("contacts").envelope == runs["always"].field("contacts").envelope
 
 
-def test_scenarios_side_by_side_judge_as_one_after_another_each_in_its_own_precision():
+def test_scenarios_side_by_side_judge_as_one_after_another_each_in_its_own_precision(monkeypatch):
     """Workers run whole scenarios at once, each setting jax_enable_x64 for its own thread only:
-    a float32 sweep on two workers, next to a float64 thread, judges exactly as one after another."""
+    a float32 sweep on two workers, next to a float64 thread, judges exactly as one after another.
+    Each sweep reads MJX's code once, whatever its scenarios and threads ask."""
     import jax
+    import mujoco.mjx
     import numpy as np
 
+    from mjxdiff import export_cache
     from mjxdiff.sweep import _precision, sweep
+
+    reads = []
+    feed = export_cache._feed_module
+    monkeypatch.setattr(export_cache, "_feed_module", lambda d, module: (reads.append(module), feed(d, module))[1])
 
     scenarios = [load_scenario(n) for n in ("pendulum", "cartpole", "double_pendulum")]
     config = SweepConfig(seed=1, batch=2, steps=40, diagnose="none", precision="float32")
@@ -194,7 +201,10 @@ def test_scenarios_side_by_side_judge_as_one_after_another_each_in_its_own_preci
         stop.set()
         neighbour.join()
     assert seen and set(seen) == {np.dtype(np.float64)}, "the float64 thread kept its precision throughout"
+    # the rollouts' code (mjx and mjxdiff's traced modules) and the report's (mjx alone): two readings
+    assert reads.count(mujoco.mjx) == 2, len(reads)
     one_by_one = sweep(scenarios, dataclasses.replace(config, compile_workers=0))
+    assert reads.count(mujoco.mjx) == 4, len(reads)
     assert jax.config.jax_enable_x64 == before, "the process-wide setting is left as it was"
     assert [r.name for r in side_by_side] == [s.name for s in scenarios]
     for a, b in zip(side_by_side, one_by_one, strict=True):
