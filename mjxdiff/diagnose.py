@@ -31,12 +31,13 @@ from mjxdiff.compat import full_inertia, sensor_types
 from mjxdiff import metrics
 from mjxdiff.engines import CEngine, MJXEngine, Trajectory
 from mjxdiff.inputs import BatchedInputs
+from mjxdiff.support import NO_CONTACTS
 from mjxdiff.noise import converge_solver
 
 if TYPE_CHECKING:
     from mjxdiff.trajectory import Engine
 
-__all__ = ["STAGES", "CONTACT_FREE_STAGES", "StageDiff", "DrillDown", "contact_detail", "drill_down",
+__all__ = ["STAGES", "CONTACT_FREE_STAGES", "StageDiff", "DrillDown", "contact_detail", "drill_down", "reconcile_cause",
            "first_fields", "local_error", "attribute_cause", "ABLATIONS", "GENUINE", "UNCLASSIFIED"]
 
 #: Pipeline stages in the order ``mj_forward`` computes them, with their fields.
@@ -459,12 +460,27 @@ _APPLIES: dict[Callable[[mujoco.MjModel], None], Callable[[mujoco.MjModel], bool
 #: not converge, truncation amplified by chaos cannot hide what the ablation removes.
 ABLATIONS: tuple[tuple[str, str, Callable[[mujoco.MjModel], None]], ...] = (
     ("solver convergence", "converged solver (200 iterations, tolerance 1e-14)", converge_solver),
-    ("contact generation", "contacts disabled", _no_contacts),
+    ("contact generation", NO_CONTACTS, _no_contacts),
     (CLAMPED, "actuator force clamps removed (forcerange, actuatorfrcrange)", _no_actuator_clamps),
     (EQUALITY, "equality constraints disabled", _no_equality),
     ("integration", "timestep / 4", _quarter_timestep),
     ("integration", "other integrator (Euler <-> RK4)", _other_integrator),
 )
+
+
+def reconcile_cause(cause: dict[str, Any], drill: DrillDown | None) -> dict[str, Any]:
+    """``cause`` (:func:`attribute_cause` of a rollout), unless an integration ablation passed while
+    the drill-down found a forward stage that differs from C's state: a smaller timestep or another
+    integrator changes the whole trajectory, so it can pass by never reaching the state where the
+    engines part (a limit band never entered), while the difference lies before any integration.
+    Then the cause is :data:`GENUINE`, with ``evidence`` saying why and the ablation kept as
+    ``steered_clear``."""
+    if cause.get("cause") != "integration" or drill is None or drill.first_stage in (None, "integration"):
+        return cause
+    return dict(cause, cause=GENUINE, ablation=None, steered_clear=cause.get("ablation"),
+                evidence=f"'{cause.get('ablation')}' passes, yet from C's state at step {drill.step} the engines "
+                         f"already differ in {drill.first_stage} ({drill.first_field} of {drill.object}), before "
+                         "any integration: the ablated rollout steered clear of that state")
 
 
 class Ablatable(Protocol):

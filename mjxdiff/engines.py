@@ -71,7 +71,7 @@ from mjxdiff.compat import (BALANCED_COMPILE, FAST_COMPILE, Batch, SimulationErr
 from mjxdiff.precision import Precision  # noqa: E402
 from mjxdiff import compat, export_cache, joints, stages  # noqa: E402
 from mjxdiff.stages import Forward  # noqa: E402
-from mjxdiff.inputs import BatchedInputs  # noqa: E402
+from mjxdiff.inputs import BatchedInputs, roundoff_moved  # noqa: E402
 # Trajectory and Engine live in mjxdiff.trajectory (no MJX there); kept importable from here
 from mjxdiff.trajectory import Engine, Streaming, Trajectory, concat, first_true, resync_blocks, shifted  # noqa: E402
 
@@ -225,8 +225,7 @@ class _Shake:
     def move(self, x: np.ndarray, field: int) -> None:
         """Moves the jittered rows of ``x`` (B, n) in place, one step's worth."""
         signs = np.stack([2.0 * rng[field].integers(0, 2, x.shape[1]) - 1.0 for rng in self.rngs])
-        rows = x[self.rows]
-        x[self.rows] = rows + signs * self.size * np.maximum(np.abs(rows), 1.0)
+        x[self.rows] = roundoff_moved(x[self.rows], signs, self.size)
 
 
 def _rollout_shaken(b: Any, k: int, control: np.ndarray, record: tuple, out: dict, shake: _Shake) -> np.ndarray:

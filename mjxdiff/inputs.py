@@ -140,6 +140,13 @@ def _initial_qpos(m: mujoco.MjModel, base: np.ndarray, noise: float, batch: int,
     return qpos
 
 
+def roundoff_moved(x: np.ndarray, signs: np.ndarray, size: float | np.ndarray) -> np.ndarray:
+    """``x + signs * size * max(|x|, 1)``: ``x`` moved by ``size`` relative units of roundoff per
+    component (absolute below 1), in the direction of ``signs`` (+-1, ``x``'s shape). The move of
+    C's perturbed rerun (:func:`mjxdiff.noise.perturb`) and of its float32 shadow's every step."""
+    return x + signs * size * np.maximum(np.abs(x), 1.0)
+
+
 def knot_every(timestep: float) -> int:
     """Steps between two knots of step and smooth controls: about :data:`CONTROL_KNOT_SECONDS`
     of simulated time, at least 1. A rollout of T steps has ``T // knot_every + 2`` knots."""

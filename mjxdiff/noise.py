@@ -40,7 +40,7 @@ from mjxdiff.precision import THRESHOLDS, Precision
 from mjxdiff import metrics
 from mjxdiff.compat import jit_for_few_calls
 from mjxdiff.trajectory import Trajectory
-from mjxdiff.inputs import BatchedInputs
+from mjxdiff.inputs import BatchedInputs, roundoff_moved
 
 __all__ = ["EPS", "FLOORS", "SOLVER_MARGIN", "NoiseFloor", "combine", "converge_solver", "converged",
            "has_constraints", "noise_floor", "perturb", "STEP_JITTER"]
@@ -142,7 +142,7 @@ def perturb(inputs: BatchedInputs, precision: Precision) -> BatchedInputs:
 
     def move(x: np.ndarray) -> np.ndarray:
         signs = np.stack([rng.choice([-1.0, 1.0], x.shape[1:]) for rng in rngs])
-        return x + signs * eps * np.maximum(np.abs(x), 1.0)
+        return roundoff_moved(x, signs, eps)
 
     return dataclasses.replace(inputs, qpos=move(inputs.qpos), qvel=move(inputs.qvel))
 

@@ -361,13 +361,18 @@ def elements_shown(s: dict[str, Any]) -> list[dict[str, Any]]:
     return [e for e in found if isinstance(e, dict)]
 
 
+#: The label of the cause ablation that disables contacts (:data:`mjxdiff.diagnose.ABLATIONS`):
+#: its record in a cause's ``tried`` is data :func:`contacts_ruled_out` reads.
+NO_CONTACTS = "contacts disabled"
+
+
 def contacts_ruled_out(s: dict[str, Any]) -> bool:
     """Whether a cause attribution of the failure (the rollout's, the one-step check's) ran with
     contacts disabled and still failed: the engines part without contacts, so no contact
     divergence of the catalogue explains it."""
     info = s.get("info") or {}
     causes = [(s.get("diagnosis") or {}).get("cause") or {}, (info.get("onestep") or {}).get("cause") or {}]
-    return any(t.get("ablation") == "contacts disabled" and t.get("passed") is False and not t.get("error")
+    return any(t.get("ablation") == NO_CONTACTS and t.get("passed") is False and not t.get("error")
                for c in causes for t in c.get("tried") or ())
 
 

@@ -1114,7 +1114,7 @@ def _diagnose(result: ScenarioResult, case: _Case, traj_c: Trajectory | None = N
                 ablation = dataclasses.replace(case, m=ablated.models[0], inputs=ablated)
                 return _verdict(ablation, {})[0].status == "pass"
 
-        cause = diagnose.attribute_cause(passes, inputs, config.precision)
+        cause = diagnose.reconcile_cause(diagnose.attribute_cause(passes, inputs, config.precision), drill)
         if cause["cause"] == diagnose.GENUINE and drill is not None and drill.first_stage == "collision":
             # the drill-down saw the engines generate other contacts from the same state; that no
             # single ablation passes means something else differs too, which the line says

@@ -388,3 +388,25 @@ def test_a_drill_down_names_its_element_as_data_a_tendon_by_its_kind_of_path():
     assert kinds == dict(coupling="fixed", cable="spatial", lift="spatial", flexor="spatial",
                          extensor="spatial-sidesite")
     assert diagnose._element(m, "qfrc_bias", 0)["kind"] == "joint" and diagnose._element(m, "xpos", 1) is None
+
+
+@pytest.mark.parametrize("first_stage", [None, "integration", "constraint"])
+def test_an_integration_ablation_names_the_cause_only_where_every_forward_stage_agrees(first_stage):
+    """A ball-joint limit margin MJX ignored was blamed on "integration (passes with timestep / 4)":
+    the finer rollout never entered the limit band, while the drill-down from C's state had found
+    qfrc_constraint of the shoulder. A forward stage that differs outranks the integration ablation."""
+    from mjxdiff import diagnose
+
+    drill = diagnose.DrillDown(member=1, step=77, first_stage=first_stage, object="joint 'shoulder'", fields=(),
+                               first_field=None if first_stage is None else "qfrc_constraint")
+    cause = dict(cause="integration", ablation="timestep / 4", tried=[dict(ablation="timestep / 4", passed=True)])
+    found = diagnose.reconcile_cause(cause, drill)
+    if first_stage == "constraint":
+        assert found["cause"] == diagnose.GENUINE and found["ablation"] is None
+        assert found["steered_clear"] == "timestep / 4" and "constraint (qfrc_constraint" in found["evidence"]
+        assert found["tried"] == cause["tried"]
+    else:
+        assert found == cause
+    contacts = dict(cause="contact generation", ablation="contacts disabled", tried=[])
+    assert diagnose.reconcile_cause(contacts, drill) == contacts
+    assert diagnose.reconcile_cause(cause, None) == cause
