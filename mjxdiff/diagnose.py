@@ -468,19 +468,32 @@ ABLATIONS: tuple[tuple[str, str, Callable[[mujoco.MjModel], None]], ...] = (
 )
 
 
+#: The drill-down's first differing stages an ablation's cause can explain: a smaller timestep or
+#: another integrator changes the whole trajectory (and a one-step error scales with the timestep),
+#: so it can pass by never reaching, or shrinking, a difference that lies in a forward stage;
+#: disabling contacts removes what a contact sensor or force reads, so it can pass where the
+#: engines compute a touch, a limit or a passive force differently from the same contacts.
+CAUSE_STAGES: dict[str, tuple[str | None, ...]] = {
+    "integration": (None, "integration"),
+    "contact generation": (None, "collision", "constraint", "acceleration", "integration"),
+}
+
+
 def reconcile_cause(cause: dict[str, Any], drill: DrillDown | None) -> dict[str, Any]:
-    """``cause`` (:func:`attribute_cause` of a rollout), unless an integration ablation passed while
-    the drill-down found a forward stage that differs from C's state: a smaller timestep or another
-    integrator changes the whole trajectory, so it can pass by never reaching the state where the
-    engines part (a limit band never entered), while the difference lies before any integration.
-    Then the cause is :data:`GENUINE`, with ``evidence`` saying why and the ablation kept as
+    """``cause`` (:func:`attribute_cause`), unless its ablation passed while the drill-down found
+    a first differing stage that cause cannot explain (:data:`CAUSE_STAGES`): a ball joint's
+    limit margin MJX ignored passed with a quarter timestep (the finer rollout never entered the
+    limit band), a touch sensor's ray flipped passed with contacts disabled (both read 0). Then
+    the cause is :data:`GENUINE`, with ``evidence`` saying why and the ablation kept as
     ``steered_clear``."""
-    if cause.get("cause") != "integration" or drill is None or drill.first_stage in (None, "integration"):
+    stages = CAUSE_STAGES.get(cause.get("cause") or "")
+    if stages is None or drill is None or drill.first_stage in stages:
         return cause
     return dict(cause, cause=GENUINE, ablation=None, steered_clear=cause.get("ablation"),
                 evidence=f"'{cause.get('ablation')}' passes, yet from C's state at step {drill.step} the engines "
-                         f"already differ in {drill.first_stage} ({drill.first_field} of {drill.object}), before "
-                         "any integration: the ablated rollout steered clear of that state")
+                         f"already differ in {drill.first_stage} ({drill.first_field} of {drill.object}), which "
+                         f"{cause.get('cause')} does not explain: the ablation removed the state or the input "
+                         "where they part, not the difference")
 
 
 class Ablatable(Protocol):

@@ -911,7 +911,7 @@ def _onestep(result: ScenarioResult, case: _Case, traj_c: Trajectory | None,
         where = (f"; {diagnose.first_fields(drill)}"
                  if drill.first_stage else "; every forward stage agrees (the difference is in the integration)")
     if config.diagnose == "full":
-        found["cause"] = _onestep_cause(case, traj_c, member, step)
+        found["cause"] = diagnose.reconcile_cause(_onestep_cause(case, traj_c, member, step), drill)
         if found["cause"]["ablation"]:
             where += f"; one-step cause: {found['cause']['cause']} (passes with {found['cause']['ablation']})"
     said = (f"one-step check: {found['field']} of {found['object'] or 'member ' + str(member)} after step "

@@ -403,10 +403,23 @@ def test_an_integration_ablation_names_the_cause_only_where_every_forward_stage_
     found = diagnose.reconcile_cause(cause, drill)
     if first_stage == "constraint":
         assert found["cause"] == diagnose.GENUINE and found["ablation"] is None
-        assert found["steered_clear"] == "timestep / 4" and "constraint (qfrc_constraint" in found["evidence"]
+        assert found["steered_clear"] == "timestep / 4" and "in constraint (qfrc_constraint" in found["evidence"]
         assert found["tried"] == cause["tried"]
     else:
         assert found == cause
     contacts = dict(cause="contact generation", ablation="contacts disabled", tried=[])
     assert diagnose.reconcile_cause(contacts, drill) == contacts
     assert diagnose.reconcile_cause(cause, None) == cause
+
+
+def test_contacts_disabled_names_the_cause_only_where_the_difference_can_come_from_contacts():
+    """A touch sensor's ray flipped for the contact's second body passed with contacts disabled
+    (both engines then read 0): the first stage to differ, sensors, is not contact generation's."""
+    from mjxdiff import diagnose
+
+    contacts = dict(cause="contact generation", ablation="contacts disabled", tried=[])
+    for stage, explained in (("sensors", False), ("passive", False), ("collision", True), ("constraint", True)):
+        drill = diagnose.DrillDown(member=0, step=3, first_stage=stage, first_field="x", object="y", fields=())
+        found = diagnose.reconcile_cause(contacts, drill)
+        assert (found == contacts) is explained, stage
+        assert explained or (found["cause"] == diagnose.GENUINE and found["steered_clear"] == "contacts disabled")
