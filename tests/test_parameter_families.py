@@ -113,6 +113,19 @@ def pair_solreffriction_ignored(monkeypatch):
                   lambda m: m.replace(pair_solreffriction=jnp.zeros_like(m.pair_solreffriction)))
 
 
+def solmix_swapped(monkeypatch):
+    """Two geoms of equal priority mix their solref and solimp with each other's weight,
+    solmix2 / (solmix1 + solmix2) (a source mutation of MJX's collision driver that passed every
+    bundled scenario while contact_parameters' floor outranked every geom): the reciprocal
+    solmix gives exactly that weight."""
+    model_edited(monkeypatch, mjx_collision_driver, "collision", lambda m: m.replace(geom_solmix=1.0 / m.geom_solmix))
+
+
+def _solmix_mixes(m) -> bool:
+    """Whether some two geoms of equal priority have different solmix (their parameters then mix)."""
+    return any(len(set(m.geom_solmix[m.geom_priority == p].tolist())) > 1 for p in set(m.geom_priority.tolist()))
+
+
 def tendon_actfrcrange_ignored(monkeypatch):
     """Actuator forces through a tendon are not clamped to the tendon's actuatorfrcrange."""
     model_edited(monkeypatch, mjx_forward, "fwd_actuation",
@@ -144,7 +157,11 @@ FAMILIES = {
         m.jnt_limited.astype(bool) & (m.jnt_type == int(_T.mjJNT_BALL)) & (m.jnt_margin != 0)))),
     impratio_ignored: ("contact_parameters", lambda m: bool(
         m.opt.cone == int(mujoco.mjtCone.mjCONE_ELLIPTIC) and m.opt.impratio != 1)),
+    solmix_swapped: ("contact_parameters", _solmix_mixes),
 }
+#: Old scenarios that reach a family's term since a later round: integrator_implicitfast's a3 (an
+#: affine gain with a velocity term, 2026-11-29) is there for implicitfast's derivative of it.
+ALSO = {affine_gain_velocity_ignored: ("integrator_implicitfast",)}
 
 
 @pytest.fixture(scope="module")
@@ -159,7 +176,7 @@ def test_the_old_scenarios_leave_the_term_at_zero(bug, old_models):
     scenario, moved = FAMILIES[bug]
     assert not any(s.randomize.values for s in bundled_scenarios() if s.name not in NEW)
     assert moved(load_model(load_scenario(scenario)))
-    blind = [name for name, m in old_models.items() if moved(m)]
+    blind = [name for name, m in old_models.items() if moved(m) and name not in ALSO.get(bug, ())]
     assert blind == [], f"{bug.__name__} matters in {blind} too"
 
 
@@ -185,7 +202,9 @@ CATCHES = {
     tendon_actfrcrange_ignored: Expect(_MOVES, r"joint 'shoulder'"),
     # the shoulder enters its 0.02 rad margin band at step 77 of member 0 (C's rollout)
     ball_limit_margin_ignored: Expect(_MOVES, r"joint 'shoulder'"),
-    impratio_ignored: Expect(_MOVES, r"joint 'ball'"),
+    # every elliptic contact moves; the puck first since the ball mixes its parameters with the floor's
+    impratio_ignored: Expect(_MOVES, r"joint '(ball|puck)'"),
+    solmix_swapped: Expect(_MOVES, r"joint 'ball'"),
 }
 
 

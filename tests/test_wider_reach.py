@@ -20,6 +20,7 @@ from mujoco.mjx._src import support as mjx_support
 
 from _bugs import Expect, caught, model_edited
 from combination_bugs import COVERING_SCENARIOS
+from mjxdiff.compat import data_impl, with_impl
 from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
 from mjxdiff.sweep import SweepConfig
 
@@ -90,6 +91,26 @@ def actgravcomp_routing_ignored(monkeypatch):
         jnt_actgravcomp=np.zeros_like(np.asarray(m.jnt_actgravcomp))))
 
 
+def implicit_affine_gain_velocity_ignored(monkeypatch):
+    """implicitfast leaves an affine gain's velocity term (gainprm[2] * ctrl) out of the velocity
+    derivative it integrates with (a blind spot of a source-mutation audit: no implicit scenario
+    had such an actuator before integrator_implicitfast's a3)."""
+    model_edited(monkeypatch, mjx_derivative, "deriv_smooth_vel",
+                  lambda m: m.replace(actuator_gainprm=m.actuator_gainprm.at[:, 2].set(0.0)))
+
+
+def touch_ray_unflipped(monkeypatch):
+    """Touch sensors cast every contact's ray as if the sensor's body were the contact's first,
+    never flipping it for the second (a source mutation of MJX's sensor_acc that passed every
+    bundled scenario while imu_sensors' sole site enclosed the contact points)."""
+    orig = mjx_sensor.sensor_acc
+
+    def sensor_acc(m, d):
+        c = data_impl(d).contact
+        return orig(m, with_impl(d, contact=c.replace(geom=c.geom[:, ::-1], geom1=c.geom2, geom2=c.geom1)))
+    monkeypatch.setattr(mjx_sensor, "sensor_acc", sensor_acc)
+
+
 def _wraps(m, *kinds) -> bool:
     return bool(np.isin(m.wrap_type, [int(k) for k in kinds]).any())
 
@@ -119,6 +140,12 @@ REACHES = {
         m.opt.integrator == int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST) and np.any(m.tendon_damping > 0))),
     track_camera_fixed: ("sensing", (), lambda m: _camprojection_on(m, mujoco.mjtCamLight.mjCAMLIGHT_TRACK)),
     actgravcomp_routing_ignored: ("gravcomp_arm", (), lambda m: bool(np.any(m.jnt_actgravcomp))),
+    implicit_affine_gain_velocity_ignored: ("integrator_implicitfast", (), lambda m: bool(
+        m.opt.integrator == int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST) and np.any(
+            (m.actuator_gaintype == int(mujoco.mjtGain.mjGAIN_AFFINE)) & (m.actuator_gainprm[:, 2] != 0)))),
+    # slope_slide's touch site is a 1 cm sphere at the block's centre: corner contacts' rays miss it
+    touch_ray_unflipped: ("imu_sensors", ("slope_slide",),
+                          lambda m: bool(np.any(m.sensor_type == int(_S.mjSENS_TOUCH)))),
 }
 
 
@@ -143,6 +170,8 @@ CATCHES = {
     implicit_tendon_damping_ignored: Expect(_MOVES, r"joint 'j3'"),
     track_camera_fixed: Expect(("sensordata",), r"sensor 'cube_tracked' \(camprojection\)"),
     actgravcomp_routing_ignored: Expect((*_MOVES, "sensordata"), r"joint 'elbow'|sensor 'elbow_actfrc' \(.*\)"),
+    implicit_affine_gain_velocity_ignored: Expect((*_MOVES, "sensordata"), r"joint 'j3'|sensor 'j3_pos' \(.*\)"),
+    touch_ray_unflipped: Expect(("sensordata",), r"sensor 'sole_touch' \(touch\)"),
 }
 
 
