@@ -330,11 +330,18 @@ def model_features(m: mujoco.MjModel) -> tuple[str, ...]:
 
     * ``contact:direct-solref-under-priority``: a geom with a direct (negative) solref, and a geom
       of higher priority (C then takes the higher-priority geom's solref alone).
+    * ``actuator:affine-gain-velocity-clamped-ctrl``: an actuator without activation dynamics whose
+      affine gain has a velocity term (``gainprm[2]``) and whose control is clamped
+      (``ctrllimited``, clampctrl enabled): what implicitfast differentiates at the clamped control.
     """
     found = []
     direct = m.geom_solref[:, 0] < 0
     if direct.any() and (m.geom_priority > m.geom_priority[direct].min()).any():
         found.append("contact:direct-solref-under-priority")
+    affine_velocity = ((m.actuator_gaintype == int(mujoco.mjtGain.mjGAIN_AFFINE)) & (m.actuator_gainprm[:, 2] != 0)
+                       & (m.actuator_ctrllimited != 0) & (m.actuator_dyntype == int(mujoco.mjtDyn.mjDYN_NONE)))
+    if affine_velocity.any() and not m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL):
+        found.append("actuator:affine-gain-velocity-clamped-ctrl")
     return tuple(found)
 
 
@@ -477,6 +484,17 @@ _MEASURED: tuple[Entry, ...] = (
           kind="bug", bundle="tests/data/bundles/implicit-clamped-actuator",
           remedy="use the Euler integrator, or remove actuatorfrcrange (the joint's force clamp) on actuated "
                  "joints, or set the actuators' kv to 0: each removes the gap (13 rad/s -> 1e-13 on the G1)"),
+    Entry("implicit-affine-ctrl-clamp", "implicitfast: MJX differentiates an affine gain's velocity term at the "
+          "raw control, C at the clamped one",
+          "tests/data/known/implicit-affine-ctrl-clamp.xml (a slide driven by gainprm=\"2 0 -1.5\", ctrlrange -1 1, "
+          "ctrl 2): one step from the same state qvel 2.6e-4 apart, agreeing to the last bit with ctrl inside the "
+          "range or ctrllimited=\"false\"; MJX 3.17's derivative.deriv_smooth_vel reads d.ctrl, C's "
+          "mjd_actuator_vel the clamped control. Found when a source-mutation audit gave integrator_implicitfast "
+          "such an actuator", integrator=("implicitfast",), stage="integration",
+          feature="actuator:affine-gain-velocity-clamped-ctrl",
+          kind="bug", bundle="tests/data/bundles/implicit-affine-ctrl-clamp",
+          remedy="clip the controls to ctrlrange yourself before mjx.step (MJX and C then agree), or use the Euler "
+                 "integrator for affine actuators with a velocity gain"),
     Entry("rotation-integration", "implicitfast/RK4: free-body rotation integrated differently (grows like ω²)",
           "integrator_* notes: fast-spinning free bodies; tests/data/known/rotation-integration.xml (a ball "
           "joint under RK4): every forward stage agrees, the update does not (drill-down stage integration), and "

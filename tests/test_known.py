@@ -197,6 +197,15 @@ REPORTED = [
         "first field to differ: contact (collision, geoms a / b (box-box: C 2, MJX 4 contacts))",
         diagnosis=dict(drill_down=dict(first_stage="collision", object="geoms a / b (box-box: C 2, MJX 4 contacts)",
                                        contact=dict(pair="box-box", geoms=["a", "b"], c=2, mjx=4, part="count"))))),
+    ("implicit-affine-ctrl-clamp", dict(_failing(
+        "qpos of joint 'slide' leaves the envelope at step 0 (t=0.004 s), member 6; worst 0.00333; every forward stage "
+        "agrees, the one-step error does not: integration; likely cause: integration (passes with other integrator "
+        "(Euler <-> RK4))",
+        first_divergence=dict(field="qpos", step=0, object="joint 'slide'",
+                              element=dict(kind="joint", name="slide", type="slide")),
+        diagnosis=dict(cause=dict(cause="integration", ablation="other integrator (Euler <-> RK4)"),
+                       drill_down=dict(first_stage="integration", first_field="qpos/qvel update", object=""))),
+        info=dict(impl="mjx", integrator="implicitfast", features=["actuator:affine-gain-velocity-clamped-ctrl"]))),
     ("implicit-clamped-actuator", dict(_failing(
         "qvel of joint 'knee' leaves the envelope at step 0; likely cause: actuator force clamping",
         diagnosis=dict(cause=dict(cause="actuator force clamping"))), info=dict(impl="mjx",
