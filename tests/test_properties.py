@@ -668,6 +668,22 @@ def test_conservative_system_conserves_energy_in_both_engines(states):
     assert not bad, "\n".join(bad) + f"\n(timestep {SPRINGY.opt.timestep:.3g} s)"
 
 
+def _armature_across_trees(m: mujoco.MjModel) -> bool:
+    """Whether a tendon with armature joins two kinematic trees (its joints' or sites' bodies): MJX
+    3.17's mass matrix then differs from C's, and so does the kinetic energy of the same state (a
+    generated model drew it: 0.0455 against 0.0352 J; the catalogue's tendon-armature-trees)."""
+    for t in np.flatnonzero(m.tendon_armature > 0):
+        trees = set()
+        for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]):
+            body = {int(mujoco.mjtWrap.mjWRAP_JOINT): m.jnt_bodyid, int(mujoco.mjtWrap.mjWRAP_SITE): m.site_bodyid}.get(
+                int(m.wrap_type[w]))
+            if body is not None:
+                trees.add(int(m.body_treeid[body[m.wrap_objid[w]]]))
+        if len(trees - {-1}) > 1:
+            return True
+    return False
+
+
 @pytest.mark.slow  # a compile per example (10 examples cost 5 CI minutes, 296 s)
 @settings(max_examples=4)
 @given(st.data())
@@ -678,6 +694,7 @@ def test_generated_conservative_systems_conserve_energy_in_both_engines(data):
                                actuators=False, sensors=False, options={"integrator": "RK4"}), label="model")
     note(mm.xml)
     m = conservative(mm.model())
+    assume(not _armature_across_trees(m))  # the catalogue's tendon-armature-trees: another mass matrix
     m.opt.timestep = min(2e-3, ENERGY_OMEGA_DT / max(stiffest_frequency(m), 1e-9))
     bad = check_energy(m, data.draw(initial_states(m, batch=4), label="states"))
     assert not bad, "\n".join(bad) + f"\n(timestep {m.opt.timestep:.3g} s)\n" + mm.xml
