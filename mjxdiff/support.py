@@ -524,13 +524,18 @@ _MEASURED: tuple[Entry, ...] = (
           kind="bug", bundle="tests/data/bundles/tendon-wrap-sidesite",
           remedy="move the tendon's sidesite away from the plane of symmetry between the tendon's ends (the "
                  "engines agree away from it)"),
-    Entry("tendon-armature-trees", "a fixed tendon with armature coupling two kinematic trees: another qM",
+    Entry("tendon-armature-trees", "a fixed tendon with armature coupling two kinematic trees, or two branches of "
+          "one: another qM",
           "fuzz seed 0 (tests/data/fuzz_tendon_armature_trees.json), shrunk to two bodies with a hinge each and "
           "one fixed tendon (armature 0.003): qM 0.0044 apart (scaled) at step 0; C 4.0 keeps the trees' "
-          "sparsity, MJX 3.17's mass matrix differs. A sweep names the joint, not the tendon, so the entry "
-          "labels nothing (an armature bug shows the same way)", stage="inertia",
+          "sparsity, MJX 3.17's mass matrix differs. Two sibling hinges of one body under a tendon with armature "
+          "0.01: qM between them C 0, MJX 0.01; a hinge and its child's: equal (2026-11-29, after a generated "
+          "model's energy differed). A sweep names the joint, not the tendon, so the entry labels nothing (an "
+          "armature bug shows the same way)", stage="inertia",
           kind="bug", bundle="tests/data/bundles/tendon-armature-trees", labels=False,
-          remedy="set the tendon's armature to 0, or keep a tendon with armature within one kinematic tree"),
+          remedy="set the tendon's armature to 0, or give a tendon with armature only joints on one chain of bodies "
+                 "(each an ancestor of the next): C leaves the coupling between branches out of its sparse mass "
+                 "matrix, MJX keeps it"),
     Entry("truncated-solver", "a solver capped at few iterations: the engines stop at different points",
           "ant at 1000 steps: 4 of 64 members jump 1e-11 -> 5e-6 qvel at a contact; gone with 100 iterations",
           cause="solver convergence",
