@@ -1115,9 +1115,11 @@ def _diagnose(result: ScenarioResult, case: _Case, traj_c: Trajectory | None = N
                 return _verdict(ablation, {})[0].status == "pass"
 
         cause = diagnose.reconcile_cause(diagnose.attribute_cause(passes, inputs, config.precision), drill)
-        if cause["cause"] == diagnose.GENUINE and drill is not None and drill.first_stage == "collision":
+        if (cause["cause"] == diagnose.GENUINE and "steered_clear" not in cause and drill is not None
+                and drill.first_stage == "collision"):
             # the drill-down saw the engines generate other contacts from the same state; that no
-            # single ablation passes means something else differs too, which the line says
+            # single ablation passes means something else differs too, which the line says (an
+            # ablation that passed and was set aside keeps reconcile_cause's evidence)
             cause = dict(cause, cause="contact generation",
                          evidence=f"drill-down: {drill.object} at step {drill.step}; no ablation passes, so "
                                   "something else differs as well")
