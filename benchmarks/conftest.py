@@ -3,7 +3,7 @@
 import os
 from pathlib import Path
 
-from mjxdiff.engines import configure_jax
+from mjxdiff.engine.engines import configure_jax
 
 os.environ.setdefault("MJXDIFF_CACHE", str(Path(__file__).resolve().parent.parent / ".jax_cache"))
 configure_jax("float64")

@@ -13,8 +13,8 @@ import pytest
 from brax.training.acme import running_statistics
 from brax.training.agents.ppo import networks as ppo_networks
 
-from mjxdiff import closedloop
-from mjxdiff.report import versions
+from mjxdiff.tools import closedloop
+from mjxdiff.output.report import versions
 
 EPISODES, STEPS = 32, 200
 
@@ -53,7 +53,7 @@ import resource, sys, jax
 jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, {here!r})
 from test_closedloop import _random_policy
-from mjxdiff import closedloop
+from mjxdiff.tools import closedloop
 env = closedloop.make_env("inverted_pendulum")
 closedloop.run(env, _random_policy(env), 16, {steps})
 print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)

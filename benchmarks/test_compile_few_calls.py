@@ -14,11 +14,11 @@ import jax.numpy as jnp
 import pytest
 
 from mjxdiff import compat, metrics
-from mjxdiff.engines import CEngine
-from mjxdiff.inputs import make_inputs
-from mjxdiff.report import versions
-from mjxdiff.scenario import load_model, load_scenario
-from mjxdiff.verdict import error_series, rangefinder_mask
+from mjxdiff.engine.engines import CEngine
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.output.report import versions
+from mjxdiff.input.scenario import load_model, load_scenario
+from mjxdiff.compare.verdict import error_series, rangefinder_mask
 
 OPTIONS = {"defaults": {}, "few_calls": compat.FAST_COMPILE if compat.fast_compile_validated()
            else compat.BALANCED_COMPILE}

@@ -1,6 +1,6 @@
 """The drill-down's ``mjx.forward`` on the sensing scenario (the bundled model with the most
 stages to compare): traced and compiled afresh, against loaded from its artifact by a later run
-(:meth:`mjxdiff.engines.MJXEngine.forward` binds it through :func:`mjxdiff.export_cache.bind`).
+(:meth:`mjxdiff.engine.engines.MJXEngine.forward` binds it through :func:`mjxdiff.engine.export_cache.bind`).
 
 Run: ``python -m pytest benchmarks/test_drill_down.py --benchmark-only``. Each round forgets the
 process's compiled functions, as a new run would; XLA's persistent cache stays as the user has it
@@ -10,10 +10,10 @@ process's compiled functions, as a new run would; XLA's persistent cache stays a
 import mujoco
 import pytest
 
-from mjxdiff import engines, export_cache
-from mjxdiff.diagnose import STAGES
-from mjxdiff.report import versions
-from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.engine import engines, export_cache
+from mjxdiff.compare.diagnose import STAGES
+from mjxdiff.output.report import versions
+from mjxdiff.input.scenario import load_model, load_scenario
 
 FIELDS = tuple(f for _, fs in STAGES for f in fs if f not in ("qM", "contact"))
 

@@ -6,9 +6,9 @@ Run: ``python -m pytest benchmarks/test_grad.py --benchmark-only``."""
 import jax
 import pytest
 
-from mjxdiff import grad
-from mjxdiff.report import versions
-from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.tools import grad
+from mjxdiff.output.report import versions
+from mjxdiff.input.scenario import load_model, load_scenario
 
 
 @pytest.fixture(scope="module", params=["ant", "humanoid"])
@@ -20,7 +20,7 @@ def state(request):
 
 @pytest.mark.parametrize("side", ["mjx", "c"])
 def test_jacobians_per_second(benchmark, state, side):
-    from mjxdiff import export_cache
+    from mjxdiff.engine import export_cache
 
     name, (m, _, _, s) = state
     code = export_cache.code_digest()

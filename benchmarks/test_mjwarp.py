@@ -12,11 +12,11 @@ import pytest
 
 pytest.importorskip("mujoco_warp")
 
-from mjxdiff.engines import CEngine, MJXEngine
-from mjxdiff.inputs import make_inputs
-from mjxdiff.mjwarp import MJWarpEngine
-from mjxdiff.report import versions
-from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.engine.engines import CEngine, MJXEngine
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.engine.mjwarp import MJWarpEngine
+from mjxdiff.output.report import versions
+from mjxdiff.input.scenario import load_model, load_scenario
 
 BATCH, STEPS = 32, 200
 SCENARIOS = ("pendulum", "cartpole", "ant")
@@ -40,11 +40,11 @@ def test_steps_per_second(benchmark, inputs, engine):
 
 _ONE = """
 import time, sys
-from mjxdiff import engines
+from mjxdiff.engine import engines
 engines.configure_jax("float32", {cache!r})
-from mjxdiff.inputs import make_inputs
-from mjxdiff.mjwarp import MJWarpEngine
-from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.engine.mjwarp import MJWarpEngine
+from mjxdiff.input.scenario import load_model, load_scenario
 s = load_scenario("pendulum")
 inputs = make_inputs(s, load_model(s), 0, 8, 2)
 t = time.perf_counter()

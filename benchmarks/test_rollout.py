@@ -11,14 +11,14 @@ import time
 
 import pytest
 
-from mjxdiff import engines
-from mjxdiff.engines import CEngine, MJXEngine, device_count
-from mjxdiff.inputs import make_inputs
-from mjxdiff.report import versions
-from mjxdiff.scenario import load_model, load_scenario
-from mjxdiff.noise import perturb
-from mjxdiff.sweep import SweepConfig, run_scenario
-from mjxdiff.verdict import judge
+from mjxdiff.engine import engines
+from mjxdiff.engine.engines import CEngine, MJXEngine, device_count
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.output.report import versions
+from mjxdiff.input.scenario import load_model, load_scenario
+from mjxdiff.compare.noise import perturb
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
+from mjxdiff.compare.verdict import judge
 
 # small, medium and large model structures
 SCENARIOS = ["pendulum", "cartpole", "ant"]

@@ -3,9 +3,9 @@
 - ``reference/cli.md``: every subcommand of ``python -m mjxdiff`` and every option, from the
   argparse parser (:func:`mjxdiff.cli.build_parser`).
 - ``reference/known-divergences.md``: every entry of the known-divergence catalogue
-  (:data:`mjxdiff.support.CATALOGUE`), with its evidence and its bug bundle's reproducer.
+  (:data:`mjxdiff.compare.support.CATALOGUE`), with its evidence and its bug bundle's reproducer.
 - ``reference/json-schemas.md``: the envelope's keys and the kinds of JSON output
-  (:data:`mjxdiff.report.ENVELOPE`, :data:`mjxdiff.report.KINDS`).
+  (:data:`mjxdiff.output.report.ENVELOPE`, :data:`mjxdiff.output.report.KINDS`).
 - ``index.md``: the margin of each bundled scenario's pass over many seeds, from
   ``docs/data/margins.json`` (written by ``benchmarks/scripts/margins.py``).
 
@@ -24,16 +24,18 @@ ROOT = Path(__file__).resolve().parent.parent
 
 #: The public modules (``mjxdiff/__init__.py``'s curated names and the modules its users import
 #: by path), each with a page ``reference/api/<name>.md``.
-EXTRA_PUBLIC_MODULES = ("report", "strategies", "testing")
+EXTRA_PUBLIC_MODULES = ("output.report", "tools.strategies", "testing")
 
 
 def public_modules() -> list[str]:
-    """The public modules' short names (``metrics``, ``pipeline``, ...): those that
+    """The public modules' names under ``mjxdiff.`` (``metrics``, ``runner.pipeline``, ...): those that
     ``mjxdiff/__init__.py`` exports a name from or exports whole, plus
     :data:`EXTRA_PUBLIC_MODULES`; sorted."""
     import mjxdiff
 
-    names = {(module or f"mjxdiff.{name}").removeprefix("mjxdiff.") for name, module in mjxdiff._PUBLIC.items()}  # noqa: SLF001
+    moved = mjxdiff._MOVED  # noqa: SLF001
+    names = {(module or f"mjxdiff.{moved[name]}.{name}" if name in moved else module or f"mjxdiff.{name}")
+             .removeprefix("mjxdiff.") for name, module in mjxdiff._PUBLIC.items()}  # noqa: SLF001
     return sorted(names | set(EXTRA_PUBLIC_MODULES))
 
 
@@ -139,7 +141,7 @@ def _bundle_markdown(entry) -> list[str]:
 def catalogue_entry_markdown(entry) -> str:
     """One catalogue entry: its id as a heading (the anchor users link to), title, kind,
     releases, matching rule, evidence, what to do and reproducer."""
-    from mjxdiff.known import advice
+    from mjxdiff.compare.known import advice
 
     accepted = " (accepted: `--fail-on new` lets it pass)" if entry.accepted else ""
     return "\n".join([
@@ -154,7 +156,7 @@ def catalogue_entry_markdown(entry) -> str:
 
 def catalogue_markdown() -> str:
     """Every catalogue entry, grouped by kind, then the features the fuzzer leaves out."""
-    from mjxdiff.support import CATALOGUE, KNOWN_DIVERGENCES
+    from mjxdiff.compare.support import CATALOGUE, KNOWN_DIVERGENCES
 
     kinds = list(dict.fromkeys(e.kind for e in CATALOGUE))
     summary = ["| id | kind | title |", "|---|---|---|",
@@ -165,7 +167,7 @@ def catalogue_markdown() -> str:
         parts += [catalogue_entry_markdown(e) for e in CATALOGUE if e.kind == kind]
     parts += ["### Left out of generated models", "",
               "`mjxdiff fuzz` leaves these features out unless `--include-known` "
-              "(`mjxdiff.support.KNOWN_DIVERGENCES`):", "",
+              "(`mjxdiff.compare.support.KNOWN_DIVERGENCES`):", "",
               "| feature | why |", "|---|---|",
               *(f"| {_cell(k)} | {_cell(v)} |" for k, v in KNOWN_DIVERGENCES.items()), ""]
     return "\n".join(parts)
@@ -174,9 +176,9 @@ def catalogue_markdown() -> str:
 # -- the JSON envelope ---------------------------------------------------------------------------
 
 def envelope_markdown() -> str:
-    """The keys every JSON output begins with (:data:`mjxdiff.report.ENVELOPE`) and the kinds
-    of output with their files (:data:`mjxdiff.report.KINDS`), from the code."""
-    from mjxdiff.report import ENVELOPE, KINDS, SCHEMA_VERSION
+    """The keys every JSON output begins with (:data:`mjxdiff.output.report.ENVELOPE`) and the kinds
+    of output with their files (:data:`mjxdiff.output.report.KINDS`), from the code."""
+    from mjxdiff.output.report import ENVELOPE, KINDS, SCHEMA_VERSION
 
     what = {"kind": "the kind of output, below",
             "schema_version": f"{SCHEMA_VERSION} (bumped when a key changes meaning or disappears)",

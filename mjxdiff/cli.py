@@ -141,7 +141,7 @@ and branch coverage of mujoco/mjx/_src per module, the functions never traced, w
 model fields and options some member of some scenario moves away from MuJoCo's default, and which
 pairs of the conditions MJX branches on (options and flags, actuator, sensor, tendon, equality and
 limit attributes, controls outside their range, limits and deadbands reached;
-mjxdiff.interactions.GROUPS) some member holds together, with the pairs not covered and those no
+mjxdiff.tools.interactions.GROUPS) some member holds together, with the pairs not covered and those no
 model can hold (and why). MuJoCo C steps the members for the state-dependent conditions; MJX is
 traced, not compiled. 'mjxdiff fuzz' reports the same pairs for what it generated. --out DIR writes
 DIR/coverage.json.""",
@@ -332,7 +332,7 @@ def _seconds(text: str) -> float:
 
 
 def _size(text: str) -> int:
-    from mjxdiff.guard import parse_size
+    from mjxdiff.runner.guard import parse_size
 
     try:
         value = parse_size(text)
@@ -524,7 +524,7 @@ def _sweep_parser(sub) -> argparse.ArgumentParser:
                          "known entry explains (e.g. 'solver-truncation': your solver settings, not MJX, part the "
                          "engines) and, with --baseline, that the baseline did not already have")
     sw.add_argument("--known", metavar="FILE",
-                    help="your own known divergences ([[known]] tables, see mjxdiff.known), tried before the "
+                    help="your own known divergences ([[known]] tables, see mjxdiff.compare.known), tried before the "
                          "catalogue shipped with mjxdiff")
     _shared(sw, "format")
     sw.add_argument("--quick", action="store_true",
@@ -674,7 +674,7 @@ def _known_parser(sub) -> argparse.ArgumentParser:
 
 
 def _cmd_known(args: argparse.Namespace) -> int:
-    from mjxdiff import known
+    from mjxdiff.compare import known
 
     try:
         entries = known.entries(args.known)
@@ -714,7 +714,7 @@ def _versions_parser(sub) -> argparse.ArgumentParser:
 
 
 def _target(text: str):
-    from mjxdiff.versions import parse_target
+    from mjxdiff.tools.versions import parse_target
 
     try:
         return parse_target(text)
@@ -723,7 +723,7 @@ def _target(text: str):
 
 
 def _cmd_versions(args: argparse.Namespace) -> int:
-    from mjxdiff import versions
+    from mjxdiff.tools import versions
 
     scenarios = [str(Path(x).resolve()) if Path(x).suffix else x for x in args.scenarios]  # files: for the child
     sweep_args = [*scenarios, "--seed", str(args.seed), *(["--quick"] if args.quick else [])]
@@ -742,7 +742,7 @@ def _cmd_versions(args: argparse.Namespace) -> int:
 def _selected(refs: Sequence[str]) -> list | None:
     """The scenarios ``refs`` name (every bundled one when empty); None, after one error line on
     stderr, when one cannot be read or none is selected."""
-    from mjxdiff.scenario import ScenarioError, bundled_scenarios, load_scenario, no_bundled_scenarios_message
+    from mjxdiff.input.scenario import ScenarioError, bundled_scenarios, load_scenario, no_bundled_scenarios_message
 
     try:
         scenarios = [load_scenario(ref) for ref in refs] if refs else bundled_scenarios()
@@ -767,7 +767,9 @@ def _cmd_list(args: argparse.Namespace) -> int:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from mjxdiff import baseline, known, pipeline, report
+    from mjxdiff.output import baseline, report
+    from mjxdiff.compare import known
+    from mjxdiff.runner import pipeline
 
     options = pipeline.SweepOptions(**{f.name: getattr(args, f.name) for f in dataclasses.fields(pipeline.SweepOptions)
                                        if f.name != "scenarios"}, scenarios=tuple(args.scenarios))
@@ -816,7 +818,8 @@ def _merge_parser(sub) -> argparse.ArgumentParser:
 
 
 def _cmd_merge(args: argparse.Namespace) -> int:
-    from mjxdiff import pipeline, report
+    from mjxdiff.runner import pipeline
+    from mjxdiff.output import report
 
     try:
         run = pipeline.merge(args.out, args.dirs)
@@ -861,7 +864,8 @@ def _shrink_input(path: str, keyframe: int | None, steps: int):
     import mujoco
     import numpy as np
 
-    from mjxdiff import reproducer, shrink
+    from mjxdiff.output import reproducer
+    from mjxdiff.tools import shrink
 
     ctrl = None
     if path.endswith(".json"):
@@ -882,8 +886,9 @@ def _shrink_input(path: str, keyframe: int | None, steps: int):
 
 
 def _cmd_shrink(args: argparse.Namespace) -> int:
-    from mjxdiff import bundle, engines, shrink
-    from mjxdiff.scenario import ScenarioError
+    from mjxdiff.tools import bundle, shrink
+    from mjxdiff.engine import engines
+    from mjxdiff.input.scenario import ScenarioError
 
     engines.configure_jax("float64")
     try:
@@ -931,7 +936,7 @@ def _scale_parser(sub) -> argparse.ArgumentParser:
 
 
 def _cmd_scale(args: argparse.Namespace) -> int:
-    from mjxdiff import journal, scaling
+    from mjxdiff.runner import journal, scaling
 
     units = {}
     for d in args.dirs:
@@ -952,9 +957,10 @@ def _cmd_scale(args: argparse.Namespace) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    from mjxdiff import engines, report, reproducer
-    from mjxdiff.scenario import ScenarioError
-    from mjxdiff.sweep import SweepConfig, exit_code, run_inputs
+    from mjxdiff.engine import engines
+    from mjxdiff.output import report, reproducer
+    from mjxdiff.input.scenario import ScenarioError
+    from mjxdiff.runner.sweep import SweepConfig, exit_code, run_inputs
 
     try:
         rep = reproducer.load_any(args.file)  # checks everything replay reads below
@@ -991,7 +997,8 @@ def _print_replay(fmt: str, rep, replayed: dict, same: bool, header: str, line: 
 
 
 def _replay_grad(rep, fmt: str) -> int:
-    from mjxdiff import engines, grad
+    from mjxdiff.engine import engines
+    from mjxdiff.tools import grad
 
     engines.configure_jax("float64", None)
     r, same = grad.replay(rep)
@@ -1002,8 +1009,10 @@ def _replay_grad(rep, fmt: str) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from mjxdiff import bench, engines, report
-    from mjxdiff.scenario import ScenarioError, load_scenario
+    from mjxdiff.tools import bench
+    from mjxdiff.engine import engines
+    from mjxdiff.output import report
+    from mjxdiff.input.scenario import ScenarioError, load_scenario
 
     engines.configure_jax("float64", args.cache_dir)
     try:
@@ -1033,8 +1042,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_fuzz(args: argparse.Namespace) -> int:
-    from mjxdiff import engines, report
-    from mjxdiff.fuzz import DEFAULT_BUDGET, fuzz
+    from mjxdiff.engine import engines
+    from mjxdiff.output import report
+    from mjxdiff.tools.fuzz import DEFAULT_BUDGET, fuzz
 
     engines.configure_jax("float64", args.cache_dir)
     budget = DEFAULT_BUDGET if args.budget is None else args.budget
@@ -1074,7 +1084,7 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
         notes.append("set aside, neither a pass nor a find: " + ", ".join(
             f"{n} ({why})" for why, n in sorted(result.set_aside.items())))
     if result.interactions:
-        from mjxdiff import interactions
+        from mjxdiff.tools import interactions
         line = interactions.format_text(result.interactions, "interaction pairs generated", "fuzz-report.json")
         notes.append(f"{line.splitlines()[0]}; {result.interactions['pairs_per_minute']:.0f} per minute")
     if result.failure is None:
@@ -1094,7 +1104,9 @@ def _cmd_fuzz(args: argparse.Namespace) -> int:
 
 
 def _cmd_policy(args: argparse.Namespace) -> int:
-    from mjxdiff import closedloop, engines, report
+    from mjxdiff.tools import closedloop
+    from mjxdiff.engine import engines
+    from mjxdiff.output import report
 
     only = None
     if args.replay:
@@ -1154,7 +1166,7 @@ def _since(text: str):
 
 
 def _cmd_history(args: argparse.Namespace) -> int:
-    from mjxdiff import history
+    from mjxdiff.output import history
 
     h = history.open_history(args.history)
     for name in h.skipped:
@@ -1185,7 +1197,9 @@ def _cmd_history(args: argparse.Namespace) -> int:
 
 
 def _cmd_grad(args: argparse.Namespace) -> int:
-    from mjxdiff import engines, grad, report
+    from mjxdiff.engine import engines
+    from mjxdiff.tools import grad
+    from mjxdiff.output import report
 
     scenarios = _selected(args.scenarios or list(grad.SMOOTH))
     if scenarios is None:
@@ -1200,7 +1214,7 @@ def _cmd_grad(args: argparse.Namespace) -> int:
     doc = report.envelope("grad", dict(scenarios=args.scenarios, states=args.states, seed=args.seed, eps=grad.EPS),
                           scenarios=rows)
     if args.out:
-        from mjxdiff import html_report
+        from mjxdiff.output import html_report
 
         print(f"report written to {report.write_report(args.out, doc, 'grad-report.json')} and "
               f"{html_report.write_grad(args.out, doc)}", file=sys.stderr)
@@ -1212,7 +1226,9 @@ def _cmd_grad(args: argparse.Namespace) -> int:
 
 
 def _cmd_coverage(args: argparse.Namespace) -> int:
-    from mjxdiff import coverage, engines, report
+    from mjxdiff.tools import coverage
+    from mjxdiff.engine import engines
+    from mjxdiff.output import report
 
     scenarios = _selected(args.scenarios)
     if scenarios is None:
@@ -1230,7 +1246,7 @@ def _cmd_coverage(args: argparse.Namespace) -> int:
 
 
 def _cmd_cache(args: argparse.Namespace) -> int:
-    from mjxdiff import engines, export_cache
+    from mjxdiff.engine import engines, export_cache
 
     if args.cache_dir == "":
         print("mjxdiff: error: --cache-dir '' means no cache: nothing to check", file=sys.stderr)

@@ -177,7 +177,7 @@ def qpos_layout(m: Any) -> QposLayout:
       >>> lay.scalar_idx.tolist(), lay.quat_idx.tolist()
       ([0, 1, 2, 7], [[3, 4, 5, 6]])
     """
-    from mjxdiff import joints  # pylint: disable=import-outside-toplevel
+    from mjxdiff.input import joints  # pylint: disable=import-outside-toplevel
 
     scalar_idx, scalar_jnt, quat_idx, quat_jnt = [], [], [], []
     for p in joints.parts(m):
@@ -411,7 +411,7 @@ def trajectory_errors(a: Any, b: Any, layout: QposLayout,
 
     ``a`` and ``b`` are anything with ``qpos`` (T, nq), ``qvel`` (T, nv),
     ``act`` (T, na), ``sensordata`` (T, nsensordata) and ``ncon`` (T,)
-    attributes: one member of a :class:`mjxdiff.engines.Trajectory`, say.
+    attributes: one member of a :class:`mjxdiff.engine.engines.Trajectory`, say.
 
     Returns:
       dict of ``qpos`` (T, ncomp) :func:`qpos_error` [m | rad], ``qvel`` (T, nv)

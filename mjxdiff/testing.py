@@ -20,16 +20,16 @@ import numpy as np
 
 import mujoco
 
-from mjxdiff.inputs import BatchedInputs
-from mjxdiff.scenario import Tolerances
-from mjxdiff.result import ScenarioResult
+from mjxdiff.input.inputs import BatchedInputs
+from mjxdiff.input.scenario import Tolerances
+from mjxdiff.compare.result import ScenarioResult
 
 __all__ = ["assert_mjx_matches_c", "compare", "MJXMismatch"]
 
 
 class MJXMismatch(AssertionError):
     """MJX and MuJoCo C disagree; ``result`` holds the full verdict, ``known`` the catalogue entry
-    that explains it (:mod:`mjxdiff.known`; its id and what to do are in the message), or None."""
+    that explains it (:mod:`mjxdiff.compare.known`; its id and what to do are in the message), or None."""
 
     def __init__(self, message: str, result: ScenarioResult, known: Any = None):
         super().__init__(message)
@@ -53,11 +53,11 @@ def compare(m: mujoco.MjModel, qpos=None, qvel=None, act=None, ctrl=None, steps:
       qpos, qvel, act: initial state, ``(n,)`` or batched ``(B, n)``; default qpos0 / zeros.
       ctrl: controls ``(T, nu)`` or ``(B, T, nu)``; default zeros for ``steps`` steps.
       steps: horizon when ``ctrl`` is not given (default 100).
-      tolerances: fixed tolerance floors (default :class:`~mjxdiff.scenario.Tolerances`).
+      tolerances: fixed tolerance floors (default :class:`~mjxdiff.input.scenario.Tolerances`).
       envelope: judge against the chaos envelope as the sweep does.
       diagnose: ``none``, ``basic`` or ``full``, as in the sweep.
     """
-    from mjxdiff.sweep import SweepConfig, run_inputs
+    from mjxdiff.runner.sweep import SweepConfig, run_inputs
 
     qpos = _batch(qpos, m.qpos0.copy(), 1)
     batch = qpos.shape[0]
@@ -80,7 +80,8 @@ def assert_mjx_matches_c(m: mujoco.MjModel, qpos=None, qvel=None, act=None, ctrl
       MJXMismatch: an AssertionError whose message is the localised diagnosis and, where the
         known-divergence catalogue explains it, ``[known: <id>; what to do: ...]``.
     """
-    from mjxdiff import known, report
+    from mjxdiff.compare import known
+    from mjxdiff.output import report
 
     result = compare(m, qpos, qvel, act, ctrl, steps, **kwargs)
     if result.status != "pass":

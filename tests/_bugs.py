@@ -23,10 +23,10 @@ import numpy as np
 import pytest
 from mujoco.mjx._src.types import Model
 
-from mjxdiff import engines
-from mjxdiff import sweep as sweep_module
-from mjxdiff.scenario import Scenario, load_scenario
-from mjxdiff.sweep import ScenarioResult, SweepConfig, run_scenario
+from mjxdiff.engine import engines
+from mjxdiff.runner import sweep as sweep_module
+from mjxdiff.input.scenario import Scenario, load_scenario
+from mjxdiff.runner.sweep import ScenarioResult, SweepConfig, run_scenario
 
 Bug = Callable[[pytest.MonkeyPatch], None]
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, settings
 
-from mjxdiff import engines
-from mjxdiff.engines import configure_jax
+from mjxdiff.engine import engines
+from mjxdiff.engine.engines import configure_jax
 
 ROOT = Path(__file__).resolve().parent.parent
 

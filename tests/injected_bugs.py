@@ -15,7 +15,7 @@ A patch replaces the module attribute that MJX's caller looks up at call time (`
 is looked up in ``mujoco.mjx._src.smooth`` by ``forward.fwd_position`` on every trace; a name
 bound by ``from x import f`` is patched where it was bound, e.g. the collision table of
 ``collision_driver``). Compiled rollouts are cached, so clear them around a patch
-(:func:`mjxdiff.engines.clear_compiled`, the ``fresh_mjx`` fixture of ``tests/conftest.py``)::
+(:func:`mjxdiff.engine.engines.clear_compiled`, the ``fresh_mjx`` fixture of ``tests/conftest.py``)::
 
     with pytest.MonkeyPatch.context() as mp:
         bug.patch(mp)

@@ -4,9 +4,9 @@ are dropped only when asked (and listed), structural limits are 'unsupported' wi
 import mujoco
 import numpy as np
 
-from mjxdiff import adjust
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.input import adjust
+from mjxdiff.input.scenario import load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
 
 SMALL = SweepConfig(seed=0, batch=2, steps=60, diagnose="none")
 

@@ -6,7 +6,7 @@ import json
 import pytest
 from conftest import REPORT_SCENARIOS
 
-from mjxdiff import baseline
+from mjxdiff.output import baseline
 from mjxdiff.cli import main
 
 

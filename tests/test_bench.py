@@ -4,8 +4,8 @@ import json
 
 import pytest
 
-from mjxdiff import report
-from mjxdiff.bench import measure, recommendations
+from mjxdiff.output import report
+from mjxdiff.tools.bench import measure, recommendations
 from mjxdiff.cli import main
 
 

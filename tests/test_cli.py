@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from mjxdiff import report
+from mjxdiff.output import report
 from mjxdiff.cli import main
 
 SMALL = ["--batch", "2", "--steps", "60"]
@@ -74,7 +74,7 @@ def test_help_teaches_statuses_and_exit_codes():
 
 
 def test_list_names_every_bundled_scenario(capsys):
-    from mjxdiff.scenario import bundled_scenarios
+    from mjxdiff.input.scenario import bundled_scenarios
 
     assert main(["list"]) == 0
     out = capsys.readouterr().out

@@ -1,4 +1,4 @@
-"""Closed loop (mjxdiff.closedloop): a brax environment on the MJX backend driven by a real,
+"""Closed loop (mjxdiff.tools.closedloop): a brax environment on the MJX backend driven by a real,
 randomly initialised brax PPO network, on MJX and on MuJoCo C. Unmodified MJX gives the same
 episodes as C; a 2% actuator gain slip in MJX fails, with the first separation named; the
 three policy forms load; a bad spec is one line and exit 2."""
@@ -18,8 +18,9 @@ from brax.training.agents.ppo import checkpoint as ppo_checkpoint
 from brax.training.agents.ppo import networks as ppo_networks
 from mujoco.mjx._src import forward as mjx_forward
 
-from mjxdiff import report
-from mjxdiff import closedloop, diagnose
+from mjxdiff.output import report
+from mjxdiff.tools import closedloop
+from mjxdiff.compare import diagnose
 from mjxdiff.cli import main
 
 EPISODES, STEPS = 4, 40

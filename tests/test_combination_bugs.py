@@ -13,8 +13,8 @@ import pytest
 
 import _bugs
 from combination_bugs import by_id
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig
+from mjxdiff.input.scenario import load_scenario
+from mjxdiff.runner.sweep import SweepConfig
 
 #: The rollout's verdict only (no cause-finding reruns, no one-step check): what catches is the
 #: rollout; batch 4 keeps one member (the last) driving its controls outside their range.

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from mjxdiff import cli, compat
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import load_model, load_scenario
 
 
 def test_the_reference_set_is_supported():
@@ -113,7 +113,7 @@ def test_a_model_an_older_mujoco_cannot_compile_is_a_later_feature(mujoco_versio
 
 
 def test_the_python_api_is_gated_as_the_cli_is(monkeypatch):
-    from mjxdiff import pipeline
+    from mjxdiff.runner import pipeline
 
     monkeypatch.setattr(compat, "installed", lambda: {"mujoco": "3.2.7", "mujoco-mjx": "3.2.7", "jax": "0.4.38"})
     monkeypatch.delenv("MJXDIFF_ALLOW_UNTESTED_VERSIONS", raising=False)
@@ -123,8 +123,8 @@ def test_the_python_api_is_gated_as_the_cli_is(monkeypatch):
 
 
 def test_a_later_feature_is_unsupported_in_a_sweep_and_says_so_everywhere(tmp_path, monkeypatch):
-    from mjxdiff.scenario import LaterFeatureError, ScenarioError, load_model, load_scenario
-    from mjxdiff.sweep import SweepConfig, sweep
+    from mjxdiff.input.scenario import LaterFeatureError, ScenarioError, load_model, load_scenario
+    from mjxdiff.runner.sweep import SweepConfig, sweep
 
     xml = tmp_path / "later.xml"
     xml.write_text('<mujoco><option><flag sprng="disable"/></option><worldbody><body><joint/><geom size=".1"/>'

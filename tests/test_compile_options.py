@@ -4,9 +4,9 @@ first divergence, worst errors to rounding); ``auto`` picks fast for sweep-sized
 
 import pytest
 
-from mjxdiff import engines
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.engine import engines
+from mjxdiff.input.scenario import load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
 
 
 @pytest.mark.parametrize("name", ["pendulum", "cartpole", "box_stack"])

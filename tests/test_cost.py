@@ -1,9 +1,9 @@
-"""mjxdiff.cost: MJX's collision functions and costs read from a model, and the plan that fits."""
+"""mjxdiff.input.cost: MJX's collision functions and costs read from a model, and the plan that fits."""
 
 import pytest
 
-from mjxdiff import adjust, cost
-from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.input import adjust, cost
+from mjxdiff.input.scenario import load_model, load_scenario
 
 GB = 2**30
 

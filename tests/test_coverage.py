@@ -6,10 +6,10 @@ import json
 
 import pytest
 
-from mjxdiff import report
-from mjxdiff import coverage
+from mjxdiff.output import report
+from mjxdiff.tools import coverage
 from mjxdiff.cli import main
-from mjxdiff.scenario import bundled_scenarios
+from mjxdiff.input.scenario import bundled_scenarios
 
 FLOOR_FILE = "tests/coverage_floor.json"
 
@@ -56,7 +56,7 @@ def test_a_model_that_moves_nothing_moves_nothing(tmp_path):
     """The measure itself: a default pendulum moves no parameter but its own geometry."""
     xml = tmp_path / "plain.xml"
     xml.write_text('<mujoco><worldbody><body><joint/><geom size="0.1" pos="0 0 -1"/></body></worldbody></mujoco>')
-    from mjxdiff.scenario import load_scenario
+    from mjxdiff.input.scenario import load_scenario
 
     doc = coverage.measure([load_scenario(str(xml))], code=False)
     moved = [k for k, v in doc["parameters"]["fields"].items() if v]

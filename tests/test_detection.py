@@ -13,9 +13,9 @@ from mujoco.mjx._src import passive as mjx_passive
 from mujoco.mjx._src import sensor as mjx_sensor
 
 import _bugs
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import load_model, load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import load_model, load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
 
 # Detection is the rollout verdict's job: the diagnosis of these bugs is tested in test_diagnose.py,
 # the one-step and host-interface checks (more compiles of each patched MJX) in test_onestep.py

@@ -14,8 +14,8 @@ from mujoco.mjx._src import smooth as mjx_smooth
 
 import _bugs
 from mjxdiff.cli import main
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.input.scenario import load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
 from tests import test_detection as core
 
 BASIC = SweepConfig(seed=0, batch=4, diagnose="basic")
@@ -143,11 +143,11 @@ def test_chaotic_scenario_passes_under_envelope_not_fixed_tolerance():
 def test_local_error_is_rounding_level_on_a_chaotic_scenario():
     result = run_scenario(load_scenario("double_pendulum"), SweepConfig(seed=0, batch=4, diagnose="basic"))
     assert result.status == "pass"
-    from mjxdiff import diagnose
-    from mjxdiff.engines import CEngine
-    from mjxdiff.inputs import make_inputs
-    from mjxdiff.scenario import load_model
-    from mjxdiff.verdict import rangefinder_mask
+    from mjxdiff.compare import diagnose
+    from mjxdiff.engine.engines import CEngine
+    from mjxdiff.input.inputs import make_inputs
+    from mjxdiff.input.scenario import load_model
+    from mjxdiff.compare.verdict import rangefinder_mask
 
     scenario = load_scenario("double_pendulum")
     m = load_model(scenario)
@@ -186,7 +186,7 @@ def test_replay_rejects_a_non_reproducer(tmp_path, capsys):
 def test_a_collision_stage_divergence_no_ablation_removes_is_still_contact_generation(fresh_mjx, monkeypatch):
     """The drill-down saw other contacts from the same state; when no ablation passes (here the
     only one tried changes nothing), the cause says so instead of 'genuine discrepancy'."""
-    from mjxdiff import diagnose
+    from mjxdiff.compare import diagnose
 
     contact_distance(monkeypatch)
     monkeypatch.setattr(diagnose, "ABLATIONS", (("integration", "nothing changed", lambda m: None),))
@@ -209,7 +209,7 @@ def test_the_drill_down_compares_contact_tangents_where_they_turn_the_friction_c
     with isotropic friction does not care, and the contacts agree."""
     import mujoco
 
-    from mjxdiff import diagnose
+    from mjxdiff.compare import diagnose
 
     m = mujoco.MjModel.from_xml_string(CAPSULE_ON_PLANE.format(cone=cone))
     drill = diagnose.drill_down(m, m.qpos0, np.zeros(m.nv), np.zeros(0), np.zeros(0), 0.0)
@@ -227,8 +227,8 @@ def test_each_stage_is_judged_by_its_own_tolerance_under_float32(fresh_mjx, monk
     the bound reported is that stage's."""
     import mujoco
 
-    from mjxdiff import diagnose
-    from mjxdiff.precision import THRESHOLDS
+    from mjxdiff.compare import diagnose
+    from mjxdiff.input.precision import THRESHOLDS
 
     orig = mjx_smooth.rne
     monkeypatch.setattr(mjx_smooth, "rne", lambda m, d, *a, **k: (lambda d: d.replace(
@@ -262,8 +262,8 @@ def test_the_float32_actuator_bound_covers_float32_arithmetic_that_the_stage_tol
     name the actuation stage for rounding alone; within the rounding bound in every state."""
     import mujoco
 
-    from mjxdiff import diagnose
-    from mjxdiff.precision import THRESHOLDS
+    from mjxdiff.compare import diagnose
+    from mjxdiff.input.precision import THRESHOLDS
 
     m = mujoco.MjModel.from_xml_string(STIFF_SERVO)
     d = mujoco.MjData(m)
@@ -292,7 +292,7 @@ class _LimitedPendulum:
     def forward(self, m, d, fields):
         import mujoco
 
-        from mjxdiff.engines import CEngine
+        from mjxdiff.engine.engines import CEngine
 
         limited = mujoco.MjModel.from_xml_string(PENDULUM.replace('range="-3 3"', 'range="-0.3 0.3"'))
         return CEngine().forward(limited, d, fields)
@@ -311,10 +311,10 @@ def test_where_every_stage_agrees_at_the_failing_state_the_drill_down_names_the_
 
     import mujoco
 
-    from mjxdiff.engines import CEngine
-    from mjxdiff.inputs import BatchedInputs
-    from mjxdiff.result import ScenarioResult
-    from mjxdiff.sweep import DRILL_BACK, _earlier_difference
+    from mjxdiff.engine.engines import CEngine
+    from mjxdiff.input.inputs import BatchedInputs
+    from mjxdiff.compare.result import ScenarioResult
+    from mjxdiff.runner.sweep import DRILL_BACK, _earlier_difference
 
     m = mujoco.MjModel.from_xml_string(PENDULUM)
     limited = mujoco.MjModel.from_xml_string(PENDULUM.replace('range="-3 3"', 'range="-0.3 0.3"'))
@@ -348,9 +348,9 @@ def test_a_bias_bug_beside_a_known_contact_approximation_is_named_and_not_labell
     import dataclasses
 
     from _preconditions import precondition
-    from mjxdiff import diagnose, known
-    from mjxdiff.inputs import make_inputs
-    from mjxdiff.scenario import load_model
+    from mjxdiff.compare import diagnose, known
+    from mjxdiff.input.inputs import make_inputs
+    from mjxdiff.input.scenario import load_model
 
     scenario = load_scenario("primitive_pairs")
     m = load_model(scenario)
@@ -379,8 +379,8 @@ def test_a_drill_down_names_its_element_as_data_a_tendon_by_its_kind_of_path():
     sidesite's side), from the tendons scenario's five tendons."""
     import mujoco
 
-    from mjxdiff import diagnose
-    from mjxdiff.scenario import load_model
+    from mjxdiff.compare import diagnose
+    from mjxdiff.input.scenario import load_model
 
     m = load_model(load_scenario("tendons"))
     kinds = {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_TENDON, t): diagnose._element(m, "ten_length", t)["type"]
@@ -395,7 +395,7 @@ def test_an_integration_ablation_names_the_cause_only_where_every_forward_stage_
     """A ball-joint limit margin MJX ignored was blamed on "integration (passes with timestep / 4)":
     the finer rollout never entered the limit band, while the drill-down from C's state had found
     qfrc_constraint of the shoulder. A forward stage that differs outranks the integration ablation."""
-    from mjxdiff import diagnose
+    from mjxdiff.compare import diagnose
 
     drill = diagnose.DrillDown(member=1, step=77, first_stage=first_stage, object="joint 'shoulder'", fields=(),
                                first_field=None if first_stage is None else "qfrc_constraint")
@@ -415,7 +415,7 @@ def test_an_integration_ablation_names_the_cause_only_where_every_forward_stage_
 def test_contacts_disabled_names_the_cause_only_where_the_difference_can_come_from_contacts():
     """A touch sensor's ray flipped for the contact's second body passed with contacts disabled
     (both engines then read 0): the first stage to differ, sensors, is not contact generation's."""
-    from mjxdiff import diagnose
+    from mjxdiff.compare import diagnose
 
     contacts = dict(cause="contact generation", ablation="contacts disabled", tried=[])
     for stage, explained in (("sensors", False), ("passive", False), ("collision", True), ("constraint", True)):

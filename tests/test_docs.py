@@ -61,7 +61,7 @@ def test_the_cli_and_catalogue_pages_hold_their_markers():
 
 
 def test_every_catalogue_entry_is_on_the_catalogue_page_with_its_evidence():
-    from mjxdiff.support import CATALOGUE
+    from mjxdiff.compare.support import CATALOGUE
 
     page = hooks.catalogue_markdown()
     for entry in CATALOGUE:
@@ -75,7 +75,7 @@ def test_every_catalogue_entry_is_on_the_catalogue_page_with_its_evidence():
 
 
 def test_every_kind_of_json_output_and_envelope_key_is_on_the_schema_page():
-    from mjxdiff.report import ENVELOPE, KINDS
+    from mjxdiff.output.report import ENVELOPE, KINDS
 
     page = hooks.on_page_markdown((ROOT / "docs" / "reference" / "json-schemas.md").read_text())
     assert all(f"| `{key}` |" in page for key in (*ENVELOPE, *KINDS)), page
@@ -84,9 +84,10 @@ def test_every_kind_of_json_output_and_envelope_key_is_on_the_schema_page():
 def test_every_public_module_has_an_api_page_in_the_nav():
     nav = (ROOT / "mkdocs.yml").read_text()
     for name in hooks.public_modules():
-        page = ROOT / "docs" / "reference" / "api" / f"{name}.md"
+        leaf = name.rsplit(".", 1)[-1]
+        page = ROOT / "docs" / "reference" / "api" / f"{leaf}.md"
         assert page.is_file() and f"::: mjxdiff.{name}" in page.read_text(), name
-        assert f"reference/api/{name}.md" in nav, name
+        assert f"reference/api/{leaf}.md" in nav, name
 
 
 def test_the_public_modules_include_every_module_the_package_exports():
@@ -94,6 +95,7 @@ def test_the_public_modules_include_every_module_the_package_exports():
 
     modules = set(hooks.public_modules())
     for name, module in mjxdiff._PUBLIC.items():
+        module = module or f"mjxdiff.{mjxdiff._MOVED[name]}.{name}" if name in mjxdiff._MOVED else module
         assert (module or f"mjxdiff.{name}").removeprefix("mjxdiff.") in modules, name
 
 

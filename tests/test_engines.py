@@ -9,9 +9,9 @@ import jax
 import numpy as np
 import pytest
 
-from mjxdiff.engines import CEngine, MJXEngine, UnsupportedError, compile_count, put_models
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.engine.engines import CEngine, MJXEngine, UnsupportedError, compile_count, put_models
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import load_model, load_scenario
 
 XML = """<mujoco><option timestep="0.002"/>
 <worldbody>
@@ -86,9 +86,9 @@ def test_one_compile_serves_other_seeds(rollouts):
 
 SPLIT_CHECK = """
 import jax, numpy as np
-from mjxdiff.engines import CEngine, MJXEngine, configure_jax, device_count
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.engine.engines import CEngine, MJXEngine, configure_jax, device_count
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import load_model, load_scenario
 configure_jax("float64")
 assert device_count() == 2, device_count()
 scenario = load_scenario("cartpole")
@@ -139,7 +139,7 @@ def test_put_models_equals_put_model_per_member(change):
     import jax
     from mujoco import mjx
 
-    from mjxdiff.engines import _patched_columns
+    from mjxdiff.engine.engines import _patched_columns
 
     scenario = load_scenario("ant")
     models = list(make_inputs(scenario, load_model(scenario), 3, 5, 2).models)
@@ -158,7 +158,7 @@ def test_put_models_equals_put_model_per_member(change):
 def test_pieces_of_a_stream_share_one_compiled_function(saved, monkeypatch):
     """Every piece runs the same executable: the carried MJX data keeps the shardings and commitment
     the first piece was given (an empty leaf once came back replicated and cost a second compile)."""
-    from mjxdiff import engines, export_cache
+    from mjxdiff.engine import engines, export_cache
 
     if not saved:
         monkeypatch.setattr(export_cache, "export_dir", lambda: None)
@@ -179,7 +179,7 @@ def test_xla_options_follow_the_planned_horizon(monkeypatch):
     XLA's options for the planned stepping, so both compile one executable; a run planned for
     its own steps chooses for those (before, the quick run of a scenario stepped in pieces got
     ``fast`` where the full run got ``balanced``, and XLA compiled the loaded rollout again)."""
-    from mjxdiff import engines
+    from mjxdiff.engine import engines
 
     asked = []
     choose = engines.xla_options
@@ -194,7 +194,7 @@ def test_xla_options_follow_the_planned_horizon(monkeypatch):
 
 
 def test_automatic_split_needs_enough_members_per_device():
-    from mjxdiff.engines import MEMBERS_PER_DEVICE, SPLIT_MIN_MEMBERS, device_count
+    from mjxdiff.engine.engines import MEMBERS_PER_DEVICE, SPLIT_MIN_MEMBERS, device_count
 
     n = device_count()
     assert MJXEngine().split(n * SPLIT_MIN_MEMBERS) == n
@@ -206,7 +206,7 @@ def test_automatic_split_needs_enough_members_per_device():
 def test_c_members_do_not_depend_on_their_batch_neighbours():
     """The sweep steps C's reference and perturbed rerun as one batch: each member's records must be
     those it has alone."""
-    from mjxdiff.noise import perturb
+    from mjxdiff.compare.noise import perturb
 
     scenario = load_scenario("cartpole")
     inputs = make_inputs(scenario, load_model(scenario), seed=4, batch=3, steps=40)
@@ -221,8 +221,8 @@ def test_c_s_float32_shadow_moves_only_its_rows_the_same_however_the_steps_are_c
     """``CEngine.stream``'s ``jitter`` (the sweep's float32 shadow of C): a row with none is the
     plain rollout bit for bit, a jittered row parts from it by about its size at the first
     step, and pieces of any length give the same records."""
-    from mjxdiff.noise import STEP_JITTER
-    from mjxdiff.trajectory import concat
+    from mjxdiff.compare.noise import STEP_JITTER
+    from mjxdiff.engine.trajectory import concat
 
     scenario = load_scenario("cartpole")
     inputs = make_inputs(scenario, load_model(scenario), seed=4, batch=2, steps=30)
@@ -244,7 +244,7 @@ def test_a_held_piece_is_bound_once_and_steps_as_a_fresh_one(monkeypatch):
     share one bind (the code digested and the models put on the devices once); outside it every
     call binds afresh. Either way the records are the same, and ``first_piece(steps=1)`` is the
     stream's first step."""
-    from mjxdiff import export_cache
+    from mjxdiff.engine import export_cache
 
     scenario = load_scenario("cartpole")
     m = load_model(scenario)

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from mjxdiff import journal, pipeline
+from mjxdiff.runner import journal, pipeline
 from mjxdiff.cli import main
 
 ray = pytest.importorskip("ray", reason="the ray extra (pip install 'mjxdiff[ray]') is part of the test extra")
@@ -160,9 +160,9 @@ def test_ray_options_are_checked(tmp_path, monkeypatch, capsys):
 
 
 def test_a_unit_ships_its_model_directory_and_nothing_else(tmp_path):
-    from mjxdiff.executors import payload
-    from mjxdiff.scenario import load_scenario
-    from mjxdiff.sweep import SweepConfig
+    from mjxdiff.runner.executors import payload
+    from mjxdiff.input.scenario import load_scenario
+    from mjxdiff.runner.sweep import SweepConfig
 
     (tmp_path / "assets").mkdir()
     (tmp_path / "assets" / "part.xml").write_text('<mujoco><worldbody><geom size=".1"/></worldbody></mujoco>')

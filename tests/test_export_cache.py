@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from mujoco.mjx._src import passive as mjx_passive
 
-from mjxdiff import engines, export_cache
-from mjxdiff.engines import MJXEngine, put_models
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.engine import engines, export_cache
+from mjxdiff.engine.engines import MJXEngine, put_models
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import load_model, load_scenario
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +92,7 @@ def test_dependencies_name_the_functions_a_trace_ran(pendulum):
     [path] = export_cache.matching(export_cache.export_dir() / next(iter(export_cache._FUNCTIONS))[0])
     deps = json.loads(path.with_suffix(".deps").read_text())
     assert "mujoco.mjx._src.smooth:rne" in deps and "mujoco.mjx._src.forward:forward" in deps
-    assert "mjxdiff.engines:_scan_steps" in deps
+    assert "mjxdiff.engine.engines:_scan_steps" in deps
     # no contacts: a pair's colliders are named (MJX's collision table), not what they call
     assert not {"mujoco.mjx._src.collision_primitive:_sphere_sphere",
                 "mujoco.mjx._src.collision_primitive:*"} & set(deps)
@@ -148,7 +148,7 @@ def _global_patch(m, d):  # reads the module-level FACTOR
 
 @pytest.mark.parametrize("change", [
     "mjxdiff's own traced code", "a partial", "a closure's value", "a global the patch reads",
-    "an MJX module constant", "a default argument", "a moved helper the rollout calls (mjxdiff.joints)",
+    "an MJX module constant", "a default argument", "a moved helper the rollout calls (mjxdiff.input.joints)",
     "a method of an MJX enum",
 ])
 def test_every_kind_of_code_change_changes_the_digest(change, monkeypatch):
@@ -167,8 +167,8 @@ def test_every_kind_of_code_change_changes_the_digest(change, monkeypatch):
         first = export_cache.rollout_digest()
         monkeypatch.setitem(globals(), "FACTOR", 2e-3)
         assert export_cache.rollout_digest() != first
-    elif change == "a moved helper the rollout calls (mjxdiff.joints)":  # engines' energy walks joints.parts
-        from mjxdiff import joints
+    elif change == "a moved helper the rollout calls (mjxdiff.input.joints)":  # engines' energy walks joints.parts
+        from mjxdiff.input import joints
 
         orig = joints.parts
         monkeypatch.setattr(joints, "parts", lambda m: orig(m)[::-1])
@@ -317,7 +317,7 @@ def test_scanning_for_live_functions_leaves_tuples_other_threads_build_alone():
 def test_xla_executables_are_kept_per_cpu_type_and_artifacts_shared(tmp_path):
     """configure_jax puts XLA's executables under ``xla-<cpu type>`` (its cache key does not name
     the instruction set) and mjxdiff's portable artifacts, and MuJoCo Warp's kernels, beside them."""
-    from mjxdiff import engines, mjwarp
+    from mjxdiff.engine import engines, mjwarp
 
     before = jax.config.jax_compilation_cache_dir
     try:

@@ -4,10 +4,10 @@ its artifact is saved with, by a digest taken over that very code (:func:`export
 
 import pytest
 
-from mjxdiff import engines, export_cache
-from mjxdiff.adjust import for_mjx
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
+from mjxdiff.engine import engines, export_cache
+from mjxdiff.input.adjust import for_mjx
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import bundled_scenarios, load_model, load_scenario
 
 #: Bundled scenarios whose traces, together, run every MJX and mjxdiff code object that any
 #: bundled scenario's trace runs (a greedy set cover, from

@@ -14,10 +14,10 @@ from pathlib import Path
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mjxdiff import engines, export_cache
+from mjxdiff.engine import engines, export_cache
 from mjxdiff.cli import main
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig, sweep
+from mjxdiff.input.scenario import load_scenario
+from mjxdiff.runner.sweep import SweepConfig, sweep
 
 import code_variants
 
@@ -181,8 +181,8 @@ def test_code_no_live_function_holds_leaves_the_trace_unsaved(tmp_path, monkeypa
     trace) makes the artifact unsaveable, with one line saying why; the rollout still runs."""
     from mujoco.mjx._src import passive
 
-    from mjxdiff.inputs import make_inputs
-    from mjxdiff.scenario import load_model
+    from mjxdiff.input.inputs import make_inputs
+    from mjxdiff.input.scenario import load_model
 
     monkeypatch.setattr(passive, "_spring_damper", _made_during_the_trace(passive._spring_damper))
     monkeypatch.setattr(export_cache, "export_dir", lambda: tmp_path)
@@ -205,8 +205,8 @@ def test_code_no_live_function_holds_leaves_the_trace_unsaved(tmp_path, monkeypa
 def _two_artifacts_one_key(tmp_path, monkeypatch):
     """A structure directory where two artifacts match the code loaded now: the pendulum's, and a
     copy of it recorded with one dependency fewer (what an incomplete key left behind)."""
-    from mjxdiff.inputs import make_inputs
-    from mjxdiff.scenario import load_model
+    from mjxdiff.input.inputs import make_inputs
+    from mjxdiff.input.scenario import load_model
 
     monkeypatch.setattr(export_cache, "export_dir", lambda: tmp_path)
     scenario = load_scenario("pendulum")

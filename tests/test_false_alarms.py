@@ -33,7 +33,7 @@ def test_the_published_margins_cover_every_bundled_scenario_with_room_to_spare(r
     """docs/data/margins.json (benchmarks/scripts/margins.py): at least 50 seeds of every bundled
     scenario that ran, no failure, every check's 99th percentile at most half its bound and its
     largest below it (issue 54's bar)."""
-    from mjxdiff.scenario import bundled_scenarios
+    from mjxdiff.input.scenario import bundled_scenarios
 
     data = json.loads((repo_root / "docs" / "data" / "margins.json").read_text())
     assert not data["failures"], data["failures"]
@@ -62,8 +62,8 @@ def _plane_box_landings(name: str, seeds: range, batch: int, steps: int) -> tupl
     """C's plane-box contacts over ``name``'s quick draws: (the deepest penetration of each draw, in
     m; the number of draws where a penetrating corner lay more than 1 mm above the deepest, which MJX
     drops: collision_convex.plane_convex keeps ``support > max(0, support.max() - 1e-3)``)."""
-    from mjxdiff.inputs import make_inputs
-    from mjxdiff.scenario import load_model, load_scenario
+    from mjxdiff.input.inputs import make_inputs
+    from mjxdiff.input.scenario import load_model, load_scenario
 
     scenario = load_scenario(name)
     m = load_model(scenario)
@@ -102,13 +102,13 @@ def test_float32_judged_against_c_s_float32_shadow_passes_a_rounding_landing_and
         fresh_mjx, monkeypatch):
     """``--precision float32``, seed 0: the slope's box lands where float32 rounding alone decides
     its contacts (MJX float32 against C failed at step 314 while C's rerun was perturbed at its
-    start only). C's rerun rounded at every step (:data:`mjxdiff.noise.STEP_JITTER`) shows the same
+    start only). C's rerun rounded at every step (:data:`mjxdiff.compare.noise.STEP_JITTER`) shows the same
     spread, so the landing passes, said to be weak; a friction coefficient 2% low still fails early,
     before any landing widens the envelope."""
     from injected_bugs import by_id
-    from mjxdiff.config import SweepConfig
-    from mjxdiff.scenario import load_scenario
-    from mjxdiff.sweep import run_scenario
+    from mjxdiff.input.config import SweepConfig
+    from mjxdiff.input.scenario import load_scenario
+    from mjxdiff.runner.sweep import run_scenario
 
     config = SweepConfig(seed=0, precision="float32", onestep=False, transfer=False, diagnose="none")
     clean = run_scenario(load_scenario("slope_slide"), config)

@@ -7,9 +7,9 @@ import mujoco
 import pytest
 from mujoco.mjx._src import smooth as mjx_smooth
 
-from mjxdiff import engines
-from mjxdiff.fuzz import DEFAULT_BUDGET, DEFAULT_VARIANTS, JUDGE, fuzz, known_contact_divergence, variants
-from mjxdiff.scenario import Tolerances
+from mjxdiff.engine import engines
+from mjxdiff.tools.fuzz import DEFAULT_BUDGET, DEFAULT_VARIANTS, JUDGE, fuzz, known_contact_divergence, variants
+from mjxdiff.input.scenario import Tolerances
 from mjxdiff.testing import MJXMismatch, assert_mjx_matches_c, compare
 
 
@@ -34,9 +34,9 @@ def test_fuzz_finds_and_shrinks_an_injected_bug(fresh_mjx, monkeypatch, tmp_path
     assert failure["nbody"] <= 3 and failure["ngeom"] <= 4, failure["xml"]
     assert "qfrc_bias" in failure["message"]
     # the shrunk model still fails, with the bug, from its own saved state
-    from mjxdiff import reproducer
-    from mjxdiff.scenario import Tolerances
-    from mjxdiff.sweep import run_inputs
+    from mjxdiff.output import reproducer
+    from mjxdiff.input.scenario import Tolerances
+    from mjxdiff.runner.sweep import run_inputs
 
     rep = reproducer.load(failure["reproducer"])
     again = run_inputs("shrunk", rep.model, rep.inputs, Tolerances(), ROLLOUTS)
@@ -62,7 +62,7 @@ def test_variants_are_one_structure_and_start_above_the_floor():
     and none starts sunk into another geom (C and MJX legitimately part there)."""
     import numpy as np
 
-    from mjxdiff.fuzz import MAX_INITIAL_PENETRATION, variants
+    from mjxdiff.tools.fuzz import MAX_INITIAL_PENETRATION, variants
 
     m = mujoco.MjModel.from_xml_string(SUNK)
     inputs = variants(m, seed=0, batch=16, steps=10, qpos_noise=0.5, spread=0.3)
@@ -113,8 +113,9 @@ def test_only_the_contact_frame_divergence_is_excused(fresh_mjx, monkeypatch):
     had to reproduce C)."""
     from pathlib import Path
 
-    from mjxdiff import fuzz as fuzz_module, reproducer
-    from mjxdiff.sweep import run_inputs
+    from mjxdiff.tools import fuzz as fuzz_module
+    from mjxdiff.output import reproducer
+    from mjxdiff.runner.sweep import run_inputs
 
     config = ROLLOUTS
     rep = reproducer.load(Path(__file__).parent / "data" / "fuzz_capsule_plane_frame.json")
@@ -153,8 +154,9 @@ def test_only_the_sdf_contact_divergence_is_excused(fresh_mjx, monkeypatch):
     too, yet is not excused (unmodified, that model is)."""
     from pathlib import Path
 
-    from mjxdiff import fuzz as fuzz_module, reproducer
-    from mjxdiff.sweep import run_inputs
+    from mjxdiff.tools import fuzz as fuzz_module
+    from mjxdiff.output import reproducer
+    from mjxdiff.runner.sweep import run_inputs
 
     config = ROLLOUTS
     rep = reproducer.load(Path(__file__).parent / "data" / "fuzz_ellipsoid_cylinder_contact.json")
@@ -175,7 +177,7 @@ def test_only_the_sdf_contact_divergence_is_excused(fresh_mjx, monkeypatch):
 
 def test_only_the_regularized_capsule_divergence_is_excused(fresh_mjx, monkeypatch):
     """A capsule-capsule contact is set aside only where C's is the exact closest points and
-    MJX's the same with its 1e-6 regularization (mjxdiff.segments), and nothing else differs: the
+    MJX's the same with its 1e-6 regularization (mjxdiff.compare.segments), and nothing else differs: the
     CI find of fuzz seed 1 (normal 4.3e-6 apart, qvel 0.002 at step 0) has it; the same model
     with MJX's segment points moved by 1e-7 m (less than the regularization's own effect) is no
     longer excused."""
@@ -183,8 +185,9 @@ def test_only_the_regularized_capsule_divergence_is_excused(fresh_mjx, monkeypat
 
     from mujoco.mjx._src import math as mjx_math
 
-    from mjxdiff import reproducer, segments
-    from mjxdiff.sweep import run_inputs
+    from mjxdiff.output import reproducer
+    from mjxdiff.compare import segments
+    from mjxdiff.runner.sweep import run_inputs
 
     config = ROLLOUTS
     rep = reproducer.load(Path(__file__).parent / "data" / "fuzz_capsule_capsule_contact.json")

@@ -8,9 +8,10 @@ import json
 
 import pytest
 
-from mjxdiff import report
-from mjxdiff import cli, fuzz
-from mjxdiff.verdict import ScenarioResult
+from mjxdiff.output import report
+from mjxdiff import cli
+from mjxdiff.tools import fuzz
+from mjxdiff.compare.verdict import ScenarioResult
 
 ARGS = ["fuzz", "--max-examples", "3", "--budget", "30"]
 
@@ -92,9 +93,9 @@ def test_a_find_is_still_a_find(monkeypatch, tmp_path, capsys):
 
 def test_c_blowing_up_or_mjx_refusing_is_not_a_find(tmp_path):
     """A generated model on which MuJoCo C itself goes unstable says nothing about MJX."""
-    from mjxdiff.fuzz import is_divergence
-    from mjxdiff.scenario import load_scenario
-    from mjxdiff.sweep import SweepConfig, run_scenario
+    from mjxdiff.tools.fuzz import is_divergence
+    from mjxdiff.input.scenario import load_scenario
+    from mjxdiff.runner.sweep import SweepConfig, run_scenario
     from tests.test_cli import UNSTABLE_XML
 
     path = tmp_path / "unstable.xml"

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from mujoco.mjx._src import forward as mjx_forward
 
-from mjxdiff import report
-from mjxdiff import grad
+from mjxdiff.output import report
+from mjxdiff.tools import grad
 from mjxdiff.cli import main
-from mjxdiff.scenario import load_model, load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.input.scenario import load_model, load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
 
 
 @pytest.mark.parametrize("name", ["pendulum", "double_pendulum", "cartpole", "actuators"])
@@ -137,7 +137,7 @@ def test_the_committed_reproducers_of_mjx_gradient_bugs_load(name, entry, nv):
     closing note cites: 'python -m mjxdiff replay tests/data/NAME.json'."""
     from pathlib import Path
 
-    from mjxdiff import reproducer
+    from mjxdiff.output import reproducer
 
     rep = reproducer.load_any(Path(__file__).parent / "data" / f"{name}.json")
     assert isinstance(rep, reproducer.GradReproducer) and rep.model.nv == nv

@@ -1,4 +1,4 @@
-"""mjxdiff.guard: a sweep in a watched child process; memory and time limits end a scenario with a
+"""mjxdiff.runner.guard: a sweep in a watched child process; memory and time limits end a scenario with a
 clean error, the report is written, and the next scenario runs."""
 
 import dataclasses
@@ -11,9 +11,9 @@ import threading
 
 import pytest
 
-from mjxdiff import guard
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig, _out_of_memory, sweep
+from mjxdiff.runner import guard
+from mjxdiff.input.scenario import load_scenario
+from mjxdiff.runner.sweep import SweepConfig, _out_of_memory, sweep
 
 #: A humanoid stepping far longer than any budget of these tests.
 LONG = """name = "long_humanoid"
@@ -143,7 +143,7 @@ def test_parse_size(text, size):
 def test_in_process_a_scenario_stops_itself_at_its_budget_between_pieces(monkeypatch):
     """Without the guard (the API's sweep), the budget still holds between pieces of stepping:
     here the estimate is made to say the long horizon fits, as an underestimate would."""
-    from mjxdiff import cost
+    from mjxdiff.input import cost
 
     real = cost.estimate
     monkeypatch.setattr(cost, "estimate", lambda m: dataclasses.replace(real(m), compile_s=0.0, step_s=1e-9))
@@ -172,7 +172,7 @@ def test_the_child_stops_when_the_guard_is_killed(tmp_path):
                 with open(f"/proc/{pid}/stat") as f:
                     ours = int(f.read().rsplit(")", 1)[1].split()[1]) == parent.pid
                 with open(f"/proc/{pid}/cmdline", "rb") as f:
-                    if ours and b"mjxdiff.guard" in f.read():
+                    if ours and b"mjxdiff.runner.guard" in f.read():
                         found.append(int(pid))
             except (OSError, ValueError, IndexError):
                 pass
@@ -202,7 +202,7 @@ def test_the_child_stops_when_the_guard_is_killed(tmp_path):
 
 def test_a_scenario_stopped_after_its_rollout_keeps_the_rollouts_verdict():
     """Killed in the checks after the rollout (a rerun's compile), the rollout's verdict stands."""
-    from mjxdiff.verdict import ScenarioResult
+    from mjxdiff.compare.verdict import ScenarioResult
 
     flight = guard._Flight(0.0, phase="diagnosing")
     flight.verdict = ScenarioResult(name="arm", status="fail", message="qpos of joint 'j5' leaves the envelope",

@@ -8,7 +8,7 @@ import json
 import pytest
 from conftest import REPORT_SCENARIOS
 
-from mjxdiff import history
+from mjxdiff.output import history
 from mjxdiff.cli import main
 
 

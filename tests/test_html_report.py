@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from conftest import REPORT_SCENARIOS
-from mjxdiff import verdict
+from mjxdiff.compare import verdict
 
 
 class _Page(HTMLParser):

@@ -10,10 +10,10 @@ import pytest
 
 import _bugs
 from injected_bugs import BUGS, CATEGORIES, by_id
-from mjxdiff import onestep
-from mjxdiff.engines import CEngine, MJXEngine
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.compare import onestep
+from mjxdiff.engine.engines import CEngine, MJXEngine
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import load_model, load_scenario
 
 #: One bug per category here, five categories: (bug id, field it must be caught in, object prefix).
 SUBSET = (

@@ -4,8 +4,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from mjxdiff.inputs import make_controls, make_inputs
-from mjxdiff.scenario import Randomization, Scenario
+from mjxdiff.input.inputs import make_controls, make_inputs
+from mjxdiff.input.scenario import Randomization, Scenario
 
 XML = """
 <mujoco>

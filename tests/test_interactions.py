@@ -4,9 +4,9 @@ left out with a reason, and the bundled scenarios covering the feasible ones."""
 import mujoco
 import numpy as np
 
-from mjxdiff import interactions
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import bundled_scenarios, load_model
+from mjxdiff.tools import interactions
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import bundled_scenarios, load_model
 
 TWO_ACTUATORS = """<mujoco><worldbody>
   <body><joint name="a" axis="0 1 0" range="-1 1"/><geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.02"/>

@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from mjxdiff import joints
+from mjxdiff.input import joints
 from mjxdiff.compat import enable_x64
 
 MODEL = """<mujoco><worldbody>

@@ -11,8 +11,9 @@ import time
 
 import pytest
 
-from mjxdiff import journal, pipeline, report
-from mjxdiff.sweep import SweepConfig
+from mjxdiff.runner import journal, pipeline
+from mjxdiff.output import report
+from mjxdiff.runner.sweep import SweepConfig
 
 SCENARIOS = ("pendulum", "cartpole", "actuators")
 #: What differs between two runs of one unit: wall times, memory, compile or load counts.

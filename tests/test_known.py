@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from mjxdiff import known, support
+from mjxdiff.compare import known, support
 from mjxdiff.cli import main
 
 
@@ -123,8 +123,8 @@ def test_every_mjx_bug_of_the_catalogue_has_a_minimal_bundle(repo_root):
     (tests/test_known_divergences.py runs each bundle's repro.py as a strict xfail.)"""
     import mujoco
 
-    from mjxdiff import bundle
-    from mjxdiff.support import FIXED_SINCE
+    from mjxdiff.tools import bundle
+    from mjxdiff.compare.support import FIXED_SINCE
 
     fuzz_finds = sorted((repo_root / "tests/data").glob("fuzz_*.json"))
     kinds = {e.kind for e in known.CATALOGUE}
@@ -237,7 +237,7 @@ def test_a_contact_entry_needs_the_contacts_to_be_the_whole_story():
 def test_a_constraint_failure_the_equality_ablation_removes_is_equality_aref():
     """The Robotiq 2F-85's sweep (its four-bar connects; README, "shrink and bundles"): the drill-down
     names a joint, the equality-constraints ablation names the cause, and that is what matches."""
-    from mjxdiff import diagnose
+    from mjxdiff.compare import diagnose
 
     failing = dict(REPORTED)["equality-aref"]
     assert known.match(failing).id == "equality-aref"

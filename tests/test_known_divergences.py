@@ -11,9 +11,9 @@ import pytest
 from mujoco import mjx
 
 from _preconditions import precondition
-from mjxdiff import engines
+from mjxdiff.engine import engines
 from mjxdiff.compat import jit_for_few_calls
-from mjxdiff.support import CATALOGUE, Entry
+from mjxdiff.compare.support import CATALOGUE, Entry
 
 ROOT = Path(__file__).resolve().parent.parent
 #: The catalogue's MJX bugs, each with its bundle (``mjxdiff shrink --bundle`` of tests/data/known/ID.xml).
@@ -66,7 +66,7 @@ def test_plane_capsule_contacts_have_c_s_tangent_frame():
                    "lying on its side (a wheel) rests on 2 contacts in C and 1 in MJX. Found by fuzz seed 2 once its "
                    "known-divergence filter stopped excusing every constrained divergence")
 def test_a_cylinder_lying_on_a_plane_touches_it_at_both_caps():
-    from mjxdiff.diagnose import _contacts_c, _contacts_mjx
+    from mjxdiff.compare.diagnose import _contacts_c, _contacts_mjx
 
     m, d, dx = _forward_both(
         "<mujoco><compiler angle='radian'/><worldbody><geom type='plane' size='1 1 .1'/>"
@@ -228,7 +228,7 @@ def test_get_state_takes_the_physics_state_spec():
 def test_the_gradient_of_a_resting_body_s_orientation_with_respect_to_its_angular_velocity():
     import jax
 
-    from mjxdiff import grad
+    from mjxdiff.tools import grad
 
     m = mujoco.MjModel.from_xml_string("<mujoco><option timestep='0.01'/><worldbody><body><freejoint/>"
                                        "<geom size='.1'/></body></worldbody></mujoco>")
@@ -247,7 +247,7 @@ def test_the_gradient_of_a_resting_body_s_orientation_with_respect_to_its_angula
 def test_elliptic_cone_gradients_are_finite_for_a_body_at_rest():
     import jax
 
-    from mjxdiff import grad
+    from mjxdiff.tools import grad
 
     m = mujoco.MjModel.from_xml_string(
         "<mujoco><option cone='elliptic' iterations='200' tolerance='1e-14'/><worldbody>"
@@ -267,7 +267,8 @@ def test_elliptic_cone_gradients_are_finite_for_a_body_at_rest():
                    "state, and 30 to 1000 CG iterations or tolerance 0 do not change it. Found by mjxdiff grad on "
                    "cg_frictionless")
 def test_cg_solver_gradients_do_not_couple_unconnected_bodies():
-    from mjxdiff import grad, reproducer
+    from mjxdiff.tools import grad
+    from mjxdiff.output import reproducer
 
     rep = reproducer.load_any(Path(__file__).parent / "data" / "grad_cg_solver_cross_coupling.json")
     precondition(rep.model.opt.solver == mujoco.mjtSolver.mjSOL_CG, "the CG solver")
@@ -282,9 +283,10 @@ def test_the_sweep_names_the_clamped_servo_and_the_catalogue_knows_it(repo_root)
     """The one-step check fails the model at the integration stage, the cause attribution finds
     that removing the actuator force clamps (with a converged solver) makes it pass, and the
     catalogue entry says why."""
-    from mjxdiff import known, report
-    from mjxdiff.scenario import load_scenario
-    from mjxdiff.sweep import SweepConfig, run_scenario
+    from mjxdiff.compare import known
+    from mjxdiff.output import report
+    from mjxdiff.input.scenario import load_scenario
+    from mjxdiff.runner.sweep import SweepConfig, run_scenario
 
     result = run_scenario(load_scenario(str(repo_root / "tests" / "data" / "clamped_servo_implicitfast.xml")),
                           SweepConfig(seed=0, batch=4, steps=100))

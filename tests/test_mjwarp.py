@@ -1,4 +1,4 @@
-"""MuJoCo Warp (mjxdiff.mjwarp) on Warp's CPU device, judged against C: unmodified MJWarp passes a
+"""MuJoCo Warp (mjxdiff.engine.mjwarp) on Warp's CPU device, judged against C: unmodified MJWarp passes a
 pendulum, a cartpole and primitives resting on a plane; a 2% actuator gain slip put into
 MJWarp's model is caught, field and step named, and diagnosed on MJWarp (drill-down, local
 error); --impl both gives three pairs; without the extra, --impl warp is one line and exit 2.
@@ -11,10 +11,10 @@ import pytest
 
 mjw = pytest.importorskip("mujoco_warp")
 
-from mjxdiff import mjwarp  # noqa: E402
+from mjxdiff.engine import mjwarp  # noqa: E402
 from mjxdiff.cli import main  # noqa: E402
-from mjxdiff.scenario import load_model, load_scenario  # noqa: E402
-from mjxdiff.sweep import SweepConfig, run_scenario  # noqa: E402
+from mjxdiff.input.scenario import load_model, load_scenario  # noqa: E402
+from mjxdiff.runner.sweep import SweepConfig, run_scenario  # noqa: E402
 
 CONFIG = SweepConfig(impl="warp", quick=True, transfer=False, compile_workers=0)
 
@@ -28,8 +28,8 @@ def test_unmodified_mjwarp_passes(name):
 
 def test_per_member_parameters_reach_mjwarp_s_worlds():
     """Members with other masses and timesteps: each world steps its own (batched fields)."""
-    from mjxdiff.engines import CEngine
-    from mjxdiff.inputs import make_inputs
+    from mjxdiff.engine.engines import CEngine
+    from mjxdiff.input.inputs import make_inputs
 
     scenario = load_scenario("cartpole")
     inputs = make_inputs(scenario, load_model(scenario), 0, 4, 30)
@@ -112,7 +112,7 @@ def test_an_overflowed_buffer_is_named_and_sized_buffers_do_not_overflow():
     the check names the buffer instead of letting the dropped contacts read as a divergence."""
     import warp as wp
 
-    from mjxdiff.inputs import make_inputs
+    from mjxdiff.input.inputs import make_inputs
 
     scenario = load_scenario("primitives_on_plane")
     m = load_model(scenario)
@@ -168,7 +168,7 @@ def test_mjx_s_warp_implementation_passes_unmodified_and_a_bug_in_its_vendored_w
 def test_all_judges_every_implementation_against_c_and_mjwarp_against_mjx():
     """``--impl all``: ``both``'s three pairs and MJX's warp implementation against C, by suffix
     (swept for real, pendulum --quick: four passes, in the closing note of the stop that added it)."""
-    from mjxdiff.pipeline import _pair_configs
+    from mjxdiff.runner.pipeline import _pair_configs
 
     pairs = {suffix: (c.impl, c.reference, c.precision) for suffix, c in _pair_configs(SweepConfig(), "all")}
     assert pairs == {"": ("mjx", "c", "float64"), "@warp": ("warp", "c", "float32"),
@@ -181,8 +181,8 @@ def test_mjx_s_warp_implementation_names_an_overflowed_buffer(monkeypatch):
     contact, which the engine raises as an error naming the buffer (never a divergence)."""
     import mujoco
 
-    from mjxdiff import engines
-    from mjxdiff.inputs import BatchedInputs
+    from mjxdiff.engine import engines
+    from mjxdiff.input.inputs import BatchedInputs
 
     m = mujoco.MjModel.from_xml_string("""<mujoco><worldbody><geom type="plane" size="1 1 .1"/>
       <body pos="0 0 .099"><freejoint/><geom type="box" size=".1 .1 .1"/></body></worldbody></mujoco>""")

@@ -10,11 +10,12 @@ from mujoco.mjx._src import passive as mjx_passive
 from mujoco.mjx._src import smooth as mjx_smooth
 
 import _bugs
-from mjxdiff import onestep, report
-from mjxdiff.engines import CEngine, MJXEngine
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import load_model, load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.compare import onestep
+from mjxdiff.output import report
+from mjxdiff.engine.engines import CEngine, MJXEngine
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import load_model, load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
 from test_solver_floor import _one_percent_more_constraint_force
 
 
@@ -106,8 +107,8 @@ def test_every_scenario_carries_the_one_step_verdict(repo_root):
 def test_a_one_step_failure_fails_the_weak_pass_and_names_the_stage(quadruped, monkeypatch, fresh_mjx):
     """The sweep's second look at a weak pass: the gain bug makes it a failure that names the
     field, the member and step, and the first forward stage that differs from that state."""
-    from mjxdiff import sweep
-    from mjxdiff.verdict import ScenarioResult
+    from mjxdiff.runner import sweep
+    from mjxdiff.compare.verdict import ScenarioResult
 
     scenario, m, inputs, traj_c = quadruped
     weak = ScenarioResult(name="quadruped_1iter", status="pass", message="worst qpos 3.1 (...)", weak=("qpos",))
@@ -120,7 +121,7 @@ def test_a_one_step_failure_fails_the_weak_pass_and_names_the_stage(quadruped, m
     assert result.first_divergence["check"] == "onestep" and result.first_divergence["member"] == found["member"]
     assert "the rollout alone passed (worst qpos 3.1" in result.message
     # a drill-down that cannot run is said, with why, and the verdict stands without it
-    from mjxdiff import diagnose
+    from mjxdiff.compare import diagnose
 
     monkeypatch.setattr(diagnose, "drill_down", lambda *a, **k: 1 / 0)
     result, found, _ = sweep._onestep(weak, case, traj_c)

@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 from mujoco.mjx._src import passive as mjx_passive
 
-from mjxdiff import cli, report
+from mjxdiff import cli
+from mjxdiff.output import report
 
 ROOT = Path(__file__).resolve().parent.parent
 EVIL = "../../escaped/evil"

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from mjxdiff import scenario
+from mjxdiff.input import scenario
 from mjxdiff.cli import main
-from mjxdiff.scenario import ScenarioError, bundled_scenarios, load_scenario
+from mjxdiff.input.scenario import ScenarioError, bundled_scenarios, load_scenario
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "scenarios"
@@ -62,7 +62,7 @@ def test_scenarios_resolve_from_the_unpacked_wheel(wheel, tmp_path):
         z.extractall(site)
     env = {k: v for k, v in os.environ.items() if k != "MJXDIFF_SCENARIOS"}
     env["PYTHONPATH"] = str(site)
-    code = ("import mjxdiff, mjxdiff.scenario as s\n"
+    code = ("import mjxdiff, mjxdiff.input.scenario as s\n"
             "print(mjxdiff.__file__)\n"
             "print(s.bundled_dir())\n"
             "for x in s.bundled_scenarios():\n"

@@ -19,8 +19,8 @@ from mujoco.mjx._src import passive as mjx_passive
 
 from _bugs import Expect, caught, model_edited
 from combination_bugs import COVERING_SCENARIOS
-from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
-from mjxdiff.sweep import SweepConfig
+from mjxdiff.input.scenario import bundled_scenarios, load_model, load_scenario
+from mjxdiff.runner.sweep import SweepConfig
 
 NEW = ("joint_parameters", "contact_parameters", "muscles_and_limits", "sensing", *COVERING_SCENARIOS)
 #: The rollout's verdict alone: a catch is the rollout's; the one-step check and the host-interface

@@ -6,7 +6,9 @@ import json
 import pytest
 
 import mjxdiff
-from mjxdiff import engines, history, pipeline
+from mjxdiff.engine import engines
+from mjxdiff.output import history
+from mjxdiff.runner import pipeline
 from mjxdiff.cli import build_parser, main
 from tests.conftest import REPORT_SCENARIOS
 

@@ -2,7 +2,7 @@
 
 * **One step**: from the same state and control, one ``mjx.step`` lands where one
   ``mujoco.mj_step`` does, to float64 rounding, for generated MJX-supported models (the
-  features of :data:`mjxdiff.fuzz.KNOWN_DIVERGENCES` left out, and contacts only between the
+  features of :data:`mjxdiff.tools.fuzz.KNOWN_DIVERGENCES` left out, and contacts only between the
   geom pairs MJX collides exactly: :data:`EXACT_PAIR_MASKS`); a 0.1% error injected into MJX's
   bias force fails that check.
 * **Invariants**: quaternions of free and ball joints stay unit over an MJX rollout; time
@@ -37,11 +37,11 @@ from mujoco.mjx._src import smooth as mjx_smooth
 
 from _preconditions import precondition
 from mjxdiff.compat import jit_for_few_calls
-from mjxdiff.engines import energy as mjx_energy
-from mjxdiff.fuzz import model_strategy
-from mjxdiff.inputs import quat_mul, rotvec_quat
-from mjxdiff.noise import converge_solver
-from mjxdiff.strategies import UNSUPPORTED_FEATURES, State, control_sequences, initial_states, mjcf_models
+from mjxdiff.engine.engines import energy as mjx_energy
+from mjxdiff.tools.fuzz import model_strategy
+from mjxdiff.input.inputs import quat_mul, rotvec_quat
+from mjxdiff.compare.noise import converge_solver
+from mjxdiff.tools.strategies import UNSUPPORTED_FEATURES, State, control_sequences, initial_states, mjcf_models
 from mjxdiff.testing import compare
 
 # ---------------------------------------------------------------------------
@@ -194,11 +194,11 @@ def contact_possible(m: mujoco.MjModel) -> bool:
 def one_step_model(data, max_bodies: int) -> tuple[mujoco.MjModel, str]:
     """A generated model for the one-step property and its MJCF (before masking).
 
-    :func:`mjxdiff.fuzz.model_strategy` (Euler, no equality, sphere/capsule/ellipsoid/cylinder
+    :func:`mjxdiff.tools.fuzz.model_strategy` (Euler, no equality, sphere/capsule/ellipsoid/cylinder
     geoms: none of KNOWN_DIVERGENCES), then :func:`exact_contacts_only`; models where C's
     sameframe shortcut drops an offset are rejected (:func:`sameframe_drops_offset`, ~8% of
     draws). Masking may leave no possible contact; MJX 3.17 cannot trace mjx.step with an
-    elliptic cone or a touch sensor then (see :func:`mjxdiff.strategies.mjcf_models`), so the
+    elliptic cone or a touch sensor then (see :func:`mjxdiff.tools.strategies.mjcf_models`), so the
     cone becomes pyramidal (no effect in C without contacts) and a model with a touch sensor is
     rejected.
     """
@@ -554,7 +554,7 @@ ENERGY_ROUNDING = 1e-12
 @jit_for_few_calls
 def _mjx_energies(mx: mjx.Model, dx: mjx.Data, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
     """``(B, T, 2)`` potential and kinetic energy (J) of ``(B, T, nq)``/``(B, T, nv)`` states, by
-    :func:`mjxdiff.engines.energy` after MJX's kinematics, tendons and mass matrix of each state
+    :func:`mjxdiff.engine.engines.energy` after MJX's kinematics, tendons and mass matrix of each state
     (``dx``: one unbatched ``mjx.Data`` to fill in)."""
     def one(q, v):
         d = dx.replace(qpos=q, qvel=v)

@@ -8,8 +8,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from mjxdiff import reference
-from mjxdiff.result import ScenarioResult
+from mjxdiff.compare import reference
+from mjxdiff.compare.result import ScenarioResult
 
 #: benchmarks/scripts/sparse_cholesky_401.py: a branching tree's state at step 6 under C 4.0.0,
 #: and the qacc of 4.0.0 and 4.0.1 from it.
@@ -53,7 +53,7 @@ def test_only_newton_on_a_sparse_branching_tree_is_suspect():
 
 
 def test_a_failure_on_a_suspect_model_says_how_to_rule_c_out(monkeypatch):
-    from mjxdiff import sweep
+    from mjxdiff.runner import sweep
 
     m = mujoco.MjModel.from_xml_string(DATA["xml"])
     monkeypatch.setattr(reference.mujoco, "__version__", "4.0.0")
@@ -73,7 +73,7 @@ def test_c_is_named_the_outlier_only_where_mjx_and_mjwarp_agree_and_both_fail_ag
     """``--impl both``'s three verdicts of a scenario: both failures against C gain the clause
     (and ``info["reference_outlier"]``) only where MuJoCo Warp against MJX passes; MJWarp passing
     against C, or failing against MJX, leaves every verdict as it was."""
-    from mjxdiff.pipeline import _c_outliers
+    from mjxdiff.runner.pipeline import _c_outliers
 
     def three(name, vs_c, warp_vs_c, warp_vs_mjx):
         return [ScenarioResult(name + suffix, status, "m") for suffix, status in

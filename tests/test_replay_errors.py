@@ -8,10 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from mjxdiff import cli, report, reproducer
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import ScenarioError, load_model, load_scenario
-from mjxdiff.sweep import SweepConfig
+from mjxdiff import cli
+from mjxdiff.output import report, reproducer
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import ScenarioError, load_model, load_scenario
+from mjxdiff.runner.sweep import SweepConfig
 
 STEPS = 20
 

@@ -7,9 +7,10 @@ from pathlib import Path
 import mujoco
 import pytest
 
-from mjxdiff import diagnose, report
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig, sweep
+from mjxdiff.compare import diagnose
+from mjxdiff.output import report
+from mjxdiff.input.scenario import load_scenario
+from mjxdiff.runner.sweep import SweepConfig, sweep
 from tests.test_detection import extra_damping
 
 
@@ -76,7 +77,7 @@ def test_a_drill_down_that_raises_leaves_the_verdict_and_the_rest(fresh_mjx, mon
 def test_an_internal_error_is_that_scenarios_error(monkeypatch, where, workers):
     """mjxdiff failing on one scenario, while it is prepared and compiled (ahead, on a compile
     worker, or in order) or while it runs, is that scenario's error; the next one runs."""
-    import mjxdiff.sweep as sweep_module
+    import mjxdiff.runner.sweep as sweep_module
 
     real = getattr(sweep_module, where)
 
@@ -96,7 +97,7 @@ def test_an_internal_error_is_that_scenarios_error(monkeypatch, where, workers):
 def test_a_crowded_process_lets_go_of_its_compiled_functions():
     """A long sweep must not run into the kernel's memory-map limit (LLVM then fails and the
     process segfaults): past the budget, compiled functions are dropped and the maps freed."""
-    from mjxdiff.sweep import SweepConfig, _memory_maps, release_compiled_if_crowded, run_scenario
+    from mjxdiff.runner.sweep import SweepConfig, _memory_maps, release_compiled_if_crowded, run_scenario
 
     run_scenario(load_scenario("pendulum"), SweepConfig(batch=2, steps=20, diagnose="none"))
     held, limit = _memory_maps()

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from mjxdiff import journal, scaling
+from mjxdiff.runner import journal, scaling
 from mjxdiff.cli import main
 
 

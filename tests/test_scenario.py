@@ -2,7 +2,7 @@
 
 import pytest
 
-from mjxdiff.scenario import ScenarioError, Tolerances, bundled_scenarios, load_model, load_scenario
+from mjxdiff.input.scenario import ScenarioError, Tolerances, bundled_scenarios, load_model, load_scenario
 
 
 def test_bundled_scenarios_load_and_compile():

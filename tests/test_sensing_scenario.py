@@ -23,8 +23,8 @@ import _bugs
 import test_wider_reach as wider_reach
 from _bugs import Expect, caught, model_edited, sweep
 from combination_bugs import COVERING_SCENARIOS
-from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
-from mjxdiff.sweep import SweepConfig
+from mjxdiff.input.scenario import bundled_scenarios, load_model, load_scenario
+from mjxdiff.runner.sweep import SweepConfig
 
 #: The rollout's verdict alone: a catch is the rollout's; the one-step check and the host-interface
 #: check (more compiles of each patched MJX) have tests of their own (test_injected_bugs, test_transfer).

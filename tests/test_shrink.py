@@ -1,4 +1,4 @@
-"""Shrinking a diverging model (mjxdiff.shrink) and its bug bundle (mjxdiff.bundle): an injected
+"""Shrinking a diverging model (mjxdiff.tools.shrink) and its bug bundle (mjxdiff.tools.bundle): an injected
 MJX bug shrinks to a minimal model that shows it with the bug and passes without it; a real
 divergence of MJX 3.17 shrinks through the CLI to a bundle whose standalone script reproduces
 it in a fresh process."""
@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 import injected_bugs
-from mjxdiff import engines, shrink
+from mjxdiff.engine import engines
+from mjxdiff.tools import shrink
 from mjxdiff.cli import main
 
 #: Four bodies on a floor: a free sphere, a free box, a two-link arm with a capsule and a sphere

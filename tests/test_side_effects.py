@@ -6,9 +6,9 @@ import sys
 import jax
 import numpy as np
 
-from mjxdiff.engines import MJXEngine
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.engine.engines import MJXEngine
+from mjxdiff.input.scenario import load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
 
 IMPORT_CHECK = """
 import os, sys
@@ -17,7 +17,7 @@ env, config = dict(os.environ), (jax.config.jax_enable_x64, jax.config.jax_compi
 import {module}
 assert dict(os.environ) == env, set(os.environ.items()) ^ set(env.items())
 assert (jax.config.jax_enable_x64, jax.config.jax_compilation_cache_dir) == config
-heavy = sorted(m for m in sys.modules if m == "mujoco" or m.startswith(("mujoco.", "mjxdiff.engines")))
+heavy = sorted(m for m in sys.modules if m == "mujoco" or m.startswith(("mujoco.", "mjxdiff.engine.engines")))
 assert not heavy, heavy
 from jax._src import xla_bridge
 assert not xla_bridge.backends_are_initialized()

@@ -8,11 +8,12 @@ import json
 
 
 from injected_bugs import by_id
-from mjxdiff import known, report
+from mjxdiff.compare import known
+from mjxdiff.output import report
 from mjxdiff.cli import main
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
-from mjxdiff.verdict import TRUNCATION
+from mjxdiff.input.scenario import load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
+from mjxdiff.compare.verdict import TRUNCATION
 
 #: A ball, a capsule and an ellipsoid resting on the floor; the default randomization
 #: (qpos noise 0.05) presses them into it, so the solver has work from step 0.

@@ -1,4 +1,4 @@
-"""mjxdiff.stages: contacts read the same way from both engines. C (MuJoCo 4.0: includemargin is
+"""mjxdiff.engine.stages: contacts read the same way from both engines. C (MuJoCo 4.0: includemargin is
 the margin) keeps a contact in the gap zone (``margin <= dist < margin + gap``, ``exclude = 1``,
 no constraint) in ``d.contact`` and ``d.ncon``; MJX drops it, so MJX's contacts are counted with
 ``dist < includemargin + gap``."""
@@ -7,7 +7,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from mjxdiff import engines, stages
+from mjxdiff.engine import engines, stages
 
 #: A ball 2.5 mm above the floor, geom margin 2 mm and gap 1 mm: in the gap zone; a capsule 5 mm
 #: above it in an explicit pair with margin 4 mm and gap 3 mm: in the gap zone too; a box 50 mm

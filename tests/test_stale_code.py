@@ -67,9 +67,9 @@ def test_an_edited_mjx_is_traced_and_fails_although_artifacts_of_the_clean_one_e
 EXPORT_TWICE = """
 import hashlib, pickle, shutil, sys
 import jax
-from mjxdiff import engines, export_cache
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import load_model, load_scenario
+from mjxdiff.engine import engines, export_cache
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import load_model, load_scenario
 engines.configure_jax("float64", sys.argv[1], devices=1)
 events = {"hits": 0, "misses": 0}
 jax.monitoring.register_event_listener(

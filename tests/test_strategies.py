@@ -12,9 +12,10 @@ from hypothesis import strategies as st
 from hypothesis.errors import InvalidArgument
 from mujoco import mjx
 
-from mjxdiff import compat, strategies
-from mjxdiff.support import refused_features
-from mjxdiff.strategies import (
+from mjxdiff import compat
+from mjxdiff.tools import strategies
+from mjxdiff.compare.support import refused_features
+from mjxdiff.tools.strategies import (
     CONTROL_FAMILIES,
     DEFAULT_OPTIONS,
     PERTURBATION_FIELDS,

@@ -10,11 +10,11 @@ import numpy as np
 from mujoco.mjx._src import passive as mjx_passive
 
 from mjxdiff import compat
-from mjxdiff.engines import CEngine
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import load_model, load_scenario
-from mjxdiff.sweep import SweepConfig, sweep
-from mjxdiff.trajectory import Trajectory, concat
+from mjxdiff.engine.engines import CEngine
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import load_model, load_scenario
+from mjxdiff.runner.sweep import SweepConfig, sweep
+from mjxdiff.engine.trajectory import Trajectory, concat
 
 _CONFIG = SweepConfig(seed=0, batch=4, steps=100, diagnose="basic", transfer=False)
 
@@ -39,7 +39,7 @@ def test_unmodified_mjx_passes_and_an_injected_damping_bug_is_caught(fresh_mjx, 
 
     orig = mjx_passive._spring_damper
     monkeypatch.setattr(mjx_passive, "_spring_damper", lambda m, d: orig(m, d) - 1e-3 * m.dof_damping * d.qvel)
-    from mjxdiff import engines
+    from mjxdiff.engine import engines
 
     engines.clear_compiled()
     [bad] = sweep([load_scenario("pendulum")], _CONFIG)
@@ -52,7 +52,7 @@ def test_unmodified_mjx_passes_and_an_injected_damping_bug_is_caught(fresh_mjx, 
 
 
 def test_the_report_names_the_versions_it_ran_on():
-    from mjxdiff import report
+    from mjxdiff.output import report
 
     versions = report.versions()
     assert {k: versions[k] for k in compat.SUPPORTED} == compat.installed()
@@ -61,14 +61,14 @@ def test_the_report_names_the_versions_it_ran_on():
 def test_the_fast_compile_is_used_only_where_it_was_validated():
     import jax
 
-    from mjxdiff.engines import xla_options
+    from mjxdiff.engine.engines import xla_options
 
     _, choice = xla_options("fast", 10)(jax.jit(lambda x: x + 1.0).lower(1.0))
     assert (choice["level"] == "fast") == compat.fast_compile_validated()
 
 
 def test_a_version_specific_entry_matches_only_on_its_release(monkeypatch):
-    from mjxdiff import support
+    from mjxdiff.compare import support
 
     entry = support.Entry("x", "t", "e", pattern=r"\(mesh-mesh:", only_on=("3.3.",))
     failing = dict(status="fail", message="first field to differ: contact (geoms a / b (mesh-mesh: C 1, MJX 4))")
@@ -84,7 +84,8 @@ def test_a_flex_is_a_catalogued_divergence_before_3_3_5_and_unsupported_since(fr
     fix: MJX 3.3.0-3.3.4 accept a cloth and make none of its contacts; later releases say so."""
     from pathlib import Path
 
-    from mjxdiff import known, report, support
+    from mjxdiff.compare import known, support
+    from mjxdiff.output import report
 
     [r] = sweep([load_scenario(Path(__file__).parent / "data" / "flex_cloth.xml")],
                 dataclasses.replace(_CONFIG, steps=40))
@@ -103,7 +104,7 @@ def test_mesh_contacts_mjx_fixed_later_are_known_only_before(monkeypatch):
     """plane-mesh contacts differed from C's on every release swept before 3.14, capsule-mesh
     before 3.15 (bisected with mjxdiff versions, support.CATALOGUE's evidence): labelled there,
     not on the releases that fixed them."""
-    from mjxdiff import known, support
+    from mjxdiff.compare import known, support
 
     def failing(pair):
         return dict(status="fail", message="", diagnosis=dict(drill_down=dict(

@@ -8,10 +8,10 @@ import time
 
 import pytest
 
-from mjxdiff.engines import CEngine
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import Randomization, Scenario, load_model, load_scenario
-from mjxdiff.sweep import SweepConfig, _ahead, run_inputs
+from mjxdiff.engine.engines import CEngine
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import Randomization, Scenario, load_model, load_scenario
+from mjxdiff.runner.sweep import SweepConfig, _ahead, run_inputs
 
 
 def test_ahead_yields_every_item_in_order():
@@ -174,8 +174,8 @@ def test_scenarios_side_by_side_judge_as_one_after_another_each_in_its_own_preci
     import mujoco.mjx
     import numpy as np
 
-    from mjxdiff import export_cache
-    from mjxdiff.sweep import _precision, sweep
+    from mjxdiff.engine import export_cache
+    from mjxdiff.runner.sweep import _precision, sweep
 
     reads = []
     feed = export_cache._feed_module
@@ -217,8 +217,8 @@ def test_a_scenarios_phases_do_not_overlap_and_stepping_is_only_stepping(fresh_m
     """The rollout is compiled (or loaded) inside MJX's first call: that time is ``compile``'s, not
     ``mjx``'s, so ``mjx + c`` is the engines' own stepping; the phases sum to no more than the
     scenario's wall time, and the report's table sums them per phase."""
-    from mjxdiff import report
-    from mjxdiff.sweep import run_scenario
+    from mjxdiff.output import report
+    from mjxdiff.runner.sweep import run_scenario
 
     t = time.perf_counter()
     r = run_scenario(load_scenario("pendulum"), SweepConfig(batch=4, steps=50))
@@ -240,7 +240,7 @@ def test_a_quick_sweep_steps_the_full_sweeps_compiled_piece(fresh_mjx):
     """``--quick`` judges its 4 members over 50 steps padded to the full sweep's member group and
     stepped in its pieces (the horizon a run-time trip count): after the full sweep of a scenario
     it compiles nothing more, not even a load, and still judges only its own members and steps."""
-    from mjxdiff.sweep import run_scenario
+    from mjxdiff.runner.sweep import run_scenario
 
     scenario = load_scenario("cartpole")
     full = run_scenario(scenario, SweepConfig(diagnose="none", transfer=False))
@@ -253,11 +253,14 @@ def test_a_quick_sweep_steps_the_full_sweeps_compiled_piece(fresh_mjx):
 
 
 @pytest.mark.parametrize("first", ["f = mjxdiff.sweep; mjxdiff.SweepConfig", "mjxdiff.SweepConfig; f = mjxdiff.sweep",
-                                   "import mjxdiff.sweep; f = mjxdiff.sweep"])
+                                   "import mjxdiff.sweep; f = mjxdiff.sweep",
+                                   "import mjxdiff.runner.sweep; f = mjxdiff.sweep"])
 def test_mjxdiff_sweep_means_one_thing_whatever_is_imported_first(first):
-    """``mjxdiff.sweep`` is the module, callable as its ``sweep`` function, in whatever order the
-    package, the module and its names are first touched (a fresh interpreter per order)."""
+    """``mjxdiff.sweep`` is the module ``mjxdiff.runner.sweep``, callable as its ``sweep`` function,
+    in whatever order the package, the module (by its old name or its new one) and its names are
+    first touched (a fresh interpreter per order)."""
     code = (f"import mjxdiff; {first}; assert mjxdiff.sweep is f; from mjxdiff import sweep as g; assert g is f; "
+            "import mjxdiff.runner.sweep as module; assert module is f; "
             "from mjxdiff.sweep import sweep as run; import inspect; assert inspect.isfunction(run); "
             "assert f([], mjxdiff.SweepConfig()) == run([], mjxdiff.SweepConfig()) == []")
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, timeout=120)

@@ -6,19 +6,19 @@ import sys
 import numpy as np
 import pytest
 
-from mjxdiff.inputs import make_inputs
-from mjxdiff.precision import PRECISIONS
-from mjxdiff.scenario import Tolerances, load_model, load_scenario
-from mjxdiff.trajectory import Engine, Trajectory, concat
-from mjxdiff.verdict import judge
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.precision import PRECISIONS
+from mjxdiff.input.scenario import Tolerances, load_model, load_scenario
+from mjxdiff.engine.trajectory import Engine, Trajectory, concat
+from mjxdiff.compare.verdict import judge
 
 #: Every member the protocol declares (attributes and methods).
 _MEMBERS = ("name", "capabilities", "precision", "rollout", "stream", "resync", "batch_cap", "split", "compile_ahead")
 
 
 def _engines() -> list[Engine]:
-    from mjxdiff.engines import CEngine, MJXEngine
-    from mjxdiff.mjwarp import MJWarpEngine
+    from mjxdiff.engine.engines import CEngine, MJXEngine
+    from mjxdiff.engine.mjwarp import MJWarpEngine
 
     return [CEngine(), MJXEngine(), MJWarpEngine()]
 
@@ -58,7 +58,7 @@ def test_every_engine_runs_the_comparison_through_the_protocol_alone():
 def test_c_restarted_from_its_own_states_is_its_own_rollout():
     """C's resync from C's own trajectory, at any interval, gives that trajectory back (time
     included): the restart loses nothing a sweep compares."""
-    from mjxdiff.engines import CEngine
+    from mjxdiff.engine.engines import CEngine
 
     scenario = load_scenario("cartpole")
     m = load_model(scenario)
@@ -76,8 +76,9 @@ def test_the_verdict_and_the_noise_floor_import_no_engine():
     """verdict, noise and trajectory read trajectories without importing MuJoCo's MJX."""
     import subprocess
 
-    code = ("import sys, mjxdiff.verdict, mjxdiff.noise, mjxdiff.trajectory; "
-            "print(sorted(m for m in sys.modules if m in ('mujoco.mjx', 'mjxdiff.engines', 'mjxdiff.mjwarp')))")
+    code = ("import sys, mjxdiff.compare.verdict, mjxdiff.compare.noise, mjxdiff.engine.trajectory; "
+            "print(sorted(m for m in sys.modules if m in "
+            "('mujoco.mjx', 'mjxdiff.engine.engines', 'mjxdiff.engine.mjwarp')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
@@ -85,7 +86,7 @@ def test_the_verdict_and_the_noise_floor_import_no_engine():
 @pytest.mark.parametrize("impl", ["mjx", "warp"])
 def test_the_sweep_asks_the_engine_what_it_offers(impl):
     """The cost model and the host-interface check follow the engine's capabilities, not its name."""
-    from mjxdiff.sweep import SweepConfig, capable, engine_class
+    from mjxdiff.runner.sweep import SweepConfig, capable, engine_class
 
     config = SweepConfig(impl=impl)
     assert capable(config, "estimate") == capable(config, "transfer") == (impl == "mjx")
@@ -99,18 +100,21 @@ def test_the_import_graph_has_no_cycle():
     from pathlib import Path
 
     root = Path(__file__).parent.parent / "mjxdiff"
-    mods = {p.stem for p in root.glob("*.py")} - {"__init__", "__main__"}
+    files = {".".join(p.relative_to(root).with_suffix("").parts): p for p in root.rglob("*.py")
+             if p.stem not in ("__init__", "__main__")}
+    mods = set(files)
     graph = {}
-    for m in mods:
+    for m, path in files.items():
         deps = set()
-        for node in ast.walk(ast.parse((root / f"{m}.py").read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module == "mjxdiff":
-                deps |= {a.name for a in node.names}
-            elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("mjxdiff."):
-                deps.add(node.module.split(".")[1])
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "mjxdiff":
+                base = node.module.removeprefix("mjxdiff").lstrip(".")
+                deps |= {f"{base}.{a.name}".lstrip(".") if f"{base}.{a.name}".lstrip(".") in mods else base
+                         for a in node.names}
             elif isinstance(node, ast.Import):
-                deps |= {a.name.split(".")[1] for a in node.names if a.name.startswith("mjxdiff.")}
+                deps |= {a.name.removeprefix("mjxdiff.") for a in node.names if a.name.startswith("mjxdiff.")}
         graph[m] = (deps & mods) - {m}
+    assert len(mods) > 40 and graph["runner.sweep"] >= {"engine.engines", "compare.verdict"}, graph
 
     def reaches_itself(start):
         seen, todo = set(), list(graph[start])

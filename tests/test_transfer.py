@@ -1,4 +1,4 @@
-"""MJX's host interface checked against C (mjxdiff.transfer): silent on unmodified MJX over
+"""MJX's host interface checked against C (mjxdiff.compare.transfer): silent on unmodified MJX over
 every bundled scenario, and a one-line slip in put_data, get_data, get_state/set_state,
 id2name or bind is caught, with the call, the field and the C state named. The rollouts
 never call these functions, so no trajectory comparison could have caught any of them."""
@@ -12,10 +12,11 @@ from mujoco.mjx._src import io as mjx_io
 from mujoco.mjx._src import support as mjx_support
 from mujoco.mjx._src import types as mjx_types
 
-from mjxdiff import adjust, transfer
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.input import adjust
+from mjxdiff.compare import transfer
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import bundled_scenarios, load_model, load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
 
 
 def _check(name: str, precision: str = "float64") -> transfer.TransferCheck:
@@ -141,7 +142,7 @@ def test_a_named_light_is_listed_as_refused_by_mjx_names_and_the_rest_is_checked
 
 
 def test_a_host_interface_check_that_could_not_run_says_so_on_the_checks_line():
-    from mjxdiff.report import format_checks
+    from mjxdiff.output.report import format_checks
 
     line = format_checks({"transfer": {"error": "KeyError: 8"}})
     assert line == "checks: host-interface check did not run: KeyError: 8"
@@ -177,7 +178,7 @@ def test_a_check_is_loaded_only_for_the_same_model_state_and_code(tmp_path, monk
 
 
 def test_a_sweep_loads_the_check_it_made_before_and_says_so(tmp_path, monkeypatch):
-    from mjxdiff import export_cache
+    from mjxdiff.engine import export_cache
 
     monkeypatch.setattr(export_cache, "cache_root", lambda: tmp_path)
     config = SweepConfig(seed=0, batch=2, steps=20, diagnose="none")

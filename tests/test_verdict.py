@@ -13,12 +13,12 @@ import jax
 import numpy as np
 import pytest
 
-from mjxdiff.engines import CEngine, Trajectory, concat
-from mjxdiff.inputs import make_inputs
-from mjxdiff.noise import NoiseFloor, perturb
-from mjxdiff.scenario import load_model, load_scenario
-from mjxdiff.sweep import SweepConfig, run_inputs
-from mjxdiff.verdict import Judge, judge, rangefinder_mask
+from mjxdiff.engine.engines import CEngine, Trajectory, concat
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.compare.noise import NoiseFloor, perturb
+from mjxdiff.input.scenario import load_model, load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_inputs
+from mjxdiff.compare.verdict import Judge, judge, rangefinder_mask
 
 B, T = 6, 40
 
@@ -180,8 +180,9 @@ def test_streams_concatenate_to_the_rollout(lidar):
 def test_the_reports_numbers_are_what_mjxdiff_metrics_computes(lidar):
     """One error core: every number of a real sweep's report (both engines, streamed in pieces) is
     what the public metrics give on the same trajectories, computed member by member here."""
-    from mjxdiff import metrics, report
-    from mjxdiff.engines import MJXEngine
+    from mjxdiff import metrics
+    from mjxdiff.output import report
+    from mjxdiff.engine.engines import MJXEngine
 
     scenario, m, inputs, traj_c, _ = lidar
     tol = scenario.tolerance
@@ -230,8 +231,8 @@ def test_a_pass_says_how_sharp_its_bound_was(lidar):
     an envelope wide enough to pass a difference of half the field's size is a weak pass,
     named on the line and counted in the summary; the same error against that bound, sharp
     or not, is judged the same way."""
-    from mjxdiff.report import format_text, summary
-    from mjxdiff.verdict import WEAK_BOUND
+    from mjxdiff.output.report import format_text, summary
+    from mjxdiff.compare.verdict import WEAK_BOUND
 
     scenario, m, _, traj_c, _ = lidar
     tol = scenario.tolerance

@@ -7,8 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from mjxdiff import cli, report, versions
-from mjxdiff.versions import Target, parse_target
+from mjxdiff import cli
+from mjxdiff.output import report
+from mjxdiff.tools import versions
+from mjxdiff.tools.versions import Target, parse_target
 
 
 @pytest.mark.parametrize("text, mjx, jax, mujoco, core", [

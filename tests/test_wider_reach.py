@@ -21,8 +21,8 @@ from mujoco.mjx._src import support as mjx_support
 from _bugs import Expect, caught, model_edited
 from combination_bugs import COVERING_SCENARIOS
 from mjxdiff.compat import data_impl, with_impl
-from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
-from mjxdiff.sweep import SweepConfig
+from mjxdiff.input.scenario import bundled_scenarios, load_model, load_scenario
+from mjxdiff.runner.sweep import SweepConfig
 
 #: The rollout's verdict alone: a catch is the rollout's; the one-step check and the host-interface
 #: check (more compiles of each patched MJX) have tests of their own (test_injected_bugs, test_transfer).

@@ -1,6 +1,6 @@
 """Is the artifact cache's key complete? Every bundled scenario's rollout traced under
 ``sys.settrace``: the MJX and mjxdiff code objects it ran, and those its artifact's key would
-miss (:func:`mjxdiff.export_cache.audit`). Exits 1 if any key misses code its trace ran.
+miss (:func:`mjxdiff.engine.export_cache.audit`). Exits 1 if any key misses code its trace ran.
 
     python benchmarks/scripts/cache_completeness.py [SCENARIO ...] [--json OUT]
 """
@@ -9,10 +9,10 @@ import json
 import sys
 import time
 
-from mjxdiff import engines, export_cache
-from mjxdiff.adjust import for_mjx
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import bundled_scenarios, load_model, load_scenario
+from mjxdiff.engine import engines, export_cache
+from mjxdiff.input.adjust import for_mjx
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import bundled_scenarios, load_model, load_scenario
 
 
 def audit(name: str) -> dict:

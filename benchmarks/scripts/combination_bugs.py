@@ -28,9 +28,9 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import combination_bugs  # noqa: E402
 
-from mjxdiff import engines  # noqa: E402
-from mjxdiff.scenario import bundled_scenarios  # noqa: E402
-from mjxdiff.sweep import SweepConfig, run_scenario  # noqa: E402
+from mjxdiff.engine import engines  # noqa: E402
+from mjxdiff.input.scenario import bundled_scenarios  # noqa: E402
+from mjxdiff.runner.sweep import SweepConfig, run_scenario  # noqa: E402
 
 
 #: Verdicts that catch a bug (``unsupported`` is the unmodified verdict of unsupported_pair).

@@ -6,9 +6,9 @@ import json
 import sys
 import time
 
-from mjxdiff import engines
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.engine import engines
+from mjxdiff.input.scenario import load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
 cache = sys.argv[1]
 name = sys.argv[2]
 engines.configure_jax("float64", cache)

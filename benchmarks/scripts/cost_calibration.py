@@ -1,5 +1,5 @@
 """Measures what MJX's rollout of a model costs to trace, compile and run, beside the features
-:mod:`mjxdiff.cost` estimates from, to calibrate (and check) its estimate.
+:mod:`mjxdiff.input.cost` estimates from, to calibrate (and check) its estimate.
 
     python benchmarks/scripts/cost_calibration.py MODEL.xml [MODEL.xml ...] [--timeout 600] [--rss-gb 18]
 
@@ -24,9 +24,10 @@ import time
 def child(path: str) -> None:
     import resource
 
-    from mjxdiff import cost, engines, export_cache
-    from mjxdiff.scenario import load_scenario
-    from mjxdiff.sweep import SweepConfig, _plan, _prepare
+    from mjxdiff.input import cost
+    from mjxdiff.engine import engines, export_cache
+    from mjxdiff.input.scenario import load_scenario
+    from mjxdiff.runner.sweep import SweepConfig, _plan, _prepare
 
     engines.configure_jax("float64", cache_dir=tempfile.mkdtemp(prefix="calib-"))
     import jax
@@ -87,10 +88,10 @@ BASELINE_BYTES = 0.45 * 2**30
 
 
 def features(path: str) -> dict:
-    """The model features :func:`mjxdiff.cost.estimate` reads: nv, collision groups, hull work."""
-    from mjxdiff import cost
-    from mjxdiff.scenario import load_scenario
-    from mjxdiff.sweep import SweepConfig, _prepare
+    """The model features :func:`mjxdiff.input.cost.estimate` reads: nv, collision groups, hull work."""
+    from mjxdiff.input import cost
+    from mjxdiff.input.scenario import load_scenario
+    from mjxdiff.runner.sweep import SweepConfig, _prepare
 
     m = _prepare(load_scenario(path), SweepConfig()).m
     if m is None:
@@ -106,7 +107,7 @@ def fit(path: str) -> None:
     table of estimate against measurement (and peak RSS against the per-member estimate)."""
     import numpy as np
 
-    from mjxdiff import cost
+    from mjxdiff.input import cost
 
     rows = [json.loads(x) for x in open(path) if x.startswith("{")]
     rows = [r for r in rows if r.get("compile_s")]  # killed after its compile: that is measured

@@ -11,8 +11,8 @@ import pytest
 sys.path.insert(0, "tests")
 import test_detection as td
 
-from mjxdiff import engines
-from mjxdiff.fuzz import DEFAULT_BUDGET, fuzz
+from mjxdiff.engine import engines
+from mjxdiff.tools.fuzz import DEFAULT_BUDGET, fuzz
 
 engines.configure_jax("float64", ".jax_cache")
 name = sys.argv[1]

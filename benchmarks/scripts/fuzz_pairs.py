@@ -2,7 +2,7 @@
 
     python benchmarks/scripts/fuzz_pairs.py --seed 0 --budget 120 [--out FILE]
 
-Runs ``mjxdiff.fuzz.fuzz`` and reads the interaction pairs (``mjxdiff.interactions``, always
+Runs ``mjxdiff.tools.fuzz.fuzz`` and reads the interaction pairs (``mjxdiff.tools.interactions``, always
 this file's tree) of every batch it generates, by wrapping ``fuzz.variants``: the same measure
 for a revision whose fuzzer neither reports pairs nor aims at them (run with that revision's
 package first on the path: ``PYTHONPATH=/tmp/old python benchmarks/scripts/fuzz_pairs.py``).
@@ -17,12 +17,13 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-_spec = importlib.util.spec_from_file_location("pairs_model", ROOT / "mjxdiff" / "interactions.py")
+_spec = importlib.util.spec_from_file_location("pairs_model", ROOT / "mjxdiff" / "tools" / "interactions.py")
 interactions = importlib.util.module_from_spec(_spec)
 sys.modules[_spec.name] = interactions  # its dataclasses look their module up
 _spec.loader.exec_module(interactions)
 
-from mjxdiff import engines, fuzz as fuzz_module  # noqa: E402
+from mjxdiff.engine import engines  # noqa: E402
+from mjxdiff.tools import fuzz as fuzz_module  # noqa: E402
 
 
 def main(argv=None) -> int:

@@ -21,11 +21,12 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import injected_bugs  # noqa: E402
 
-from mjxdiff import engines, onestep  # noqa: E402
-from mjxdiff.engines import CEngine, MJXEngine  # noqa: E402
-from mjxdiff.inputs import make_inputs  # noqa: E402
-from mjxdiff.scenario import load_model, load_scenario  # noqa: E402
-from mjxdiff.sweep import SweepConfig, run_scenario  # noqa: E402
+from mjxdiff.engine import engines  # noqa: E402
+from mjxdiff.compare import onestep  # noqa: E402
+from mjxdiff.engine.engines import CEngine, MJXEngine  # noqa: E402
+from mjxdiff.input.inputs import make_inputs  # noqa: E402
+from mjxdiff.input.scenario import load_model, load_scenario  # noqa: E402
+from mjxdiff.runner.sweep import SweepConfig, run_scenario  # noqa: E402
 
 #: The one-step check's batch and horizon, as tests/test_injected_bugs.py uses them.
 BATCH, STEPS = 4, 120

@@ -7,7 +7,7 @@ Run the suite with ``MJXDIFF_TEST_JAX_TIMES=DIR`` (tests/conftest.py records per
 
 A test whose compile is most of its wall time is one to share compiled work with another, or
 to compile for compile time (``mjxdiff.compat.jit_for_few_calls``); one whose trace is most of
-it, one to serve from an artifact (``mjxdiff.export_cache``)."""
+it, one to serve from an artifact (``mjxdiff.engine.export_cache``)."""
 
 import argparse
 import json

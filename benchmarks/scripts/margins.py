@@ -20,9 +20,9 @@ import statistics
 import sys
 import time
 
-from mjxdiff import engines
-from mjxdiff.scenario import bundled_scenarios, load_scenario
-from mjxdiff.sweep import SweepConfig, sweep
+from mjxdiff.engine import engines
+from mjxdiff.input.scenario import bundled_scenarios, load_scenario
+from mjxdiff.runner.sweep import SweepConfig, sweep
 
 
 def _judged(result) -> list:

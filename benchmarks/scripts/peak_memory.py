@@ -6,9 +6,9 @@ import resource
 import sys
 import time
 
-from mjxdiff import engines
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.engine import engines
+from mjxdiff.input.scenario import load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
 engines.configure_jax("float64", sys.argv[1])
 name, batch, steps = sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 t = time.perf_counter()

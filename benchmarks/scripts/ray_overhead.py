@@ -13,7 +13,7 @@ Every phase is a ``python -m mjxdiff sweep`` process, timed from start to exit, 
 5. The same answers: every run's verdicts and per-field numbers, timings and worker details
    aside, equal to the local warm run's; printed, and the exit status is 1 when they differ.
 6. Overhead: Ray's wall minus local's, cold and warm, and per unit after the fixed cost.
-7. The model (:mod:`mjxdiff.scaling`) fed each Ray run's journal (a node = this machine: its
+7. The model (:mod:`mjxdiff.runner.scaling`) fed each Ray run's journal (a node = this machine: its
    CPUs // 1 slots), checked against the measured Ray wall at 1 node, then 1-64 nodes; with
    ``--plot``, the predicted speed-up against nodes, cold and warm, as a PNG.
 """
@@ -103,7 +103,7 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--plot", type=Path, help="write the predicted speed-up to this PNG")
     args = parser.parse_args()
-    from mjxdiff import journal, scaling
+    from mjxdiff.runner import journal, scaling
 
     fixed = ray_fixed_cost()
     cpus = os.cpu_count() or 1

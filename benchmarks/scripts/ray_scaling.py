@@ -9,7 +9,7 @@
    machine's executor), Ray on one node (a ``ray.cluster_utils.Cluster`` head of 1 CPU) and Ray
    on two nodes (1 CPU each); wall seconds of each, and Ray's per-unit cost: (Ray 1-node wall - fixed - sum of the
    units' worker seconds) / units.
-3. The model (:mod:`mjxdiff.scaling`) fed the 1-node run's journal, the fixed and per-unit costs,
+3. The model (:mod:`mjxdiff.runner.scaling`) fed the 1-node run's journal, the fixed and per-unit costs,
    predicting the 1- and 2-node walls; printed beside the measured ones, then 1-64 nodes.
 """
 
@@ -28,7 +28,7 @@ warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called")
 
 
 def _sweep(out: Path, scenarios, quick: bool, **changes) -> float:
-    from mjxdiff import pipeline
+    from mjxdiff.runner import pipeline
 
     t0 = time.perf_counter()
     run = pipeline.run(pipeline.SweepOptions(scenarios=tuple(scenarios), quick=quick, out=str(out), no_history=True,
@@ -48,7 +48,7 @@ def main() -> int:
     import ray
     from ray.cluster_utils import Cluster
 
-    from mjxdiff import journal, scaling
+    from mjxdiff.runner import journal, scaling
 
     from ray_overhead import ray_fixed_cost  # this script's directory is on sys.path
 

@@ -5,9 +5,11 @@ python benchmarks/scripts/rss_by_piece.py CACHE_DIR STEPS EVERY [PIECE_BUDGET_MI
 import resource
 import sys
 
-from mjxdiff import engines, sweep, verdict
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.engine import engines
+from mjxdiff.runner import sweep
+from mjxdiff.compare import verdict
+from mjxdiff.input.scenario import load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
 engines.configure_jax("float64", sys.argv[1])
 if len(sys.argv) > 4:
     sweep.PIECE_BUDGET_MIB = float(sys.argv[4])

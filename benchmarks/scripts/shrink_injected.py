@@ -5,7 +5,7 @@
 Per bug of tests/injected_bugs.py (default: contact_distance and armature): the bug patched into
 MJX, C's rollout of the scenario's model from its keyframe (else qpos0) with smooth random
 controls searched for the first state where one step or mj_forward differs, the model shrunk
-(``mjxdiff.shrink.shrink``) and bundled under OUT/BUG_ID; then the minimal model checked with the
+(``mjxdiff.tools.shrink.shrink``) and bundled under OUT/BUG_ID; then the minimal model checked with the
 bug (the same signature: shrinking turned it into no other divergence) and without it (no
 divergence: the bug's own). One line per bug: sizes before and after (bodies, geoms, joints,
 actuators, sensors, options, steps), candidates, XLA compiles, seconds.
@@ -24,8 +24,9 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import injected_bugs  # noqa: E402
 
-from mjxdiff import bundle, engines, shrink  # noqa: E402
-from mjxdiff.scenario import load_scenario  # noqa: E402
+from mjxdiff.tools import bundle, shrink  # noqa: E402
+from mjxdiff.engine import engines  # noqa: E402
+from mjxdiff.input.scenario import load_scenario  # noqa: E402
 
 
 def _size(c: shrink.Counts) -> str:

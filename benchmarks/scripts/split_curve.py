@@ -5,9 +5,9 @@ python benchmarks/scripts/split_curve.py ant,humanoid STEPS 16,32,64 (run from t
 import sys
 import time
 
-from mjxdiff import engines
-from mjxdiff.scenario import load_scenario, load_model
-from mjxdiff.inputs import make_inputs
+from mjxdiff.engine import engines
+from mjxdiff.input.scenario import load_scenario, load_model
+from mjxdiff.input.inputs import make_inputs
 engines.configure_jax("float64")
 T = int(sys.argv[2])
 for name in sys.argv[1].split(","):

@@ -7,10 +7,10 @@ the same inputs (both engines, C's perturbed rerun on demand, metrics, verdict);
 import sys
 import time
 
-from mjxdiff import engines
-from mjxdiff.inputs import make_inputs
-from mjxdiff.scenario import load_model, load_scenario
-from mjxdiff.sweep import SweepConfig, run_inputs, run_scenario
+from mjxdiff.engine import engines
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.input.scenario import load_model, load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_inputs, run_scenario
 
 engines.configure_jax("float64")
 B, T, names = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3:]

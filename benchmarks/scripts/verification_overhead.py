@@ -5,10 +5,10 @@ python benchmarks/scripts/verification_overhead.py humanoid 64 200 [PIECE_STEPS]
 import sys
 import time
 
-from mjxdiff import engines
-from mjxdiff.scenario import load_scenario, load_model
-from mjxdiff.inputs import make_inputs
-from mjxdiff.sweep import SweepConfig, run_inputs
+from mjxdiff.engine import engines
+from mjxdiff.input.scenario import load_scenario, load_model
+from mjxdiff.input.inputs import make_inputs
+from mjxdiff.runner.sweep import SweepConfig, run_inputs
 engines.configure_jax("float64")
 name, B, T = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 sc = load_scenario(name)

@@ -7,9 +7,9 @@ import time
 
 import jax
 
-from mjxdiff import engines
-from mjxdiff.scenario import load_scenario
-from mjxdiff.sweep import SweepConfig, run_scenario
+from mjxdiff.engine import engines
+from mjxdiff.input.scenario import load_scenario
+from mjxdiff.runner.sweep import SweepConfig, run_scenario
 engines.configure_jax("float64", sys.argv[1])
 events = []
 jax.monitoring.register_event_duration_secs_listener(lambda e, d, **k: events.append((e.split("/")[-1], d, k)))

@@ -1,5 +1,5 @@
 """Compile seconds and stepping speed of MJX rollouts under XLA's option sets, and how far
-their results are from XLA's defaults (the numbers behind ``mjxdiff.engines.xla_options``).
+their results are from XLA's defaults (the numbers behind ``mjxdiff.engine.engines.xla_options``).
 
     python benchmarks/scripts/xla_options.py [SCENARIOS] [BATCH] [STEPS]
     (default: ant,humanoid,box_stack,primitive_pairs 8 200)
@@ -14,17 +14,17 @@ import json
 import sys
 import time
 
-from mjxdiff.engines import configure_jax
+from mjxdiff.engine.engines import configure_jax
 
 configure_jax("float64", cache_dir="")
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mjxdiff import engines, export_cache  # noqa: E402
-from mjxdiff.engines import MJXEngine, _rollout  # noqa: E402
-from mjxdiff.inputs import make_inputs  # noqa: E402
-from mjxdiff.scenario import load_model, load_scenario  # noqa: E402
+from mjxdiff.engine import engines, export_cache  # noqa: E402
+from mjxdiff.engine.engines import MJXEngine, _rollout  # noqa: E402
+from mjxdiff.input.inputs import make_inputs  # noqa: E402
+from mjxdiff.input.scenario import load_model, load_scenario  # noqa: E402
 
 OPTION_SETS = {
     "xla defaults": {},

@@ -68,7 +68,7 @@ def failing(work: Path) -> None:
     """The report page of a sweep that fails: MJX's actuator gains 2% high."""
     from mujoco.mjx._src import forward as mjx_forward
 
-    from mjxdiff import engines
+    from mjxdiff.engine import engines
 
     orig = mjx_forward.fwd_actuation
     mjx_forward.fwd_actuation = lambda m, d: orig(m.replace(actuator_gainprm=m.actuator_gainprm * 1.02), d)
@@ -140,13 +140,13 @@ def sharpness_from_report(report: dict) -> dict[str, dict]:
 
 def draw_sharpness(data: dict, out: Path) -> None:
     """Horizontal bars of each scenario's loosest bound over scale (log axis), with the weak-pass
-    line (:data:`mjxdiff.verdict.WEAK_BOUND`)."""
+    line (:data:`mjxdiff.compare.verdict.WEAK_BOUND`)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from mjxdiff.verdict import WEAK_BOUND
+    from mjxdiff.compare.verdict import WEAK_BOUND
 
     rows = sorted(data["scenarios"].items(), key=lambda kv: kv[1]["bound_scale"])
     fig, ax = plt.subplots(figsize=(8, 0.27 * len(rows) + 1.6), dpi=110)

@@ -1,0 +1,1136 @@
+"""The two engines behind one interface: MuJoCo C and MJX, batched.
+
+Both take the same :class:`~mjxdiff.input.inputs.BatchedInputs` and return a
+:class:`Trajectory` with the same fields and shapes. Recording follows
+``mj_step``: after step k, ``qpos``/``qvel``/``act``/``time`` are the new
+state, while ``sensordata`` and ``ncon`` were computed from the state before
+the step (both engines evaluate them in the forward pass that precedes
+integration).
+
+* :class:`CEngine` steps every member on all cores with :class:`mujoco.batch.Batch`.
+* :class:`MJXEngine` runs ``jit(vmap(scan(mjx.step)))``. Each member's model is
+  ``mjx.put_model`` of its own C model; model leaves that differ between
+  members are batched inputs (``vmap`` axis 0), the rest are shared. One
+  compiled function therefore serves every randomized variant of a model
+  structure: it is cached by JAX on (structure, which leaves vary, B, T), and
+  across processes as a ``jax.export`` artifact (:mod:`mjxdiff.engine.export_cache`).
+  Large batches are split across the host CPU devices (``shard_map``; XLA CPU
+  runs one device per thread): one per core after :func:`configure_jax`, which
+  the CLI calls (see :class:`MJXEngine`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import dataclasses
+import functools
+import io
+import os
+import threading
+from pathlib import Path
+from typing import Any, Iterator
+
+# Load-bearing, the XLA CPU thread pool: jax's batched LAPACK kernels (the Newton solver's
+# Cholesky) split a large enough batch into tasks on XLA's intra-op pool and block their own
+# thread until those finish. If every pool thread is blocked that way, nothing runs the tasks
+# and the rollout never returns (0% CPU; gdb: two threads in CholeskyFactorization::Kernel,
+# the rest idle). The pool has one thread per core by default, so two concurrent kernels
+# deadlock a 2-core machine: two devices of a split batch (humanoid, 64 members per device,
+# 3/3 hangs), or two kernels one device runs side by side (the concurrency-optimised
+# scheduler; 56-dof primitive_pairs). PJRT_NPROC sizes the pool: with more threads than
+# kernels that can block at once (one per device; pool = cores + devices) it cannot
+# deadlock (3/3 passes). The scheduler and the multithreaded Eigen pool (PyAutoFit #1528)
+# stay off as well.
+# All of this is read once, when JAX's backend starts, so it is set by configure_jax (the
+# CLI calls it first), never by importing mjxdiff: a research process that imports the
+# metrics keeps its own XLA settings.
+#
+# Host devices to split MJX's batch over: configure_jax(devices=N), MJXDIFF_DEVICES, default
+# one per core. A single XLA CPU device runs a vmapped MJX rollout on about one core; split
+# over devices, each runs its share on its own thread. MJXEngine splits only batches big
+# enough to gain from it.
+#: CPUs this process may use: ``MJXDIFF_CORES`` (what a cluster task was given, see
+#: :mod:`mjxdiff.runner.executors`), else the machine's. Host devices, C threads and compile workers follow it.
+CORES = int(os.environ.get("MJXDIFF_CORES") or 0) or os.cpu_count() or 1
+#: XLA flags that keep a blocking LAPACK kernel from starving the pool (see above).
+SAFETY_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false", "--xla_cpu_multi_thread_eigen=false")
+_DEVICE_FLAG = "--xla_force_host_platform_device_count"
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import warp" to stdout
+    from mujoco import mjx
+from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
+from mjxdiff.compat import (BALANCED_COMPILE, FAST_COMPILE, Batch, SimulationError, data_impl,  # noqa: E402,F401
+                            disable_bit, fast_compile_validated, full_inertia, jaxlib_validated, jit_for_few_calls)
+
+from mjxdiff.input.precision import Precision  # noqa: E402
+from mjxdiff import compat  # noqa: E402
+from mjxdiff.engine import export_cache, stages  # noqa: E402
+from mjxdiff.input import joints  # noqa: E402
+from mjxdiff.engine.stages import Forward  # noqa: E402
+from mjxdiff.input.inputs import BatchedInputs, roundoff_moved  # noqa: E402
+# Trajectory and Engine live in mjxdiff.trajectory (no MJX there); kept importable from here
+from mjxdiff.engine.trajectory import Engine, Streaming, Trajectory, concat, first_true, resync_blocks, shifted  # noqa: E402
+
+__all__ = [
+    "CEngine",
+    "Engine",
+    "MJXEngine",
+    "MJXWarpEngine",
+    "Trajectory",
+    "UnsupportedError",
+    "compile_count",
+    "compile_seconds",
+    "concat",
+    "configure_jax",
+    "device_count",
+    "overflow_names",
+    "put_models",
+    "warp_capacity",
+]
+
+
+class UnsupportedError(Exception):
+    """MJX refused the model (``NotImplementedError`` in ``put_model``, ``make_data`` or
+    while tracing ``mjx.step``); ``feature`` names what."""
+
+    def __init__(self, feature: str):
+        super().__init__(feature)
+        self.feature = feature
+
+
+@contextlib.contextmanager
+def _unsupported():
+    """Turns MJX's ``NotImplementedError`` into :class:`UnsupportedError`, naming the feature."""
+    try:
+        yield
+    except NotImplementedError as e:
+        raise UnsupportedError(" ".join(str(e).split()) or type(e).__name__) from None
+
+
+def _backend_started() -> bool:
+    from jax._src import xla_bridge
+
+    return xla_bridge.backends_are_initialized()
+
+
+def _flag_value(flags: str, name: str) -> str | None:
+    values = [f.split("=", 1)[1] for f in flags.split() if f.startswith(name + "=")]
+    return values[-1] if values else None
+
+
+def _xla_settings(devices: int | None) -> tuple[str, str, int]:
+    """(XLA_FLAGS, PJRT_NPROC, devices) mjxdiff wants: the safety flags, and ``devices`` host
+    devices (None: an inherited device-count flag, else ``MJXDIFF_DEVICES``, else one per core)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if devices is None and os.environ.get("MJXDIFF_DEVICES"):
+        devices = int(os.environ["MJXDIFF_DEVICES"])
+    if devices is None:
+        devices = int(_flag_value(flags, _DEVICE_FLAG) or CORES)
+    kept = [f for f in flags.split() if not f.startswith(_DEVICE_FLAG)]
+    wanted = kept + [f for f in SAFETY_FLAGS if f.split("=")[0] not in flags] + [f"{_DEVICE_FLAG}={devices}"]
+    return " ".join(wanted), os.environ.get("PJRT_NPROC") or str(CORES + devices), devices
+
+
+_CONFIGURED = export_cache.untraced({"done": False})
+
+
+def configure_jax(precision: Precision = "float64", cache_dir: str | os.PathLike | None = None,
+                  devices: int | None = None) -> None:
+    """Sets up JAX for mjxdiff in this process: XLA's CPU devices and thread pool, precision,
+    persistent compilation cache. The CLI calls it first; importing mjxdiff changes nothing.
+
+    XLA reads its flags once, when JAX's backend starts (the first computation). Before
+    that, this sets ``XLA_FLAGS`` (``devices`` host devices and :data:`SAFETY_FLAGS`) and
+    ``PJRT_NPROC`` (cores + devices: a pool a blocking kernel per device cannot starve).
+    After that it changes neither and says so in one line on stderr if the running backend
+    differs (MJX then splits its batch over the devices there are).
+
+    Args:
+      precision: ``float64`` (``jax_enable_x64``, the default: algorithmic
+        differences are not drowned by rounding) or ``float32``.
+      cache_dir: persistent compilation cache directory; ``None`` uses
+        ``$MJXDIFF_CACHE`` or ``~/.cache/mjxdiff/jax``; ``""`` disables it.
+      devices: host CPU devices; None: ``MJXDIFF_DEVICES``, else an inherited
+        ``--xla_force_host_platform_device_count``, else one per core.
+    """
+    if precision not in ("float32", "float64"):
+        raise ValueError(f"precision must be float32 or float64, got {precision!r}")
+    if devices is not None and devices < 1:
+        raise ValueError(f"devices must be positive, got {devices!r}")
+    flags, nproc, want = _xla_settings(devices)
+    if not _backend_started():
+        os.environ["XLA_FLAGS"], os.environ["PJRT_NPROC"] = flags, nproc
+    elif device_count() != want or not all(f in os.environ.get("XLA_FLAGS", "") for f in SAFETY_FLAGS):
+        import sys
+
+        print(f"mjxdiff: JAX's backend had already started ({device_count()} CPU device(s), XLA_FLAGS="
+              f"{os.environ.get('XLA_FLAGS', '')!r}); mjxdiff's settings ({want} device(s), {' '.join(SAFETY_FLAGS)}) "
+              "take effect only if configure_jax runs before the first JAX computation", file=sys.stderr)
+    _CONFIGURED["done"] = True
+    jax.config.update("jax_enable_x64", precision == "float64")
+    if cache_dir is None:
+        cache_dir = os.environ.get("MJXDIFF_CACHE", Path.home() / ".cache" / "mjxdiff" / "jax")
+    if not jaxlib_validated():
+        cache_dir = ""  # a loaded rollout crashes some jaxlib releases (mjxdiff.compat.VALIDATED_JAXLIB)
+    if cache_dir:
+        # XLA's executables per CPU type (export_cache.cpu_type), mjxdiff's portable artifacts beside them
+        xla_dir = Path(cache_dir).expanduser() / f"{export_cache.XLA_PREFIX}{export_cache.cpu_type()}"
+        jax.config.update("jax_compilation_cache_dir", str(xla_dir))
+        # every compile, however small: a sweep's many small eager ops (stacking leaves,
+        # casts, metrics of each shape) otherwise recompile in every new process
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def _ensure_safe_backend() -> None:
+    """Before MJX's first computation in a process that never called :func:`configure_jax`:
+    the :data:`SAFETY_FLAGS` (nothing else), if JAX has not started yet; without them a
+    vmapped Newton solver can hang XLA's CPU pool. Called when an engine is used, not on import."""
+    if _CONFIGURED["done"]:
+        return
+    _CONFIGURED["done"] = True
+    if not _backend_started():
+        flags = os.environ.get("XLA_FLAGS", "")
+        os.environ["XLA_FLAGS"] = " ".join([flags] + [f for f in SAFETY_FLAGS if f.split("=")[0] not in flags]).strip()
+
+
+def _record_buffer(m: mujoco.MjModel, d: mujoco.MjData, item, batch: int, steps: int) -> np.ndarray:
+    """A zeroed (B, T, ...) array of the shape and dtype ``Batch.rollout`` records ``item`` in."""
+    if not isinstance(item, str):  # an mjtState spec
+        return np.zeros((batch, steps, mujoco.mj_stateSize(m, int(item))))
+    value = getattr(d, item)
+    template = value if isinstance(value, np.ndarray) else np.zeros((), np.int32)  # int scalars: int32
+    return np.zeros((batch, steps, *template.shape), template.dtype)
+
+
+def _with_energy(m: mujoco.MjModel) -> mujoco.MjModel:
+    m = copy.copy(m)
+    m.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_ENERGY
+    return m
+
+
+class _Shake:
+    """The per-step moves of :meth:`CEngine.stream`'s ``jitter``: one generator per member and field."""
+
+    def __init__(self, inputs: BatchedInputs, jitter: np.ndarray):
+        self.rows = np.flatnonzero(jitter)
+        self.size = jitter[self.rows, None]
+        self.rngs = [(np.random.default_rng([inputs.seed, int(inputs.ids[i]), 1]),
+                      np.random.default_rng([inputs.seed, int(inputs.ids[i]), 2])) for i in self.rows]
+
+    def move(self, x: np.ndarray, field: int) -> None:
+        """Moves the jittered rows of ``x`` (B, n) in place, one step's worth."""
+        signs = np.stack([2.0 * rng[field].integers(0, 2, x.shape[1]) - 1.0 for rng in self.rngs])
+        x[self.rows] = roundoff_moved(x[self.rows], signs, self.size)
+
+
+def _rollout_shaken(b: Any, k: int, control: np.ndarray, record: tuple, out: dict, shake: _Shake) -> np.ndarray:
+    """``b.rollout(k, ...)`` one step at a time, ``shake`` moving the state after each step.
+    Returns the ids of the members MuJoCo raised a :class:`SimulationError` for."""
+    one = {item: np.zeros_like(buf[:, :1]) for item, buf in out.items()}
+    raised: list[np.ndarray] = []
+    for i in range(k):
+        try:
+            b.rollout(1, control=control[:, i:i + 1], record=record, out=one)
+        except SimulationError as e:
+            raised.append(np.asarray(e.ids))
+        for item, buf in out.items():
+            buf[:, i] = one[item][:, 0]
+        shake.move(b.qpos, 0)  # views of the batch's state: moved in place
+        shake.move(b.qvel, 1)
+    return np.concatenate(raised) if raised else np.zeros(0, int)
+
+
+class CEngine(Streaming):
+    """MuJoCo C: :class:`mujoco.batch.Batch` over all cores, one model per member."""
+
+    name = "c"
+    precision: Precision = "float64"
+    capabilities: frozenset[str] = frozenset()
+
+    def __init__(self, nthread: int | None = None):
+        #: C threads (0: all CPUs); default :data:`CORES`, all of them unless ``MJXDIFF_CORES`` says otherwise
+        self.nthread = (0 if CORES == (os.cpu_count() or 1) else CORES) if nthread is None else nthread
+
+    def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]) -> Forward:
+        """``mj_forward`` of a copy of ``d``, read back (:func:`mjxdiff.engine.stages.read`)."""
+        d = copy.copy(d)
+        mujoco.mj_forward(m, d)
+        return stages.read(m, d, fields)
+
+    def resync(self, inputs: BatchedInputs, reference: Trajectory, every: int = 1) -> Trajectory:
+        """C restarted from ``reference``'s state every ``every`` steps (as :meth:`MJXEngine.resync`):
+        the S = ceil(T / every) blocks of every member step side by side, as B x S members of one
+        rollout of ``every`` steps; ``time`` continues from the reference's."""
+        B, T, k = inputs.batch, inputs.steps, every
+        states, ctrl, starts = resync_blocks(inputs, reference, every)
+        S = len(starts)
+        flat = {f: x.reshape(B * S, *x.shape[2:]) for f, x in states.items()}
+        blocks = dataclasses.replace(inputs, qpos=flat["qpos"], qvel=flat["qvel"], act=flat["act"],
+                                     ctrl=ctrl.reshape(B * S, k, -1), factors={},
+                                     models=tuple(mi for mi in inputs.models for _ in range(S)), member_ids=None)
+        traj = self.rollout(blocks)
+
+        def back(x):
+            return np.asarray(x).reshape(B, S * k, *np.shape(x)[2:])[:, :T]
+        fields = {f.name: back(getattr(traj, f.name)) for f in dataclasses.fields(Trajectory)
+                  if f.name not in ("diverged_at", "time")}
+        at = np.asarray(traj.diverged_at).reshape(B, S)
+        at = np.where(at >= 0, at + starts, -1)
+        first = np.where((at >= 0).any(axis=1), at[np.arange(B), (at >= 0).argmax(axis=1)], -1)
+        time = np.asarray(traj.time) + flat["time"][:, None]
+        return Trajectory(**fields, time=back(time), diverged_at=np.where(first < T, first, -1))
+
+    def stream(self, inputs: BatchedInputs, chunk: int, jitter: np.ndarray | None = None) -> Iterator[Trajectory]:
+        """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
+
+        One :class:`~mujoco.batch.Batch` carries on from where the previous
+        piece stopped, so the pieces concatenate to :meth:`rollout`'s result
+        bit for bit. ``diverged_at`` counts steps from the start of the
+        rollout and may repeat in later pieces; the first one counts.
+
+        ``jitter``: (B,) relative sizes; after every step, member ``i``'s ``qpos`` and ``qvel``
+        move by ``jitter[i] * max(|x|, 1)`` per component with a random sign (drawn from
+        generators seeded by (seed, member id), so the pieces are the same however the steps are
+        cut): MuJoCo's parity method's float32 shadow of C (:data:`mjxdiff.compare.noise.STEP_JITTER`).
+        Records are taken before the move.
+        """
+        models = inputs.models
+        if inputs.energy:  # C computes d.energy itself; MJX refuses the flag, so only C's copies get it
+            models = tuple(_with_energy(mi) for mi in models)
+        m, B = models[0], inputs.batch
+        b = Batch(m, B, nthread=self.nthread)
+        b.set_models(list(models))
+        b.qpos[:] = inputs.qpos
+        b.qvel[:] = inputs.qvel
+        if m.na:
+            b.act[:] = inputs.act
+        time_spec = mujoco.mjtState.mjSTATE_TIME
+        record = ("qpos", "qvel", "act", "sensordata", "ncon", time_spec) + (("energy",) if inputs.energy else ())
+        d = mujoco.MjData(m)
+        raised = np.zeros(B, bool)
+        last_time = np.zeros((B, 1))
+        shake = None if jitter is None or not np.any(jitter) else _Shake(inputs, np.asarray(jitter, float))
+        for start in range(0, inputs.steps, chunk):
+            k = min(chunk, inputs.steps - start)
+            # preallocated, so that records survive a SimulationError in some members
+            out = {item: _record_buffer(m, d, item, B, k) for item in record}
+            try:
+                if shake is None:
+                    b.rollout(k, control=inputs.ctrl[:, start:start + k], record=record, out=out)
+                else:
+                    raised[_rollout_shaken(b, k, inputs.ctrl[:, start:start + k], record, out, shake)] = True
+            except SimulationError as e:
+                raised[np.asarray(e.ids)] = True
+            time = out[time_spec][..., 0]
+            # A member whose warning counters rise stops, and its records then repeat.
+            warned = (b.warning[:, :, 1].sum(axis=1) > 0) | raised
+            stalled = first_true(time <= np.concatenate([last_time, time[:, :-1]], axis=1))
+            last_time = time[:, -1:]
+            # numpy's stubs type .all(axis) as maybe a scalar
+            nonfinite = first_true(~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1))  # pyright: ignore[reportArgumentType]
+            diverged = np.where(warned, np.maximum(stalled, 0), nonfinite)
+            yield Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"],
+                             sensordata=out["sensordata"], time=time, ncon=out["ncon"].astype(np.int64),
+                             energy=out.get("energy", np.zeros((B, k, 0))),
+                             diverged_at=shifted(diverged, start))
+
+
+_NUMERIC_NAMES: dict[tuple[type, tuple[type, ...]], tuple[str, ...]] = export_cache.untraced({})
+
+
+def _numeric_names(example, kinds: tuple[type, ...]) -> tuple[str, ...]:
+    """The public attributes of ``example``'s type holding ``kinds`` (the same for every instance)."""
+    key = (type(example), kinds)
+    if key not in _NUMERIC_NAMES:
+        _NUMERIC_NAMES[key] = tuple(name for name in dir(example) if not name.startswith("_")
+                                    and isinstance(getattr(example, name), kinds))
+    return _NUMERIC_NAMES[key]
+
+
+def _c_fields(m: mujoco.MjModel) -> dict[str, np.ndarray]:
+    """Every numeric field of a C model, keyed like the MJX leaf it becomes (``body_mass``, ``opt.gravity``)."""
+    out = {name: getattr(m, name) for name in _numeric_names(m, (np.ndarray,))}
+    for struct in ("opt", "stat"):
+        sub = getattr(m, struct)
+        out.update({f"{struct}.{name}": np.asarray(getattr(sub, name))
+                    for name in _numeric_names(sub, (np.ndarray, float, int))})
+    return out
+
+
+def _patched_columns(models: list[mujoco.MjModel], mx0: mjx.Model, impl: str = "jax"
+                     ) -> dict[int, list[np.ndarray]] | None:
+    """Per-member values of the MJX leaves that differ, read from the C models, without
+    ``put_model`` per member; None when that is not safe.
+
+    Safe when every C field that differs between the members becomes one MJX
+    leaf unchanged (same values as member 0's leaf), and ``put_model`` of the
+    last member differs from member 0's exactly in those leaves, holding the
+    C values (no derived leaf depends on them).
+    """
+    paths = {jax.tree_util.keystr(path).lstrip("."): k
+             for k, (path, _) in enumerate(jax.tree_util.tree_flatten_with_path(mx0)[0])}
+    leaves0 = [np.asarray(x) for x in jax.tree.leaves(mx0)]
+    fields = [_c_fields(mi) for mi in models]
+    first = {name: value.tobytes() for name, value in fields[0].items()}  # bytes: 0.2 s -> 0.01 s for 64 humanoids
+    differ = {name for f in fields[1:] for name, value in f.items() if value.tobytes() != first[name]}
+    columns = {}
+    for name in differ:
+        k = paths.get(name)
+        if k is None or fields[0][name].size != leaves0[k].size or not np.array_equal(
+                fields[0][name].reshape(leaves0[k].shape), leaves0[k]):
+            return None
+        columns[k] = [f[name].reshape(leaves0[k].shape).astype(leaves0[k].dtype) for f in fields]
+    probe = [np.asarray(x) for x in jax.tree.leaves(compat.put_model(models[-1], impl))]
+    if len(probe) != len(leaves0) or any(not np.array_equal(p, columns[k][-1] if k in columns else leaves0[k])
+                                         for k, p in enumerate(probe)):
+        return None
+    return columns
+
+
+def put_models(models: tuple[mujoco.MjModel, ...], impl: str = "jax") -> tuple[mjx.Model, tuple[bool, ...]]:
+    """``mjx.put_model`` of every member (MJX's ``impl``), with varying leaves stacked.
+
+    Members usually differ only in randomized parameters that MJX copies
+    straight from the C model; those leaves are read from the C models and
+    ``put_model`` runs twice, not once per member (it costs about 15 ms on
+    the ant; see :func:`_patched_columns` for when this falls back).
+
+    Returns:
+      (mx, varying): an ``mjx.Model`` whose leaves are either shared (as in
+      member 0) or stacked along a new leading batch axis, and a per-leaf
+      tuple saying which were stacked.
+
+    Raises:
+      UnsupportedError: MJX does not implement a feature the model uses.
+      ValueError: members differ in a field MJX treats as static structure.
+    """
+    if models[0].nv == 0:  # MJX's scans over the kinematic tree raise ValueError on it while tracing
+        raise UnsupportedError("a model without degrees of freedom (nv = 0): MJX cannot step it "
+                               "('Scan across Model with zero DoFs unsupported')")
+    with _unsupported():
+        mx0 = compat.put_model(models[0], impl)
+    leaves0, treedef = jax.tree.flatten(mx0)
+    distinct = list({id(mi): mi for mi in models}.values())
+    index = {id(mi): i for i, mi in enumerate(distinct)}
+    columns = _patched_columns(distinct, mx0, impl) if len(distinct) > 1 else {}
+    if columns is None:  # put_model per distinct member, and compare every leaf
+        per_member = [leaves0]
+        for mi in distinct[1:]:
+            leaves, td = jax.tree.flatten(compat.put_model(mi, impl))
+            if td != treedef:
+                first, this = _c_fields(distinct[0]), _c_fields(mi)
+                leaves = {jax.tree_util.keystr(p).lstrip(".") for p, _ in jax.tree_util.tree_flatten_with_path(mx0)[0]}
+                names = sorted(k for k, v in first.items() if v.tobytes() != this[k].tobytes() and k not in leaves)
+                raise ValueError(f"batch members differ in {', '.join(names)}, which MJX compiles into the rollout "
+                                 "(static): draw it once per scenario (in the model), not per member")
+            per_member.append([np.asarray(x) for x in leaves])
+        columns = {k: [np.asarray(col[k]) for col in per_member] for k in range(len(leaves0))
+                   if any(not np.array_equal(col[k], per_member[0][k]) for col in per_member[1:])}
+    varying = tuple(k in columns for k in range(len(leaves0)))
+    stacked = [jnp.asarray(np.stack([columns[k][index[id(mi)]] for mi in models])) if k in columns else leaf
+               for k, leaf in enumerate(leaves0)]  # numpy: jnp.stack compiles once per leaf shape
+    return jax.tree.unflatten(treedef, stacked), varying
+
+
+_COMPILES = export_cache.untraced({"count": 0, "seconds": 0.0, "xla": 0})
+# JAX's own timings of tracing, lowering and XLA compilation (a persistent-cache hit is
+# timed as the load that replaces compilation), by the compile phase each counts in.
+_COMPILE_EVENTS = {"/jax/core/compile/jaxpr_trace_duration": "trace",
+                   "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+                   "/jax/core/compile/backend_compile_duration": "xla"}
+# the part of a backend compile that was a persistent-cache hit's load (timed inside it)
+_CACHE_RETRIEVAL = "/jax/compilation_cache/cache_retrieval_time_sec"
+
+
+def _on_duration(event: str, duration_secs: float, **_) -> None:
+    kind = _COMPILE_EVENTS.get(event)
+    if kind is not None:
+        _COMPILES["seconds"] += duration_secs
+        export_cache.count("seconds", duration_secs)
+        export_cache.count(kind, duration_secs)
+    elif event == _CACHE_RETRIEVAL:
+        export_cache.count("xla", -duration_secs)
+        export_cache.count("cache_load", duration_secs)
+    if kind == "xla":
+        _COMPILES["xla"] += 1
+
+
+def _traced() -> None:
+    _COMPILES["count"] += 1
+    export_cache.count("traced")
+
+
+# JAX calls it during a trace; it counts, and emits nothing the trace records
+jax.monitoring.register_event_duration_secs_listener(export_cache.untraced(_on_duration))
+
+
+def compile_count() -> int:
+    """How many times the MJX rollout has been traced (compiled) in this process.
+
+    A rollout loaded from a saved artifact (:mod:`mjxdiff.engine.export_cache`) is not
+    traced and not counted here: see :func:`export_cache.loaded_count`.
+    """
+    return _COMPILES["count"]
+
+
+def xla_compiles() -> int:
+    """XLA compiles of any JAX function in this process so far (a persistent-cache hit counts too)."""
+    return _COMPILES["xla"]
+
+
+def compile_seconds() -> float:
+    """Seconds this process has spent compiling JAX functions (trace, lower, XLA compile or cache load)."""
+    return _COMPILES["seconds"]
+
+
+def clear_compiled() -> None:
+    """Forgets compiled MJX rollouts, so the next rollout re-traces MJX's (possibly patched) Python code."""
+    export_cache.clear()
+    # jax's JitWrapped protocol leaves out the clear_cache every jitted function has
+    _rollout.clear_cache()  # pyright: ignore[reportAttributeAccessIssue]
+    _resync_rollout.clear_cache()  # pyright: ignore[reportAttributeAccessIssue]
+    forward.clear_cache()  # pyright: ignore[reportAttributeAccessIssue]
+
+
+def _contact_count(mx: mjx.Model, dx: mjx.Data, world: jax.Array | None = None) -> jax.Array:
+    """C's ``d.ncon`` from MJX's contacts: those with ``dist < includemargin + gap``
+    (:func:`mjxdiff.engine.stages.contact_gap`; C keeps a gap's inactive contacts, MJX does not).
+    Under MJX's warp implementation, MuJoCo Warp's active contacts of world ``world`` (the
+    member's index in the batch): its contact buffer holds every world's, each tagged."""
+    impl = data_impl(dx)  # MJX's contacts
+    if world is not None:
+        active = jnp.arange(impl.contact__worldid.shape[0]) < jnp.asarray(impl.nacon).reshape(-1)[0]
+        return jnp.sum(active & (impl.contact__worldid == world)).astype(jnp.int32)
+    c = impl.contact  # pyright: ignore[reportAttributeAccessIssue] - the JAX implementation's Data
+    if c.dist.shape[0] == 0:
+        return jnp.zeros((), jnp.int32)
+    gap = stages.contact_gap(mx, jnp.stack([c.geom1, c.geom2], -1), jnp)
+    return jnp.sum(c.dist < c.includemargin + gap)
+
+
+def energy(mx: mjx.Model, dx: mjx.Data, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
+    """(2,) potential and kinetic energy, J, as C's ``mj_energyPos``/``mj_energyVel``.
+
+    ``dx`` holds kinematics (``xipos``, ``qM``) of the state (``qpos``, ``qvel``):
+
+      potential = -sum_b mass_b (gravity . xipos_b) + sum_j k_j |q_j - q_spring_j|^2 / 2
+                  + sum_t k_t dist(len_t, [lower_t, upper_t])^2 / 2
+      kinetic   = qvel^T M qvel / 2
+
+    Quaternion springs use the rotation vector ``quat_sub(q, q_spring)``.
+    """
+    from mujoco.mjx._src import math as mjx_math
+    from mujoco.mjx._src import support
+
+    pot = jnp.zeros((), qpos.dtype)
+    disabled = int(mx.opt.disableflags)
+    if not disabled & int(mujoco.mjtDisableBit.mjDSBL_GRAVITY):
+        pot -= jnp.sum(mx.body_mass * (dx.xipos @ mx.opt.gravity))
+    if not disabled & disable_bit("spring"):
+        for p in joints.parts(mx):
+            if p.kind == "rotation":
+                dif = mjx_math.quat_sub(mjx_math.normalize(qpos[p.qpos]), mx.qpos_spring[p.qpos])
+            else:
+                dif = qpos[p.qpos] - mx.qpos_spring[p.qpos]
+            pot += 0.5 * mx.jnt_stiffness[p.joint] * dif @ dif
+        if mx.ntendon:
+            lower, upper = mx.tendon_lengthspring.T
+            length = dx.ten_length
+            stretch = jnp.where(length < lower, lower - length, jnp.where(length > upper, length - upper, 0.0))
+            pot += 0.5 * jnp.sum(mx.tendon_stiffness * stretch ** 2)
+    kin = 0.5 * qvel @ support.mul_m(mx, dx, qvel)
+    return jnp.stack([pot, kin])
+
+
+def _scan_steps(mx, dx, ctrl, with_energy, n=None, world=None):
+    """One member: ``mjx.step`` over ``ctrl`` (T, nu) from ``dx``; returns (last dx, (T, ...) records).
+
+    With ``n`` (a traced integer, at most T), only the first ``n`` steps are taken (a loop with
+    a run-time trip count: ``mjx.step`` is traced once, and steps past ``n`` cost nothing; their
+    records are zeros), so one compiled piece of T steps serves every horizon up to T: the
+    one-step check runs the sweep's own rollout with ``n = 1``."""
+    def record(dx, energy_):
+        rec = dict(qpos=dx.qpos, qvel=dx.qvel, act=dx.act, sensordata=dx.sensordata,
+                   time=dx.time, ncon=_contact_count(mx, dx, world))
+        if with_energy:
+            rec["energy"] = energy_
+        if world is not None:  # MJX's warp implementation: the buffers it overflowed so far, a bitmask
+            rec["overflow"] = jnp.asarray(data_impl(dx).overflow).reshape(-1)[0]  # pyright: ignore[reportAttributeAccessIssue]
+        return rec
+
+    def step(dx, u):
+        qpos_before, qvel_before = dx.qpos, dx.qvel
+        dx = mjx.step(mx, dx.replace(ctrl=u))
+        # dx's kinematics are those of the state before the step
+        return dx, record(dx, energy(mx, dx, qpos_before, qvel_before) if with_energy else None)
+
+    if n is None:
+        return jax.lax.scan(step, dx, ctrl)
+
+    def body(i, carry):
+        dx, records = carry
+        dx, rec = step(dx, ctrl[i])
+        return dx, jax.tree.map(lambda buffer, x: buffer.at[i].set(x), records, rec)
+
+    empty = jax.tree.map(lambda x: jnp.zeros((ctrl.shape[0], *jnp.shape(x)), jnp.result_type(x)),
+                         record(dx, jnp.zeros(2, dx.qpos.dtype)))
+    return jax.lax.fori_loop(0, n, body, (dx, empty))
+
+
+def _per_leaf(mx, varying, if_varying, if_shared):
+    """A tree shaped like ``mx`` holding ``if_varying`` at stacked leaves, ``if_shared`` elsewhere."""
+    return jax.tree.unflatten(jax.tree.structure(mx), [if_varying if v else if_shared for v in varying])
+
+
+def _model_axes(mx, varying):
+    return _per_leaf(mx, varying, 0, None)
+
+
+def _split(fn, mesh: Mesh | None, mx, varying, batched: tuple[bool, ...]):
+    """``fn(mx, *args)`` with its batch axis split over ``mesh``'s devices.
+
+    Each device runs ``fn`` on its slice (``shard_map``): stacked model leaves
+    and the arguments marked in ``batched`` are split, the rest replicated.
+    """
+    if mesh is None:
+        return fn
+    b, shared = PartitionSpec("batch"), PartitionSpec()
+    return jax.shard_map(fn, mesh=mesh, in_specs=(_per_leaf(mx, varying, b, shared),) + tuple(
+        b if split else shared for split in batched), out_specs=b, check_vma=False)
+
+
+@functools.partial(jax.jit, static_argnames=("varying", "with_energy", "mesh", "shared"))
+def _rollout(mx, dx, ctrl, n, varying, with_energy=False, mesh=None, shared=None):
+    """B members stepped from their data ``dx`` (leaves (B, ...)) over ``ctrl`` (B, T, nu), the
+    first ``n`` (an int32 scalar, at most T) steps of it (:func:`_scan_steps`):
+    (last data, (B, T, ...) records). ``shared`` (MJX's warp implementation, :func:`_warp_shared`):
+    per leaf of ``dx``, whether it is one for all members (MuJoCo Warp's buffers of every world)."""
+    _traced()  # runs only while tracing
+    if shared is not None:
+        return _warp_rollout(mx, dx, ctrl, n, varying, with_energy, shared)
+
+    def batch(mx, dx, ctrl, n):
+        def member(mx, dx, ctrl, n):
+            return _scan_steps(mx, dx, ctrl, with_energy, n)
+        return jax.vmap(member, in_axes=(_model_axes(mx, varying), 0, 0, None))(mx, dx, ctrl, n)
+
+    return _split(batch, mesh, mx, varying, (True, True, False))(mx, dx, ctrl, n)
+
+
+def _warp_rollout(mx, dx, ctrl, n, varying, with_energy, shared):
+    """:func:`_rollout` under MJX's warp implementation: buffers shared by the worlds go in
+    unbatched and come out as one (the batched copies MJX's FFI returns are equal)."""
+    leaves, treedef = jax.tree.flatten(dx)  # as a list: per-leaf axes of a Data tree are not a prefix vmap takes
+
+    def member(mx, leaves, ctrl, world):
+        return _scan_steps(mx, jax.tree.unflatten(treedef, leaves), ctrl, with_energy, n, world)
+    out, rec = jax.vmap(member, in_axes=(_model_axes(mx, varying), [None if s else 0 for s in shared], 0, 0))(
+        mx, leaves, ctrl, jnp.arange(ctrl.shape[0]))
+    out = jax.tree.unflatten(jax.tree.structure(out), [
+        x[0] if s and x.shape[1:] == leaf.shape else x for x, s, leaf in zip(jax.tree.leaves(out), shared, leaves)])
+    return out, rec
+
+
+def _warp_shared(dx: mjx.Data) -> tuple[bool, ...]:
+    """Per leaf of a warp-implementation ``dx``: whether MJX's FFI takes it unbatched (a buffer
+    of every world, or an index), from MJX's own tables (``mujoco.mjx.warp.types``)."""
+    from mujoco.mjx.warp import ffi, types as warp_types
+
+    out = []
+    for path, _ in jax.tree_util.tree_flatten_with_path(dx)[0]:
+        ndim = ffi._get_mapping_from_tree_path(path, warp_types._NDIM["Data"])  # noqa: SLF001
+        batched = ffi._get_mapping_from_tree_path(path, warp_types._BATCH_DIM["Data"])  # pyright: ignore[reportArgumentType]  # noqa: SLF001, E501
+        out.append(ndim is not None and ndim >= 0 and not batched)
+    return tuple(out)
+
+
+@functools.partial(jax.jit, static_argnames=("varying", "mesh"))
+def _resync_rollout(mx, dx0, qpos, qvel, act, time, ctrl, varying, mesh=None):
+    """(B, S, k, ...) records of B members restarted from S given states, k steps each."""
+    _traced()
+
+    warp = hasattr(data_impl(dx0), "nacon")  # MJX's warp implementation: contacts counted per world
+
+    def batch(mx, dx0, qpos, qvel, act, time, ctrl):
+        def member(mx, q, v, a, t, u, world=None):
+            # restarts one after another (scan), members side by side (vmap): the shape of
+            # _rollout, rather than a (B x S)-wide nested vmap, which hung XLA CPU here
+            def restart(_, start):
+                q, v, a, t, u = start
+                return None, _scan_steps(mx, dx0.replace(qpos=q, qvel=v, act=a, time=t), u, False, world=world)[1]
+            return jax.lax.scan(restart, None, (q, v, a, t, u))[1]
+
+        if warp:
+            return jax.vmap(member, in_axes=(_model_axes(mx, varying), 0, 0, 0, 0, 0, 0))(
+                mx, qpos, qvel, act, time, ctrl, jnp.arange(qpos.shape[0]))
+        return jax.vmap(member, in_axes=(_model_axes(mx, varying), 0, 0, 0, 0, 0))(mx, qpos, qvel, act, time, ctrl)
+
+    return _split(batch, mesh, mx, varying, (False,) + (True,) * 5)(mx, dx0, qpos, qvel, act, time, ctrl)
+
+
+def _canonical_ints(dx: mjx.Data) -> mjx.Data:
+    # make_data gives some int32 leaves that mjx.step returns as int64 under x64;
+    # scan needs the carry's dtypes fixed.
+    int_t = jnp.asarray(0).dtype
+    return jax.tree.map(lambda x: x.astype(int_t) if jnp.issubdtype(x.dtype, jnp.integer) else x, dx)
+
+
+def device_count() -> int:
+    """Host CPU devices JAX has (see :func:`configure_jax`)."""
+    return len(jax.devices("cpu"))
+
+
+#: Values of :class:`MJXEngine`'s ``compile``.
+COMPILE_MODES = ("auto", "fast", "optimized")
+#: Seconds per flop (XLA's cost analysis of one step of the batch) that :data:`FAST_COMPILE`
+#: adds to stepping over :data:`BALANCED_COMPILE`: the largest measured, with a margin (ant
+#: 3.7e-9, humanoid 2.8e-9, box_stack 0.8e-9, primitive_pairs 0.5e-9).
+FAST_SECONDS_PER_FLOP = 4e-9
+#: Stepping seconds ``auto`` may add to save compile time: :data:`FAST_COMPILE` saved
+#: 1.3-2.2 s over :data:`BALANCED_COMPILE` (ant, humanoid, box_stack, primitive_pairs).
+FAST_BUDGET_SECONDS = 1.0
+
+_LAST_CHOICE = export_cache.untraced(threading.local())  # per thread: never part of a code digest
+_HELD = export_cache.untraced(threading.local())  # per thread: MJXEngine.holding's pieces
+
+
+def last_choice() -> dict | None:
+    """What :func:`xla_options` chose for the last stream this thread started (None if not compiled here)."""
+    return getattr(_LAST_CHOICE, "value", None)
+
+
+def xla_options(mode: str, steps: int) -> export_cache.Options:
+    """Chooses how hard XLA optimises a rollout from the stepping it will do.
+
+    A sweep's rollout (8 members x 300 steps) steps for well under a second and
+    compiles for 2-11 s, so its compile time decides how long the answer takes;
+    a long soak run is the opposite. ``auto`` compiles with :data:`FAST_COMPILE` when
+    the stepping that costs, estimated as ``FAST_SECONDS_PER_FLOP x flops x steps``
+    (``flops``: XLA's cost analysis of one step of the whole batch), stays below
+    :data:`FAST_BUDGET_SECONDS`, else with :data:`BALANCED_COMPILE`; ``fast`` always
+    with :data:`FAST_COMPILE`; ``optimized`` with XLA's defaults. All compile the
+    same StableHLO: results agree to rounding (the emitters and LLVM levels vectorise
+    and contract differently), which the verdict's envelope covers
+    (``tests/test_compile_options.py``); measured in ``benchmarks/scripts/xla_options.py``.
+
+    Returns:
+      ``options(lowered) -> (XLA options, choice)``, the choice being what the report records:
+      ``level`` (``fast``, ``balanced`` or ``optimized``), ``mode``, and for ``auto``
+      ``flops_per_step`` and ``fast_extra_seconds`` (the estimate).
+    """
+    def choose(lowered):
+        choice: dict[str, Any] = dict(mode=mode)
+        level = mode
+        if mode == "auto":
+            try:
+                flops = float(lowered.cost_analysis().get("flops", 0.0))
+            except Exception:  # noqa: BLE001 - no estimate: compile for stepping
+                flops = float("inf")
+            extra = FAST_SECONDS_PER_FLOP * flops * steps
+            choice.update(flops_per_step=flops, fast_extra_seconds=round(extra, 3))
+            level = "fast" if extra < FAST_BUDGET_SECONDS else "balanced"
+        if level == "fast" and not fast_compile_validated():
+            level = "balanced"  # LLVM level 0 miscompiles MJX on some jaxlib and MJX releases (mjxdiff.compat)
+        choice["level"] = level
+        options = {"fast": FAST_COMPILE, "balanced": BALANCED_COMPILE}.get(level, {})
+        return dict(options), choice
+
+    return choose
+
+
+#: ``mjx.forward``, compiled to run once per state: every stage of one state, for the drill-down.
+forward = jit_for_few_calls(mjx.forward)
+
+
+def _pad(x: np.ndarray, n: int) -> np.ndarray:
+    """``x`` with its last row repeated ``n`` more times along axis 0."""
+    return np.concatenate([x, np.repeat(x[-1:], n, axis=0)]) if n else x
+
+
+#: A batch is split automatically only if every device gets at least this many members
+#: (measured, 2 cores, 200 steps: ant and humanoid 1.1-1.3x at 16 per device and 2.8-4.3x
+#: at 32; below 16 per device the split's overhead can cost more than it brings).
+SPLIT_MIN_MEMBERS = 16
+#: Members per device a sweep steps at once (see :meth:`MJXEngine.batch_cap`): ant and
+#: humanoid ran 2.5-4x more steps/s per device at 32 members than at 64.
+MEMBERS_PER_DEVICE = 32
+
+
+class MJXEngine:
+    """MJX: ``jit(vmap(scan(mjx.step)))`` with per-member model parameters batched.
+
+    Args:
+      devices: host CPU devices to split the batch over. None (default):
+        every device (:func:`device_count`, one per core unless
+        ``MJXDIFF_DEVICES`` says otherwise) when each gets at least
+        :data:`SPLIT_MIN_MEMBERS` members, else one. N: exactly N (at most
+        the batch and the devices there are); 1: never split. A batch that
+        does not divide evenly is padded with copies of its last member,
+        whose records are dropped.
+      compile: how hard XLA optimises a rollout (:func:`xla_options`): ``auto``
+        chooses from the expected stepping work, ``fast`` always compiles quickly,
+        ``optimized`` always uses XLA's defaults.
+    """
+
+    name = "mjx"
+    capabilities: frozenset[str] = frozenset({"estimate", "transfer"})
+
+    @property
+    def precision(self) -> Precision:
+        """MJX's precision follows JAX's: float64 under ``jax_enable_x64`` (:func:`configure_jax`)."""
+        return "float64" if jax.config.read("jax_enable_x64") else "float32"
+
+    def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]) -> Forward:
+        """``mjx.forward`` from C's ``d`` (put with ``put_model``/``put_data``), read back.
+
+        Compiled once per model structure and code, fast (:data:`FAST_COMPILE`), and cached like
+        a rollout (:func:`export_cache.bind`: keyed on the code it traces, loaded by later runs),
+        but not counted among the rollouts a run loaded or traced."""
+        mx, dx = mjx.put_model(m), mjx.put_data(m, d)
+        dx = export_cache.bind(mjx.forward, (mx, dx), {}, xla_options("fast", 1), ("fast", 1), counted=False)(mx, dx)
+        return Forward({f: np.asarray(getattr(dx, f)).ravel() for f in fields}, np.asarray(mjx.full_m(mx, dx)),
+                       stages.contacts_mjx(m, dx))
+
+    #: MJX's implementation (``mjx.put_model(m, impl=...)``): its JAX one.
+    impl = "jax"
+
+    def _shared(self, dx0) -> tuple[bool, ...] | None:
+        """Per leaf of the data, whether the members share it (None: none do)."""
+        return None
+
+    def _make_data(self, inputs: BatchedInputs) -> mjx.Data:
+        """One member's initial data, the scan carry's dtypes fixed."""
+        return _canonical_ints(mjx.make_data(inputs.models[0]))
+
+    def _bind(self, fn, args: tuple, static: dict[str, Any], steps: int):
+        """``fn`` compiled for ``args`` (:func:`export_cache.bind`: keyed on the code it traces,
+        saved for later runs), XLA's options chosen for ``steps`` steps of stepping."""
+        return export_cache.bind(fn, args, static, xla_options(self.compile, steps), (self.compile, steps))
+
+    def __init__(self, devices: int | None = None, compile: str = "auto"):
+        _ensure_safe_backend()
+        if compile not in COMPILE_MODES:
+            raise ValueError(f"compile must be one of {COMPILE_MODES}, not {compile!r}")
+        self.devices, self.compile = devices, compile
+
+    def _usable_devices(self) -> int:
+        return device_count() if self.devices is None else max(1, min(self.devices, device_count()))
+
+    def split(self, batch: int) -> int:
+        """How many devices a batch of ``batch`` members is split over."""
+        n = self._usable_devices()
+        if self.devices is None:
+            return n if batch >= n * SPLIT_MIN_MEMBERS else 1
+        return min(n, batch)
+
+    def batch_cap(self) -> int:
+        """Members a sweep should give this engine at once: :data:`MEMBERS_PER_DEVICE` per device it can use."""
+        return MEMBERS_PER_DEVICE * self._usable_devices()
+
+    def _mesh(self, batch: int) -> Mesh | None:
+        n = self.split(batch)
+        return Mesh(np.array(jax.devices("cpu")[:n]), ("batch",)) if n > 1 else None
+
+    def _prepare(self, inputs: BatchedInputs):
+        """Model, initial data and a placer for batched arrays: (mx, varying, dx0, place, mesh).
+
+        ``place(tree)`` pads every array of ``tree`` along its batch axis to the
+        split and puts it on the devices (one transfer for the whole tree);
+        ``mx`` is already placed, ``dx0`` (one member's data) is not: the
+        stream batches it on the host, only resync needs it on the devices.
+        """
+        mesh = self._mesh(inputs.batch)
+        pad = -inputs.batch % mesh.size if mesh else 0
+        mx, varying = put_models(inputs.models + (inputs.models[-1],) * pad, self.impl)
+        dx0 = self._make_data(inputs)
+        if mesh is None:
+            # committed, as _rollout's outputs are: the next piece's call then hits the same compiled function
+            device = jax.devices("cpu")[0]
+            return mx, varying, dx0, lambda tree: jax.device_put(jax.tree.map(np.asarray, tree), device), None
+        split, shared = NamedSharding(mesh, PartitionSpec("batch")), NamedSharding(mesh, PartitionSpec())
+        mx = jax.device_put(mx, _per_leaf(mx, varying, split, shared))
+
+        def place(tree):
+            leaves, treedef = jax.tree.flatten(jax.tree.map(
+                lambda x: _pad(np.asarray(x), pad) if np.ndim(x) else np.asarray(x), tree))
+            # empty arrays come back from shard_map replicated: give them that sharding from the start,
+            # or the next piece's call would lower and compile _rollout again
+            placed = jax.device_put(leaves, [split if x.size and x.ndim else shared for x in leaves])
+            return jax.tree.unflatten(treedef, placed)
+
+        return mx, varying, dx0, place, mesh
+
+    def rollout(self, inputs: BatchedInputs) -> Trajectory:
+        return concat(list(self.stream(inputs, inputs.steps)))
+
+    @contextlib.contextmanager
+    def holding(self):
+        """Within the block, this thread's calls for the same models (the same objects), batch,
+        horizon and piece length share one prepared, compiled piece: the models put on the devices
+        once, the code digested and the function bound once (~0.5 s a call saved on a warm sweep).
+        A sweep holds one per scenario, where nothing changes the code between its calls; a call
+        outside any block binds afresh (:func:`export_cache.fresh_digest`)."""
+        outer = getattr(_HELD, "pieces", None)
+        _HELD.pieces = {}
+        try:
+            yield
+        finally:
+            _HELD.pieces = outer
+
+    def _bound(self, inputs: BatchedInputs, chunk: int):
+        """The compiled piece function of :meth:`stream`, its first arguments, the placer and the
+        padded controls: (run, (mx, dx, ctrl piece, steps), place, ctrl)."""
+        t = export_cache.clock()
+        # every piece runs the compiled function: the work it will do, over the planned horizon (a
+        # quick run's XLA options are the full run's: one executable serves both)
+        T = -(-max(inputs.steps, inputs.horizon or 0) // chunk) * chunk
+        held = getattr(_HELD, "pieces", None)
+        # this thread's precision too: a float32 sweep's float64 ablation steps the same model objects
+        key = (id(self), tuple(map(id, inputs.models)), inputs.batch, chunk, T, inputs.energy,
+               jax.dtypes.canonicalize_dtype(np.float64))
+        if held is not None and key in held:
+            _, run, prepared = held[key]
+            (_, args, _), place, ctrl = self.piece(inputs, chunk, prepared)
+        else:
+            prepared = self._prepare(inputs)
+            (fn, args, static), place, ctrl = self.piece(inputs, chunk, prepared)
+            run = self._bind(fn, args, static, T)
+            if held is not None:
+                held[key] = inputs.models, run, prepared  # the models kept: their ids stay theirs
+        # the model and state put on the devices, the code and key digested: a compile phase, not stepping
+        spent = export_cache.clock() - t
+        export_cache.count("seconds", spent)
+        export_cache.count("prepare", spent)
+        return run, args, place, ctrl
+
+    def piece(self, inputs: BatchedInputs, chunk: int, prepared: tuple | None = None):
+        """What :meth:`stream` compiles, uncompiled: ((function, its first arguments, its static
+        arguments), the placer, the padded controls); :func:`export_cache.audit` takes the first.
+        ``prepared``: :meth:`_prepare` of these models, when already done."""
+        B, T = inputs.batch, inputs.steps
+        mx, varying, dx0, place, mesh = prepared or self._prepare(inputs)
+        dtype = dx0.qpos.dtype
+        state = dict(qpos=inputs.qpos, qvel=inputs.qvel, act=inputs.act)
+        shared = self._shared(dx0)
+        host = jax.device_get(dx0)
+        dx = jax.tree.unflatten(jax.tree.structure(host), [
+            np.asarray(x) if s else np.broadcast_to(np.asarray(x), (B, *np.shape(x)))
+            for x, s in zip(jax.tree.leaves(host), shared or [False] * len(jax.tree.leaves(host)))])
+        dx = place(dx.replace(**{k: np.asarray(v, dtype) for k, v in state.items()}))
+        ctrl = np.zeros((B, -(-T // chunk) * chunk, inputs.ctrl.shape[2]), dtype)
+        ctrl[:, :T] = inputs.ctrl
+        args = (mx, dx, *place((ctrl[:, :chunk], np.int32(min(chunk, T)))))
+        static = dict(varying=varying, with_energy=inputs.energy, mesh=mesh)
+        if shared is not None:
+            static["shared"] = shared
+        return (_rollout, args, static), place, ctrl
+
+    def compile_ahead(self, inputs: BatchedInputs, chunk: int) -> None:
+        """Compiles what :meth:`stream` of ``inputs`` in pieces of ``chunk`` steps will run, so
+        that the stream starts at once; safe from another thread. Best effort: any problem
+        (an unsupported feature) is left for :meth:`stream` to raise and report."""
+        with contextlib.suppress(Exception), _unsupported():
+            self._bound(inputs, chunk)
+
+    def first_piece(self, inputs: BatchedInputs, chunk: int, steps: int | None = None) -> Trajectory:
+        """The first ``steps`` (default and at most ``min(chunk, inputs.steps)``) steps of
+        :meth:`stream` of ``inputs``, and nothing after: the compiled function of a stream of the
+        same batch, horizon and piece length (a sweep's own rollout), so it costs those steps'
+        stepping, never a compile."""
+        steps = min(chunk, inputs.steps, steps or chunk)
+        with _unsupported():
+            run, (mx, dx, ctrl, _), place, _ = self._bound(inputs, chunk)
+            _, rec = run(mx, dx, ctrl, place(np.int32(steps)))
+        return _host_piece(rec, inputs.batch, steps)
+
+    def stream(self, inputs: BatchedInputs, chunk: int) -> Iterator[Trajectory]:
+        """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
+
+        Each piece continues from the full MJX data the previous one ended in
+        (solver warm start included), so the pieces concatenate to
+        :meth:`rollout`'s result bit for bit; only one piece of records is
+        held at a time. Every piece runs the same compiled function: the last
+        one is padded with zero controls, steps only up to the horizon
+        (:func:`_scan_steps`' ``n``) and its extra records are dropped.
+
+        This call prepares the model and data and dispatches the first piece
+        (so errors of preparation, e.g. :class:`UnsupportedError`, are raised
+        here); the iterator it returns dispatches piece k+1 before handing
+        piece k over, so MJX keeps stepping while the caller works.
+        """
+        B, T = inputs.batch, inputs.steps
+        with _unsupported():  # make_data and tracing mjx.step raise it for some features too
+            run, args, place, ctrl = self._bound(inputs, chunk)
+            mx = args[0]
+            _LAST_CHOICE.value = run.choice if isinstance(run, export_cache.Bound) else None
+            first = run(*args)
+
+        def piece(rec, start):
+            p = _host_piece(rec, B, min(chunk, T - start))
+            return dataclasses.replace(p, diverged_at=shifted(p.diverged_at, start))
+
+        def pieces(dx, rec):
+            for start in range(chunk, T, chunk):
+                with _unsupported():  # dispatched, not awaited: it runs while the caller handles the last piece
+                    dx, following = run(mx, dx, *place((ctrl[:, start:start + chunk], np.int32(min(chunk, T - start)))))
+                yield piece(rec, start - chunk)
+                rec = following
+            yield piece(rec, (T - 1) // chunk * chunk)
+
+        return pieces(*first)
+
+    def resync(self, inputs: BatchedInputs, reference: Trajectory, every: int = 1) -> Trajectory:
+        """MJX re-synchronised to ``reference`` (C) every ``every`` steps.
+
+        Record t is MJX's state after step t when restarted from the reference
+        state after step ``every * floor(t / every) - 1`` (the initial state for
+        the first block). Compared with the reference it gives the local error:
+        at ``every=1`` the one-step error, which chaos cannot amplify.
+        """
+        B, T, k = inputs.batch, inputs.steps, every
+        states, ctrl, starts = resync_blocks(inputs, reference, every)
+        S = len(starts)
+        batched = (states["qpos"], states["qvel"], states["act"], states["time"], ctrl)
+        with _unsupported():
+            mx, varying, dx0, place, mesh = self._prepare(inputs)
+            arrays = place(tuple(np.asarray(x, dx0.qpos.dtype) for x in batched))
+            if mesh is not None:
+                dx0 = jax.device_put(dx0, NamedSharding(mesh, PartitionSpec()))
+            rec = self._bind(_resync_rollout, (mx, dx0, *arrays), dict(varying=varying, mesh=mesh), S * k)(
+                mx, dx0, *arrays)
+        rec = {key: np.asarray(v)[:B].reshape(B, S * k, *v.shape[3:])[:, :T] for key, v in rec.items()}
+        return _trajectory(rec, B, T)
+
+
+class MJXWarpEngine(MJXEngine):
+    """MJX's warp implementation: ``mjx.put_model(m, impl='warp')`` stepped by ``jit(vmap(scan(mjx.step)))``,
+    the rollout :class:`MJXEngine` compiles, so the code an MJX user selects with ``impl='warp'``
+    (MJX's vendored MuJoCo Warp, ``mujoco/mjx/third_party/mujoco_warp``, through JAX's FFI, float32
+    whatever JAX's precision) is what is compared with C. Differs from :class:`MJXEngine` in:
+    one device (Warp's kernels batch the members themselves), compiled with ``jax.jit`` alone (its
+    kernels run through FFI handlers registered by this process, which no saved artifact may
+    outlive: nothing is saved, and the vendored Warp code is read at run time), the buffers Warp
+    keeps for all worlds passed unbatched (:func:`_warp_shared`), contacts counted per world from
+    Warp's buffer (:func:`_contact_count`), and the drill-down's mass matrix and contacts read
+    from the implementation's buffers rather than ``mjx.get_data`` (see :meth:`forward`).
+    Kernels compile on first use into Warp's cache (``~/.cache/warp``; pendulum 17 s cold here)."""
+
+    name = "mjx.warp"
+    impl = "warp"
+    capabilities: frozenset[str] = frozenset()
+
+    @property
+    def precision(self) -> Precision:
+        return "float32"
+
+    def __init__(self, devices: int | None = None, compile: str = "auto"):
+        super().__init__(devices=1, compile=compile)
+
+    def _bind(self, fn, args: tuple, static: dict[str, Any], steps: int):
+        return functools.partial(fn, **static)
+
+    def _shared(self, dx0) -> tuple[bool, ...] | None:
+        return _warp_shared(dx0)
+
+    def _make_data(self, inputs: BatchedInputs) -> mjx.Data:
+        """Warp's data, its int32 kept (its kernels take them so), its contact and constraint
+        buffers sized from C's own run of the members (:func:`warp_capacity`: 2x C's
+        most contacts + 8; MuJoCo Warp drops what does not fit), contacts for all the worlds."""
+        from mujoco.mjx.third_party.mujoco_warp._src import io
+
+        nconmax, njmax = warp_capacity(inputs, io)
+        return mjx.make_data(inputs.models[0], impl="warp", naconmax=nconmax * inputs.batch, njmax=njmax)
+
+    def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]) -> Forward:
+        """``mjx.forward`` of the warp implementation from C's ``d``, read back with ``mjx.get_data``,
+        but for the mass matrix and the contacts, which it gets wrong (:func:`stages.contacts_mjx_warp`)."""
+        with _unsupported():
+            mx, dx = mjx.put_model(m, impl="warp"), mjx.put_data(m, d, impl="warp")
+            dx = _forward_once(mx, dx)
+            read = mjx.get_data(m, dx)
+            out = stages.read(m, read, fields)
+        # get_data leaves the mass matrix at zero: the implementation's own M, in C's sparse layout
+        # (mjx.full_m returns it as it is), made dense as C's is
+        M = np.asarray(data_impl(dx).M).ravel()  # pyright: ignore[reportAttributeAccessIssue]
+        if M.size == m.nv * m.nv:
+            qM = M.reshape(m.nv, m.nv)
+        else:
+            read.M[:] = M  # pyright: ignore[reportAttributeAccessIssue] - one MjData: get_data of unbatched data
+            qM = full_inertia(m, read)
+        return dataclasses.replace(out, qM=qM, contacts=stages.contacts_mjx_warp(m, dx))
+
+
+_forward_once = jax.jit(mjx.forward)
+
+
+def warp_capacity(inputs: BatchedInputs, io) -> tuple[int, int]:
+    """(nconmax, njmax) per world for these inputs: MJWarp's defaults, or more where C's own run
+    of the same members needs it (most contacts of any member at any step, x 2, + 8, as MuJoCo's
+    parity method sizes them; rows: that many contacts at the model's widest friction cone plus
+    every other constraint row C had). MJWarp drops contacts and rows beyond its capacity, which
+    would read as a divergence. ``io``: the MuJoCo Warp whose defaults are the least (the installed
+    ``mujoco_warp._src.io``, or MJX's vendored copy)."""
+    m, B = inputs.models[0], inputs.batch
+    b = Batch(m, B)
+    b.set_models(list(inputs.models))
+    b.qpos[:], b.qvel[:] = inputs.qpos, inputs.qvel
+    if m.na:
+        b.act[:] = inputs.act
+    try:
+        out = b.rollout(inputs.steps, control=inputs.ctrl, record=("ncon", "nefc"))
+        ncon, nefc = int(np.max(out["ncon"], initial=0)), int(np.max(out["nefc"], initial=0))
+    except Exception:  # noqa: BLE001 - C unstable here: the defaults, checked at every step anyway
+        ncon = nefc = 0
+    dims = np.concatenate([m.geom_condim, m.pair_dim]) if m.npair else m.geom_condim
+    condim = int(dims.max(initial=1))
+    rows = condim if m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC else max(2 * (condim - 1), 1)
+    nconmax = max(io._default_nconmax(m), 2 * ncon + 8)  # noqa: SLF001
+    njmax = max(io._default_njmax(m), nefc + (nconmax - ncon) * rows + 8)  # noqa: SLF001
+    return nconmax, njmax
+
+
+def _host_piece(rec, batch: int, steps: int) -> Trajectory:
+    """A piece's device records, waited for, on the host: the first ``batch`` members (the rest
+    pad the batch to the devices) and ``steps`` steps (the rest pad the last piece)."""
+    rec = jax.tree.map(lambda x: np.asarray(x)[:batch, :steps], jax.block_until_ready(rec))
+    return _trajectory(rec, batch, steps)
+
+
+def overflow_names(bits, overflow_type) -> str | None:
+    """The buffers a MuJoCo Warp ``overflow`` bitmask (any shape, OR-ed) names, as
+    ``overflow_type``'s member names (``"NEFC, NARROWPHASE"``; that enum's ``str`` is the bare
+    number); the solver's iteration limits left out (those are the verdict's to see); None for none."""
+    solver = int(overflow_type.ITERATIONS) | int(overflow_type.LS_ITERATIONS)
+    found = int(np.bitwise_or.reduce(np.asarray(bits, np.int64).ravel(), initial=0)) & ~solver
+    return ", ".join(str(t.name) for t in overflow_type if found & int(t)) if found else None
+
+
+def _warp_overflow(bits: np.ndarray) -> str | None:
+    """:func:`overflow_names` of MJX's warp implementation's recorded bitmasks (its vendored MuJoCo Warp)."""
+    from mujoco.mjx.third_party.mujoco_warp import OverflowType
+
+    return overflow_names(bits, OverflowType)
+
+
+def _trajectory(rec: dict[str, np.ndarray], batch: int, steps: int) -> Trajectory:
+    """A Trajectory from (batch, steps, ...) MJX records, with non-finite states located; raises
+    where MJX's warp implementation overflowed its buffers (its results are then not the model's:
+    an engine error, never a divergence)."""
+    overflow = _warp_overflow(rec["overflow"]) if "overflow" in rec else None
+    if overflow is not None:
+        raise RuntimeError(f"MJX's warp implementation overflowed its buffers ({overflow}): its results are not "
+                           "the model's; sized at 2x C's peak contacts and rows (MuJoCo's parity method), they "
+                           "held too few here")
+    nonfinite = ~np.isfinite(rec["qpos"]).all(-1) | ~np.isfinite(rec["qvel"]).all(-1)
+    return Trajectory(qpos=rec["qpos"], qvel=rec["qvel"], act=rec["act"],
+                      sensordata=rec["sensordata"], time=rec["time"], ncon=rec["ncon"].astype(np.int64),
+                      energy=rec.get("energy", np.zeros((batch, steps, 0))),
+                      # numpy's stubs type .all(axis) as maybe a scalar
+                      diverged_at=first_true(nonfinite))  # pyright: ignore[reportArgumentType]

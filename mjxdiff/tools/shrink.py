@@ -1,0 +1,674 @@
+"""Shrinking a model that diverges to a minimal MJCF that still shows the same divergence.
+
+Delta debugging (Zeller and Hildebrandt's ddmin) over :class:`mujoco.MjSpec` edits, coarse to
+fine: drop bodies (with their subtrees), then joints (a body without its joint is welded to its
+parent), geoms, sites, actuators, sensors, tendons, equality constraints, explicit pairs and
+excludes, keyframes, cameras, lights, custom data, materials and textures (another pass while
+one drops something: what named an element may be gone); then fuse bodies without joints into
+their parents (MuJoCo's ``fusestatic``) and replace meshes with boxes; then options and flags
+back to MuJoCo's defaults; then round the model's numbers and the state. A candidate is kept
+when it compiles in C and shows the same :class:`Signature`, checked from one state
+(:class:`State`, the one-step check's end point: one C state, one step):
+
+- ``forward``: the first stage of ``mj_forward`` whose fields differ
+  (:func:`mjxdiff.compare.diagnose.drill_down`), its first field, and for contacts the geom-type pair;
+- ``step``: every forward stage agrees and one step does not (``mj_step`` against
+  ``mjx.step`` from the state, both solvers converged): the first field beyond
+  :data:`STEP_RTOL`.
+
+The state is kept by name (each joint's ``qpos``/``qvel``, each actuator's ``ctrl``/``act``),
+so it follows the model as parts are dropped; a joint dropped takes its coordinates with it.
+Candidates of one structure share one compile: MJX's forward and step are jitted with the
+model as an argument, and only a new structure traces again (:attr:`Shrunk.compiles`).
+Deterministic: the edits are tried in a fixed order, and nothing is random.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import dataclasses
+import math
+import re
+import time
+from typing import Callable, Iterable, Sequence
+
+import jax
+import mujoco
+import numpy as np
+
+from mjxdiff.input.joints import DOF_WIDTH, QPOS_WIDTH
+
+__all__ = ["KINDS", "OPTIONS", "ROUNDED", "STEP_RTOL", "Counts", "Shrunk", "Signature", "State", "boxed",
+           "changed_options", "counts", "ddmin", "drop", "element_names", "find_state", "focus_bodies", "fused",
+           "mesh_geoms", "named", "probe", "rounded", "scaled_error", "shrink", "significant", "step_errors",
+           "transfer_contacts"]
+
+#: Relative disagreement (|mjx - c| / (1 + max|c|)) of one converged step above which it differs:
+#: far above a step's rounding (1e-15 of the scale) and a converged solver's residue.
+STEP_RTOL = 1e-6
+#: XLA compiles a shrink keeps in JAX's in-memory caches before it clears them.
+KEEP_COMPILED = 16
+#: The fields a step compares, in order.
+STEP_FIELDS = ("qpos", "qvel", "act", "sensordata")
+#: Element lists delta debugging drops from, coarse to fine (MjSpec attribute names).
+KINDS = ("bodies", "joints", "geoms", "sites", "actuators", "sensors", "tendons", "equalities", "pairs", "excludes",
+         "keys", "cameras", "lights", "numerics", "texts", "tuples", "materials", "textures")
+#: Options reset one by one to MuJoCo's defaults (``mjOption``), after the elements.
+OPTIONS = ("integrator", "cone", "jacobian", "solver", "iterations", "ls_iterations", "tolerance", "ls_tolerance",
+           "noslip_iterations", "impratio", "timestep", "gravity", "wind", "magnetic", "density", "viscosity",
+           "o_margin", "o_solref", "o_solimp", "o_friction")
+
+
+@dataclasses.dataclass(frozen=True)
+class Signature:
+    """What diverges, independent of names and sizes: which ``check``, the first differing
+    ``stage`` and ``field``, and for contacts the geom ``kinds`` (e.g. ``box-box``)."""
+
+    check: str
+    stage: str
+    field: str
+    kinds: str = ""
+
+    def describe(self) -> str:
+        if self.check == "transfer":
+            return f"mjx.get_data(mjx.put_data(C's data)) differs from C's data: {self.field}"
+        where = f"{self.stage}: {self.field}" + (f" ({self.kinds})" if self.kinds else "")
+        return f"{'mj_forward' if self.check == 'forward' else 'one mj_step'} differs first at {where}"
+
+
+@dataclasses.dataclass(frozen=True)
+class State:
+    """One state by name. ``joints``: (name, qpos, qvel) per joint; ``actuators``: (name, ctrl,
+    act) per actuator (act empty without activation); ``time`` in seconds."""
+
+    joints: tuple[tuple[str, tuple[float, ...], tuple[float, ...]], ...]
+    actuators: tuple[tuple[str, float, tuple[float, ...]], ...]
+    time: float = 0.0
+
+    @classmethod
+    def of(cls, m: mujoco.MjModel, d: mujoco.MjData) -> State:
+        joints = tuple((_name(m, mujoco.mjtObj.mjOBJ_JOINT, j), tuple(d.qpos[_qpos(m, j)].tolist()),
+                        tuple(d.qvel[_dofs(m, j)].tolist())) for j in range(m.njnt))
+        acts = tuple((_name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a), float(d.ctrl[a]),
+                      tuple(d.act[m.actuator_actadr[a]:m.actuator_actadr[a] + m.actuator_actnum[a]].tolist())
+                      if m.actuator_actadr[a] >= 0 else ()) for a in range(m.nu))
+        return cls(joints, acts, float(d.time))
+
+    def data(self, m: mujoco.MjModel) -> mujoco.MjData:
+        """An ``MjData`` of ``m`` in this state: joints and actuators it does not name keep
+        their defaults (``qpos0``, zero)."""
+        d = mujoco.MjData(m)
+        joints = {n: (q, v) for n, q, v in self.joints}
+        for j in range(m.njnt):
+            name = _name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
+            if name not in joints:
+                continue
+            q, v = joints[name]
+            if len(q) == len(d.qpos[_qpos(m, j)]) and len(v) == len(d.qvel[_dofs(m, j)]):
+                d.qpos[_qpos(m, j)], d.qvel[_dofs(m, j)] = q, v
+        acts = {n: (c, a) for n, c, a in self.actuators}
+        for i in range(m.nu):
+            c, a = acts.get(_name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, i), (0.0, ()))
+            d.ctrl[i] = c
+            if m.actuator_actadr[i] >= 0 and len(a) == m.actuator_actnum[i]:
+                d.act[m.actuator_actadr[i]:m.actuator_actadr[i] + len(a)] = a
+        d.time = self.time
+        return d
+
+    def rounded(self, digits: int) -> State:
+        """Every number to ``digits`` significant digits."""
+        def r(xs):
+            return tuple(significant(x, digits) for x in xs)
+        return State(tuple((n, r(q), r(v)) for n, q, v in self.joints),
+                     tuple((n, significant(c, digits), r(a)) for n, c, a in self.actuators),
+                     significant(self.time, digits))
+
+
+def significant(x: float, digits: int) -> float:
+    """``x`` to ``digits`` significant digits (the shortest decimal: ``0.12``, not ``0.12000000000000001``)."""
+    return float(f"{x:.{digits}g}")
+
+
+def _name(m: mujoco.MjModel, obj: mujoco.mjtObj, i: int) -> str:
+    return mujoco.mj_id2name(m, obj, int(i)) or f"#{int(i)}"
+
+
+def _qpos(m: mujoco.MjModel, j: int) -> slice:
+    a = int(m.jnt_qposadr[j])
+    return slice(a, a + QPOS_WIDTH[int(m.jnt_type[j])])
+
+
+def _dofs(m: mujoco.MjModel, j: int) -> slice:
+    a = int(m.jnt_dofadr[j])
+    return slice(a, a + DOF_WIDTH[int(m.jnt_type[j])])
+
+
+# -- the check ------------------------------------------------------------------------------------
+
+_JITTED: dict[str, Callable] = {}
+
+
+def _jitted(name: str) -> Callable:
+    """``mjx.<name>`` jitted with the model as an argument (one compile per structure), compiled
+    quickly (:func:`mjxdiff.compat.jit_for_few_calls`): a shrink compiles once per candidate
+    structure and runs each once."""
+    if name not in _JITTED:
+        from mujoco import mjx
+
+        from mjxdiff import compat
+        _JITTED[name] = compat.jit_for_few_calls(getattr(mjx, name))
+    return _JITTED[name]
+
+
+class _Forward:
+    """The engine :func:`probe`'s drill-down runs: MJX's forward as
+    :meth:`mjxdiff.engine.engines.MJXEngine.forward`, compiled by :func:`_jitted`."""
+
+    def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]):
+        from mujoco import mjx
+
+        from mjxdiff.engine import export_cache, stages
+        from mjxdiff.engine.stages import Forward
+        export_cache.fresh_digest()  # never a trace of MJX code since changed
+        mx = mjx.put_model(m)
+        dx = _jitted("forward")(mx, mjx.put_data(m, d))
+        return Forward({f: np.asarray(getattr(dx, f)).ravel() for f in fields}, np.asarray(mjx.full_m(mx, dx)),
+                       stages.contacts_mjx(m, dx))
+
+
+def scaled_error(c: np.ndarray, x: np.ndarray) -> float:
+    """``max |x - c| / (1 + max |c|)`` (inf where ``x`` has a NaN); 0 for empty arrays."""
+    c, x = np.ravel(c), np.ravel(x)
+    if c.size == 0:
+        return 0.0
+    e = np.abs(x - c) / (1.0 + np.max(np.abs(c)))
+    return float(np.inf) if np.isnan(e).any() else float(e.max())
+
+
+def step_errors(m: mujoco.MjModel, state: State) -> dict[str, float]:
+    """One step from ``state``, C against MJX, both solvers converged: the scaled error
+    ``max |mjx - c| / (1 + max |c|)`` of each of :data:`STEP_FIELDS`."""
+    from mujoco import mjx
+
+    from mjxdiff.compare.noise import converge_solver
+
+    m = copy.copy(m)
+    converge_solver(m)
+    d = state.data(m)
+    dx = _jitted("step")(mjx.put_model(m), mjx.put_data(m, d))
+    mujoco.mj_step(m, d)
+    return {f: scaled_error(getattr(d, f), np.asarray(getattr(dx, f))) for f in STEP_FIELDS}
+
+
+def transfer_contacts(m: mujoco.MjModel, state: State) -> tuple[int, int]:
+    """(C's contact count after ``mj_forward`` from ``state``, the count ``mjx.get_data`` gives
+    back from ``mjx.put_data`` of that data): the host interface, no MJX physics."""
+    from mujoco import mjx
+
+    d = state.data(m)
+    mujoco.mj_forward(m, d)
+    back = mjx.get_data(m, mjx.put_data(m, d))  # one MjData for unbatched data
+    return d.ncon, back.ncon if isinstance(back, mujoco.MjData) else back[0].ncon
+
+
+def probe(m: mujoco.MjModel, state: State) -> Signature | None:
+    """The divergence ``m`` shows from ``state``, or None: the forward drill-down's first
+    differing stage, else the first field of one step beyond :data:`STEP_RTOL`, else contacts
+    lost between C and MJX's data (:func:`transfer_contacts`). Physics with the solver converged
+    (:func:`mjxdiff.compare.noise.converge_solver`): a solver stopped after a few iterations parts MJX
+    from C by truncation, which is no bug to shrink."""
+
+    dd = _drill(m, state)
+    if dd.first_stage is not None:
+        return Signature("forward", dd.first_stage, str(dd.first_field), (dd.contact or {}).get("pair", ""))
+    errors = step_errors(m, state)
+    field = next((f for f in STEP_FIELDS if not errors[f] <= STEP_RTOL), None)
+    if field:
+        return Signature("step", "integration", field)
+    c, back = transfer_contacts(m, state)
+    return Signature("transfer", "transfer", "contact") if c != back else None
+
+
+def _drill(m: mujoco.MjModel, state: State):
+    """The forward drill-down from ``state``, both solvers converged."""
+    from mjxdiff.compare.diagnose import drill_down
+    from mjxdiff.compare.noise import converge_solver
+
+    m = copy.copy(m)
+    converge_solver(m)
+    d = state.data(m)
+    return drill_down(m, d.qpos.copy(), d.qvel.copy(), d.act.copy(), d.ctrl.copy(), float(d.time),
+                      engine=_Forward())  # pyright: ignore[reportArgumentType]
+
+
+def focus_bodies(m: mujoco.MjModel, obj: str) -> set[str]:
+    """The bodies holding what a drill-down's ``obj`` names (a geom pair ``geoms a / b``, a
+    ``joint 'j'``, a ``body 'b'``), with their ancestors, by name; empty where it names none
+    of these."""
+    ids: list[int] = []
+    pair = re.match(r"geoms (\S+) / (\S+) \(", obj)
+    if pair:
+        ids = [int(m.geom_bodyid[m.geom(g).id]) for g in pair.groups() if not g.startswith("#")]
+    for kind, name in re.findall(r"(joint|body) '([^']+)'", obj):
+        ids.append(int(m.jnt_bodyid[m.joint(name).id]) if kind == "joint" else m.body(name).id)
+    out: set[str] = set()
+    for b in ids:
+        while b > 0:
+            out.add(m.body(b).name)
+            b = int(m.body_parentid[b])
+    return out
+
+
+def find_state(m: mujoco.MjModel, steps: int = 200, key: int | None = None,
+               ctrl: Callable[[int], np.ndarray] | None = None,
+               start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[State, Signature, int] | None:
+    """The first state of C's rollout from ``key`` (a keyframe), or ``start`` (qpos, qvel, act),
+    else ``qpos0`` at rest, with controls ``ctrl(step)`` (default zero) at which :func:`probe`
+    finds a divergence, checked before each of ``steps`` steps: (state, signature, step), or None."""
+    d = mujoco.MjData(m)
+    if key is not None:
+        mujoco.mj_resetDataKeyframe(m, d, key)
+    elif start is not None:
+        d.qpos[:], d.qvel[:] = start[0], start[1]
+        if m.na:
+            d.act[:] = start[2]
+    for k in range(steps):
+        if ctrl is not None:
+            d.ctrl[:] = ctrl(k)
+        state = State.of(m, d)
+        sig = probe(m, state)
+        if sig is not None:
+            return state, sig, k
+        mujoco.mj_step(m, d)
+    return None
+
+
+# -- the model ------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Counts:
+    """A model's size: bodies (the world excluded), geoms, joints, actuators, sensors, tendons,
+    equalities, options (differing from MuJoCo's defaults) and steps."""
+
+    bodies: int
+    geoms: int
+    joints: int
+    actuators: int
+    sensors: int
+    tendons: int
+    equalities: int
+    options: int
+    steps: int = 1
+
+    def __str__(self) -> str:
+        return ", ".join(f"{v} {k}" for k, v in dataclasses.asdict(self).items())
+
+
+def changed_options(spec: mujoco.MjSpec) -> list[str]:
+    """The :data:`OPTIONS` of ``spec`` that differ from MuJoCo's defaults (``mjOption``)."""
+    default = mujoco.MjSpec().option
+    return [o for o in OPTIONS
+            if not np.array_equal(np.asarray(getattr(spec.option, o)), np.asarray(getattr(default, o)))]
+
+
+def _option_changes(spec: mujoco.MjSpec) -> int:
+    n = len(changed_options(spec))
+    return n + bin(spec.option.disableflags).count("1") + bin(spec.option.enableflags).count("1")
+
+
+def counts(spec: mujoco.MjSpec, steps: int = 1) -> Counts:
+    m = spec.compile()
+    return Counts(m.nbody - 1, m.ngeom, m.njnt, m.nu, m.nsensor, m.ntendon, m.neq, _option_changes(spec), steps)
+
+
+def named(spec: mujoco.MjSpec) -> mujoco.MjSpec:
+    """``spec`` with every element of :data:`KINDS` named (``mjxdiff_<kind><i>`` where it had
+    none), so that edits and the state can refer to it. Name a spec before taking a
+    :class:`State` of its model: a state names each joint as the compiled model does."""
+    for kind in KINDS:
+        for i, e in enumerate(getattr(spec, kind)):
+            if not e.name:
+                e.name = f"mjxdiff_{kind}{i}"
+    return spec
+
+
+def element_names(spec: mujoco.MjSpec, kind: str) -> list[str]:
+    """The names of ``spec``'s elements of ``kind`` (:data:`KINDS`), the world body left out."""
+    return [e.name for e in getattr(spec, kind) if kind != "bodies" or e.name != "world"]
+
+
+#: Each of :data:`KINDS` in the singular: MjSpec's finder (``spec.body(name)``) and a message's word.
+SINGULAR = {"bodies": "body", "joints": "joint", "geoms": "geom", "sites": "site", "actuators": "actuator",
+            "sensors": "sensor", "tendons": "tendon", "equalities": "equality", "pairs": "pair", "excludes": "exclude",
+            "keys": "key", "cameras": "camera", "lights": "light", "numerics": "numeric", "texts": "text",
+            "tuples": "tuple", "materials": "material", "textures": "texture"}
+
+
+def _without(spec: mujoco.MjSpec, kind: str, names: Iterable[str]) -> mujoco.MjSpec:
+    out = spec.copy()
+    find = getattr(out, SINGULAR[kind])
+    if kind == "materials":  # what wears a dropped material goes plain
+        for e in [*out.geoms, *out.sites]:
+            if e.material in names:
+                e.material = ""
+    for n in names:
+        e = find(n)
+        if e is not None:  # a body's descendants go with it
+            out.delete(e)
+    return out
+
+
+def _explicit(spec: mujoco.MjSpec) -> mujoco.MjSpec:
+    """``spec`` with every body's frame (``pos``, ``quat``) and, where it has mass, its inertia
+    written out as compiled: the same model, whose geoms can go without its bodies losing
+    their mass, and whose joints can be welded at a state (:func:`_welded`). Bodies placed in
+    a ``<frame>`` keep their frames as written."""
+    m = spec.compile()
+    out = spec.copy()
+    for b in out.bodies:
+        if b.name == "world" or b.frame is not None:
+            continue
+        i = m.body(b.name).id
+        b.pos, b.quat = m.body_pos[i], m.body_quat[i]
+        b.alt.type = mujoco.mjtOrientation.mjORIENTATION_QUAT
+        if m.body_mass[i] > 0:
+            b.explicitinertial = True
+            b.mass, b.ipos, b.iquat, b.inertia = m.body_mass[i], m.body_ipos[i], m.body_iquat[i], m.body_inertia[i]
+    return out
+
+
+def _welded(spec: mujoco.MjSpec, m: mujoco.MjModel, state: State, names: Iterable[str]) -> mujoco.MjSpec:
+    """``spec`` without the joints ``names``, each body welded to its parent where ``state``
+    holds it (``m``: ``spec`` compiled): a hinge's or slide's displacement from ``qpos0``, a
+    ball's rotation, a free body's pose become the body's frame. The actuators, sensors and
+    equality constraints naming a dropped joint are dropped with it."""
+    out = spec.copy()
+    qpos = state.data(m).qpos
+    for n in names:
+        joint = out.joint(n)
+        if joint is None:
+            continue
+        j = m.joint(n).id
+        body = out.body(m.body(int(m.jnt_bodyid[j])).name)
+        adr, kind = int(m.jnt_qposadr[j]), int(m.jnt_type[j])
+        pos, quat = np.array(body.pos, float), np.array(body.quat, float)
+        if body.frame is None:
+            if kind == mujoco.mjtJoint.mjJNT_FREE:
+                pos, quat = qpos[adr:adr + 3].copy(), qpos[adr + 3:adr + 7].copy()
+            else:
+                turn = np.array([1.0, 0, 0, 0])
+                shift = np.zeros(3)
+                if kind == mujoco.mjtJoint.mjJNT_BALL:
+                    turn = qpos[adr:adr + 4].copy()
+                elif kind == mujoco.mjtJoint.mjJNT_HINGE:
+                    mujoco.mju_axisAngle2Quat(turn, m.jnt_axis[j], qpos[adr] - m.qpos0[adr])
+                else:
+                    shift = m.jnt_axis[j] * (qpos[adr] - m.qpos0[adr])
+                # a point p of the body: pos + R(quat) (R(turn) (p - jpos) + jpos + shift)
+                moved = np.zeros(3)
+                mujoco.mju_rotVecQuat(moved, m.jnt_pos[j], turn)
+                offset = np.zeros(3)
+                mujoco.mju_rotVecQuat(offset, m.jnt_pos[j] - moved + shift, quat)
+                pos = pos + offset
+                mujoco.mju_mulQuat(quat, quat.copy(), turn)
+            body.pos, body.quat = pos, quat
+            body.alt.type = mujoco.mjtOrientation.mjORIENTATION_QUAT
+        for e in [*out.actuators, *out.sensors, *out.equalities]:  # what acts on or reads the joint goes with it
+            if n in (getattr(e, "target", None), getattr(e, "objname", None), getattr(e, "name1", None),
+                     getattr(e, "name2", None)):
+                out.delete(e)
+        out.delete(joint)
+    return out
+
+
+def fused(spec: mujoco.MjSpec) -> mujoco.MjSpec:
+    """``spec`` with every body that has no joint merged into its parent, as MuJoCo's compiler
+    does with ``fusestatic``: its geoms and sites move into a ``<frame>`` of the parent and its
+    mass into the parent's. Bodies other elements name (an equality's, a sensor's) stay."""
+    out = spec.copy()
+    out.compiler.fusestatic = True
+    try:
+        out.compile()  # the compiler fuses in the spec itself
+    except Exception:  # noqa: BLE001 - shrink() calls this outside its candidate guard: nothing fused
+        return spec.copy()
+    out.compiler.fusestatic = False
+    return out
+
+
+def mesh_geoms(spec: mujoco.MjSpec) -> list[str]:
+    """The names of ``spec``'s mesh geoms that are not placed in a ``<frame>``."""
+    return [g.name for g in spec.geoms if g.type == mujoco.mjtGeom.mjGEOM_MESH and g.frame is None]
+
+
+def boxed(spec: mujoco.MjSpec, m: mujoco.MjModel, names: Iterable[str]) -> mujoco.MjSpec:
+    """``spec`` with the mesh geoms ``names`` replaced by boxes of their bounding boxes (``m``:
+    ``spec`` compiled: ``geom_aabb``, centre and half sizes in the geom's frame), and mesh assets
+    no geom uses any more dropped. Bodies keep their inertia where it is explicit
+    (:func:`_explicit`)."""
+    out = spec.copy()
+    for n in names:
+        g, i = out.geom(n), m.geom(n).id
+        centre = np.zeros(3)
+        mujoco.mju_rotVecQuat(centre, m.geom_aabb[i][:3], m.geom_quat[i])
+        g.type, g.meshname = mujoco.mjtGeom.mjGEOM_BOX, ""
+        g.pos, g.quat, g.size = m.geom_pos[i] + centre, m.geom_quat[i], m.geom_aabb[i][3:]
+        g.alt.type = mujoco.mjtOrientation.mjORIENTATION_QUAT
+        g.fromto = np.full(6, np.nan)
+    used = {g.meshname for g in out.geoms}
+    for mesh in list(out.meshes):
+        if mesh.name not in used:
+            out.delete(mesh)
+    return out
+
+
+#: Numbers :func:`rounded` rounds, per element list: MjSpec attribute names (orientations are
+#: left alone: a rounded quaternion is another rotation).
+ROUNDED = {"bodies": ("pos", "mass", "ipos", "inertia"), "geoms": ("pos", "size"), "sites": ("pos", "size"),
+           "joints": ("pos", "range", "damping", "stiffness", "armature", "frictionloss", "springref"),
+           "actuators": ("gear", "ctrlrange", "forcerange", "gainprm", "biasprm"),
+           "tendons": ("range", "damping", "stiffness", "armature", "frictionloss", "springlength")}
+
+
+def rounded(spec: mujoco.MjSpec, digits: int) -> mujoco.MjSpec:
+    """``spec`` with the numbers of :data:`ROUNDED` to ``digits`` significant digits."""
+    out = spec.copy()
+    for kind, attrs in ROUNDED.items():
+        for e in getattr(out, kind):
+            if kind == "bodies" and e.name == "world":
+                continue
+            for a in attrs:
+                value = getattr(e, a)
+                setattr(e, a, [significant(v, digits) for v in value] if np.ndim(value) else significant(value, digits))
+    return out
+
+
+def drop(spec: mujoco.MjSpec, kind: str, names: Sequence[str], m: mujoco.MjModel, state: State) -> mujoco.MjSpec:
+    """``spec`` without its elements of ``kind`` named ``names``; joints welded where ``state``
+    holds them (``m``: ``spec`` compiled)."""
+    return _welded(spec, m, state, names) if kind == "joints" else _without(spec, kind, names)
+
+
+def ddmin(items: Sequence[str], keeps: Callable[[list[str]], bool]) -> list[str]:
+    """The smallest subset of ``items`` delta debugging finds for which ``keeps`` holds
+    (``keeps(list(items))`` is assumed): all dropped at once first, then complements of ``n``
+    chunks, ``n`` doubling to single items (Zeller and Hildebrandt 2002, ddmin)."""
+    items = list(items)
+    if items and keeps([]):
+        return []
+    n = 2
+    while len(items) >= 2 or (len(items) == 1 and n == 2):
+        size = math.ceil(len(items) / n)
+        chunks = [items[i:i + size] for i in range(0, len(items), size)]
+        for chunk in chunks:
+            rest = [x for x in items if x not in chunk]
+            if keeps(rest):
+                items, n = rest, max(n - 1, 2)
+                break
+        else:
+            if n >= len(items):
+                break
+            n = min(2 * n, len(items))
+    return items
+
+
+@dataclasses.dataclass(frozen=True)
+class Shrunk:
+    """What :func:`shrink` found: the minimal ``spec``, its ``state`` and the kept
+    ``signature``; sizes ``before`` and ``after``; ``candidates`` checked, ``compiles`` (MJX
+    XLA compiles: one per structure for forward, and for step), ``seconds``, the ``log`` of kept edits, and
+    whether it stopped on its ``budget`` or an interrupt (``complete`` False: the best so far)."""
+
+    spec: mujoco.MjSpec
+    state: State
+    signature: Signature
+    before: Counts
+    after: Counts
+    candidates: int
+    compiles: int
+    seconds: float
+    log: tuple[str, ...]
+    complete: bool
+
+
+class _Budget(Exception):
+    pass
+
+
+def _compiles() -> int:
+    """XLA compiles in this process so far (a new structure's forward or step; a persistent
+    cache hit counts too)."""
+    from mjxdiff.engine import engines
+    return engines.xla_compiles()
+
+
+def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None, budget: float = 600.0,
+           say: Callable[[str], None] = lambda s: None, steps_before: int = 1) -> Shrunk:
+    """Shrinks ``spec`` (not changed) while it shows ``signature`` from ``state`` (default: what
+    it shows there now), for at most ``budget`` seconds; Ctrl-C stops it with the best so far.
+
+    Raises ValueError when the model does not show a divergence from ``state``."""
+    t0, compiles0 = time.perf_counter(), _compiles()
+    best = named(spec.copy())
+    target = probe(best.compile(), state)
+    if target is None:
+        raise ValueError("the model shows no divergence from this state: nothing to shrink (a state of an "
+                         "unnamed model names its joints as shrink.named(spec) does)")
+    if signature is not None and target != signature:
+        raise ValueError(f"from this state the model shows '{target.describe()}', not '{signature.describe()}'")
+    explicit = _explicit(best)
+    if _shows_safely(explicit, state, target):
+        best = explicit
+    before = counts(best, steps_before)
+    log: list[str] = []
+    tried = 0
+
+    kept_compiles = [_compiles()]
+
+    def shows(candidate: mujoco.MjSpec, s: State) -> bool:
+        nonlocal tried
+        if time.perf_counter() - t0 > budget:
+            raise _Budget
+        tried += 1
+        if _compiles() - kept_compiles[0] >= KEEP_COMPILED:
+            # each structure's executables stay in JAX's caches: a humanoid's shrink ran LLVM out of
+            # memory ("Cannot allocate memory") after some 60; few structures are ever tried twice
+            jax.clear_caches()
+            kept_compiles[0] = _compiles()
+        try:
+            m = candidate.compile()
+            mujoco.MjSpec.from_string(candidate.to_xml()).compile()  # and one whose MJCF a bundle can write and load
+        except Exception:  # noqa: BLE001 - a candidate C cannot compile is not kept
+            return False
+        try:
+            return probe(m, s) == target
+        except Exception:  # noqa: BLE001 - nor one an engine cannot run
+            return False
+
+    complete = True
+    try:
+        if target.check == "forward":  # first, only the bodies of what the drill-down names
+            m = best.compile()
+            focus, names = focus_bodies(m, _drill(m, state).object), element_names(best, "bodies")
+            if focus and len(focus) < len(names):
+                candidate = drop(best, "bodies", [n for n in names if n not in focus], m, state)
+                if shows(candidate, state):
+                    best = candidate
+                    log.append(f"bodies: {len(names)} -> {len(focus)} (those of the object named)")
+                    say(f"shrink: bodies {len(names)} -> {len(focus)}, those of the object the drill-down names")
+        dropped_any = True
+        while dropped_any:  # again while a pass drops something: what an element named may go now
+            dropped_any = False
+            for kind in KINDS:
+                names = element_names(best, kind)
+                if not names:
+                    continue
+                m = best.compile()
+
+                def edit(dropped, k=kind, b=best, m=m):
+                    return drop(b, k, dropped, m, state)
+                kept = ddmin(names, lambda keep, ns=names: shows(edit([n for n in ns if n not in keep]), state))
+                smaller = edit([n for n in names if n not in kept])
+                with contextlib.suppress(Exception):  # compiling adds back what <size nkey="5"/> asks for
+                    smaller.compile()
+                if len(element_names(smaller, kind)) < len(names):  # else no progress
+                    best, dropped_any = smaller, True
+                    log.append(f"{kind}: {len(names)} -> {len(kept)}")
+                    say(f"shrink: {kind} {len(names)} -> {len(kept)} ({tried} candidates, "
+                        f"{time.perf_counter() - t0:.0f} s)")
+        if len(best.bodies) > 1:
+            candidate = fused(best)
+            if len(candidate.bodies) < len(best.bodies) and shows(candidate, state):
+                log.append(f"bodies without joints fused: {len(best.bodies) - 1} -> {len(candidate.bodies) - 1}")
+                best = candidate
+        meshes = mesh_geoms(best)
+        if meshes:
+            m = best.compile()
+            kept = ddmin(meshes, lambda keep, b=best, m=m: shows(boxed(b, m, [n for n in meshes if n not in keep]),
+                                                                  state))
+            if len(kept) < len(meshes):
+                best = boxed(best, m, [n for n in meshes if n not in kept])
+                log.append(f"meshes as boxes: {len(meshes) - len(kept)} of {len(meshes)}")
+        default = mujoco.MjSpec().option
+        for o in changed_options(best):
+            candidate = best.copy()
+            setattr(candidate.option, o, getattr(default, o))
+            if shows(candidate, state):
+                best = candidate
+                log.append(f"option {o}: default")
+        for flags in ("disableflags", "enableflags"):
+            for bit in range(32):
+                if getattr(best.option, flags) & (1 << bit):
+                    candidate = best.copy()
+                    setattr(candidate.option, flags, getattr(best.option, flags) & ~(1 << bit))
+                    if shows(candidate, state):
+                        best = candidate
+                        log.append(f"option {flags}: bit {bit} cleared")
+        say(f"shrink: options {_option_changes(spec)} -> {_option_changes(best)} changed from the defaults")
+        for digits in (2, 3, 6):
+            candidate = rounded(best, digits)
+            if shows(candidate, state):
+                best = candidate
+                log.append(f"model: {digits} significant digits")
+                break
+        for digits in (2, 3, 6):
+            shorter = state.rounded(digits)
+            if shows(best, shorter):
+                state = shorter
+                log.append(f"state: {digits} significant digits")
+                break
+    except (_Budget, KeyboardInterrupt):
+        complete = False
+        say("shrink: stopped (budget or interrupt): the best so far")
+    return Shrunk(best, state, target, before, counts(best), tried, _compiles() - compiles0,
+                  time.perf_counter() - t0, tuple(log), complete)
+
+
+def _shows_safely(spec: mujoco.MjSpec, state: State, target: Signature) -> bool:
+    try:
+        return probe(spec.compile(), state) == target
+    except Exception:  # noqa: BLE001 - a model C or MJX cannot run shows nothing
+        return False
+
+
