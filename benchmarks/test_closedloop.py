@@ -13,7 +13,7 @@ import pytest
 from brax.training.acme import running_statistics
 from brax.training.agents.ppo import networks as ppo_networks
 
-from mjxdiff.tools import closedloop
+from mjxdiff.tools import closedloop, closedloop_streams
 from mjxdiff.output.report import versions
 
 EPISODES, STEPS = 32, 200
@@ -23,7 +23,7 @@ EPISODES, STEPS = 32, 200
 def setup():
     env = closedloop.make_env("inverted_pendulum")
     policy = _random_policy(env)
-    reset_keys, policy_keys = closedloop._keys(0, EPISODES, STEPS)
+    reset_keys, policy_keys = closedloop_streams._keys(0, EPISODES, STEPS)
     return env, policy, reset_keys, policy_keys
 
 

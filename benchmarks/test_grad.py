@@ -20,10 +20,10 @@ def state(request):
 
 @pytest.mark.parametrize("side", ["mjx", "c"])
 def test_jacobians_per_second(benchmark, state, side):
-    from mjxdiff.engine import export_cache
+    from mjxdiff.engine import digest
 
     name, (m, _, _, s) = state
-    code = export_cache.code_digest()
+    code = digest.code_digest()
     with jax.enable_x64(True):
         fn = (lambda: grad.mjx_jacobians(m, s, code)) if side == "mjx" else (lambda: grad.c_jacobians(m, s, grad.EPS))
         fn()  # compile

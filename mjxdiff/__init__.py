@@ -1,33 +1,21 @@
 """mjxdiff: differential testing of MuJoCo MJX against MuJoCo C.
 
-Code map, by stage (data flows down):
+Code map, one folder per stage (data flows down; docs/explanation/architecture.md draws it):
 
-- Input: ``scenario`` (scenario files, tolerances), ``config`` (a sweep's settings),
-  ``precision`` (float64/float32 and their thresholds), ``inputs`` (scenario -> batched
-  initial states, controls, per-member models), ``joints`` (qpos walks, quaternions),
-  ``adjust`` (what is changed so MJX can run a model), ``cost`` (compile and memory estimate).
-- Engines: ``trajectory`` (Trajectory, the Engine protocol), ``engines`` (MuJoCo C, MJX),
-  ``mjwarp`` (MuJoCo Warp), ``export_cache`` (compiled MJX rollouts across processes),
-  ``compat`` (every difference between the supported MuJoCo/MJX/JAX releases).
-- Comparison: ``metrics`` (errors and behaviour statistics in jax.numpy), ``noise`` (C's own
-  rounding envelope), ``verdict`` (trajectories -> a verdict per scenario; its data, without
-  JAX, in ``result``), ``onestep`` (one
-  step from C's states), ``transfer`` (MJX's host interface), ``diagnose`` (drill-down, causes),
-  ``segments`` (MJX's regularized capsule contacts, in NumPy).
-- Running: ``sweep`` (scenarios end to end), ``guard`` (a sweep in a watched child process),
-  ``pipeline`` (a whole sweep with known labels, history, baseline, files: :func:`run`;
-  shards, resume, :func:`merge`), ``journal`` (each finished unit on disk at once),
-  ``executors`` (a sweep's units as Ray tasks), ``scaling`` (wall time over more nodes).
-- Output: ``report`` (text, report.json), ``html_report`` (report.html), ``reproducer``
-  (failing members, replay), ``history`` (Parquet run history), ``baseline`` (what changed),
-  ``known`` (the known-divergence catalogue), ``files`` (atomic writes), ``errors`` (one-line
-  exceptions).
-- Other uses: ``versions`` (the same sweep on several MJX releases), ``shrink`` (a diverging
-  model to a minimal one with the same divergence), ``bundle`` (that as a bug report an MJX
-  maintainer can run), ``fuzz`` and ``strategies``
-  (Hypothesis), ``interactions`` and ``coverage`` (what the scenarios reach), ``grad``
-  (Jacobians), ``closedloop`` (policies), ``bench`` (performance), ``testing`` and
-  ``pytest_plugin`` (users' own tests), ``cli`` (``python -m mjxdiff``).
+- ``input``: scenario files, the settings (``options``, declared once; ``config``), precision,
+  batched inputs, joints, adjustments, cost.
+- ``engine``: the Trajectory and Engine protocol, MuJoCo C (``c``), MJX (``engines``,
+  ``models``, ``xla``), MuJoCo Warp (``mjwarp``), compiled rollouts across processes
+  (``export_cache``, ``digest``, ``trace_deps``), a forward pass stage by stage (``stages``).
+- ``compare``: C's rounding envelope (``noise``), ``verdict`` and ``result``, ``onestep``,
+  ``transfer``, ``diagnose``, the catalogue (``known``, ``support``), ``segments``, ``reference``.
+- ``output``: ``report``, ``html_report``, ``reproducer``, ``history``, ``baseline``.
+- ``runner``: ``sweep`` and its parts (``stream``, ``followup``, ``plan``, ``current``),
+  ``guard``, ``pipeline``, ``journal``, ``executors``, ``scaling``.
+- ``tools``: ``versions``, ``shrink``, ``bundle``, ``fuzz``, ``strategies``, ``interactions``,
+  ``coverage``, ``grad``, ``closedloop``, ``bench``; ``cli``: ``python -m mjxdiff``.
+- At the top: ``metrics`` (jax.numpy), ``compat``, ``testing``, ``pytest_plugin``, ``files``,
+  ``errors``.
 
 The public surface, one name per line; everything else is an implementation
 detail of its module. Names are imported on first use (PEP 562), so that

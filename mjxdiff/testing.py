@@ -21,6 +21,7 @@ import numpy as np
 import mujoco
 
 from mjxdiff.input.inputs import BatchedInputs
+from mjxdiff.input.options import Diagnose
 from mjxdiff.input.scenario import Tolerances
 from mjxdiff.compare.result import ScenarioResult
 
@@ -44,7 +45,7 @@ def _batch(x: np.ndarray | None, default: np.ndarray | None, ndim: int) -> np.nd
 
 
 def compare(m: mujoco.MjModel, qpos=None, qvel=None, act=None, ctrl=None, steps: int | None = None,
-            tolerances: Tolerances | None = None, envelope: bool = True, diagnose: str = "basic",
+            tolerances: Tolerances | None = None, envelope: bool = True, diagnose: Diagnose = "basic",
             seed: int = 0, name: str = "model") -> ScenarioResult:
     """Rolls out MJX and C from the given state(s) and controls and returns the verdict.
 

@@ -19,7 +19,7 @@ from brax.training.agents.ppo import networks as ppo_networks
 from mujoco.mjx._src import forward as mjx_forward
 
 from mjxdiff.output import report
-from mjxdiff.tools import closedloop
+from mjxdiff.tools import closedloop, closedloop_streams
 from mjxdiff.compare import diagnose
 from mjxdiff.cli import main
 
@@ -232,7 +232,7 @@ def test_observations_from_c_s_derived_fields(x64):
 
     def policy(obs, key):
         return jnp.tanh(obs[:3]), {}
-    reset_keys, policy_keys = closedloop._keys(0, 2, 5)
+    reset_keys, policy_keys = closedloop_streams._keys(0, 2, 5)
     first, chunks = closedloop.mjx_stream(env, policy, reset_keys, policy_keys)
     mj = next(chunks)
     c = next(closedloop.c_stream(env, policy, reset_keys, policy_keys, np.asarray(first.pipeline_state.qpos),

@@ -4,7 +4,7 @@ first divergence, worst errors to rounding); ``auto`` picks fast for sweep-sized
 
 import pytest
 
-from mjxdiff.engine import engines
+from mjxdiff.engine import xla
 from mjxdiff.input.scenario import load_scenario
 from mjxdiff.runner.sweep import SweepConfig, run_scenario
 
@@ -33,10 +33,10 @@ class _Lowered:
 
 
 def test_auto_compiles_fast_only_when_the_stepping_it_adds_is_small():
-    budget_flops = engines.FAST_BUDGET_SECONDS / engines.FAST_SECONDS_PER_FLOP
-    options, choice = engines.xla_options("auto", 300)(_Lowered(0.5 * budget_flops / 300))
-    assert choice["level"] == "fast" and options == engines.FAST_COMPILE
-    options, choice = engines.xla_options("auto", 10_000)(_Lowered(0.5 * budget_flops / 300))
-    assert choice["level"] == "balanced" and options == engines.BALANCED_COMPILE
-    assert engines.xla_options("optimized", 10)(_Lowered(1.0)) == ({}, {"mode": "optimized", "level": "optimized"})
-    assert engines.xla_options("fast", 10**9)(_Lowered(1e12))[1]["level"] == "fast"
+    budget_flops = xla.FAST_BUDGET_SECONDS / xla.FAST_SECONDS_PER_FLOP
+    options, choice = xla.xla_options("auto", 300)(_Lowered(0.5 * budget_flops / 300))
+    assert choice["level"] == "fast" and options == xla.FAST_COMPILE
+    options, choice = xla.xla_options("auto", 10_000)(_Lowered(0.5 * budget_flops / 300))
+    assert choice["level"] == "balanced" and options == xla.BALANCED_COMPILE
+    assert xla.xla_options("optimized", 10)(_Lowered(1.0)) == ({}, {"mode": "optimized", "level": "optimized"})
+    assert xla.xla_options("fast", 10**9)(_Lowered(1e12))[1]["level"] == "fast"

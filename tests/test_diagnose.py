@@ -314,7 +314,7 @@ def test_where_every_stage_agrees_at_the_failing_state_the_drill_down_names_the_
     from mjxdiff.engine.engines import CEngine
     from mjxdiff.input.inputs import BatchedInputs
     from mjxdiff.compare.result import ScenarioResult
-    from mjxdiff.runner.sweep import DRILL_BACK, _earlier_difference
+    from mjxdiff.runner.followup import DRILL_BACK, _earlier_difference
 
     m = mujoco.MjModel.from_xml_string(PENDULUM)
     limited = mujoco.MjModel.from_xml_string(PENDULUM.replace('range="-3 3"', 'range="-0.3 0.3"'))

@@ -139,7 +139,7 @@ def test_put_models_equals_put_model_per_member(change):
     import jax
     from mujoco import mjx
 
-    from mjxdiff.engine.engines import _patched_columns
+    from mjxdiff.engine.models import _patched_columns
 
     scenario = load_scenario("ant")
     models = list(make_inputs(scenario, load_model(scenario), 3, 5, 2).models)
@@ -179,11 +179,11 @@ def test_xla_options_follow_the_planned_horizon(monkeypatch):
     XLA's options for the planned stepping, so both compile one executable; a run planned for
     its own steps chooses for those (before, the quick run of a scenario stepped in pieces got
     ``fast`` where the full run got ``balanced``, and XLA compiled the loaded rollout again)."""
-    from mjxdiff.engine import engines
+    from mjxdiff.engine import xla
 
     asked = []
-    choose = engines.xla_options
-    monkeypatch.setattr(engines, "xla_options", lambda mode, steps: asked.append(steps) or choose(mode, steps))
+    choose = xla.xla_options
+    monkeypatch.setattr(xla, "xla_options", lambda mode, steps: asked.append(steps) or choose(mode, steps))
     scenario = load_scenario("pendulum")
     inputs = make_inputs(scenario, load_model(scenario), seed=0, batch=2, steps=10)
     engine = MJXEngine()

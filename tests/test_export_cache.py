@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from mujoco.mjx._src import passive as mjx_passive
 
-from mjxdiff.engine import engines, export_cache
+from mjxdiff.engine import digest, engines, export_cache, trace_deps
 from mjxdiff.engine.engines import MJXEngine, put_models
 from mjxdiff.input.inputs import make_inputs
 from mjxdiff.input.scenario import load_model, load_scenario
@@ -47,10 +47,10 @@ def test_a_saved_rollout_is_loaded_without_tracing_and_matches_the_traced_one(pe
 def test_patched_mjx_is_traced_and_its_own_artifact_reused_for_that_code_only(pendulum, monkeypatch):
     _, inputs = pendulum
     clean = _rollout(inputs)
-    clean_code = export_cache.rollout_digest()
+    clean_code = digest.rollout_digest()
     orig = mjx_passive._spring_damper
     monkeypatch.setattr(mjx_passive, "_spring_damper", lambda m, d: orig(m, d) - 1e-3 * m.dof_damping * d.qvel)
-    assert export_cache.rollout_digest() != clean_code
+    assert digest.rollout_digest() != clean_code
     compiles, loaded = engines.compile_count(), export_cache.loaded_count()
     patched = _rollout(inputs)  # traced, or loaded from an earlier run of this very patch
     assert engines.compile_count() + export_cache.loaded_count() == compiles + loaded + 1
@@ -60,7 +60,7 @@ def test_patched_mjx_is_traced_and_its_own_artifact_reused_for_that_code_only(pe
     assert engines.compile_count() == compiles
     np.testing.assert_array_equal(again.qvel, patched.qvel)
     monkeypatch.undo()
-    assert export_cache.rollout_digest() == clean_code
+    assert digest.rollout_digest() == clean_code
     np.testing.assert_array_equal(_rollout(inputs).qvel, clean.qvel)
     assert engines.compile_count() == compiles, "the clean code's artifact is loaded again"
 
@@ -119,7 +119,7 @@ def _key(*models: mujoco.MjModel) -> str:
     mx, varying = put_models(models if len(models) > 1 else models * 2)
     leaves, treedef = jax.tree.flatten(mx)
     return export_cache._key(engines._rollout, treedef, leaves, dict(varying=varying, with_energy=False, mesh=None),
-                             export_cache.rollout_digest())
+                             digest.rollout_digest())
 
 
 def test_the_key_follows_static_structure_not_parameter_values(pendulum):
@@ -152,21 +152,21 @@ def _global_patch(m, d):  # reads the module-level FACTOR
     "a method of an MJX enum",
 ])
 def test_every_kind_of_code_change_changes_the_digest(change, monkeypatch):
-    before = export_cache.rollout_digest()
+    before = digest.rollout_digest()
     if change == "mjxdiff's own traced code":
         monkeypatch.setattr(engines, "_contact_count", lambda dx: 0)  # would count no contacts
     elif change == "a partial":
         monkeypatch.setattr(mjx_passive, "_spring_damper", functools.partial(mjx_passive._spring_damper))
     elif change == "a closure's value":  # same code, another captured number
         monkeypatch.setattr(mjx_passive, "_spring_damper", _damping_patch(1e-3))
-        first = export_cache.rollout_digest()
+        first = digest.rollout_digest()
         monkeypatch.setattr(mjx_passive, "_spring_damper", _damping_patch(2e-3))
-        assert export_cache.rollout_digest() != first
+        assert digest.rollout_digest() != first
     elif change == "a global the patch reads":
         monkeypatch.setattr(mjx_passive, "_spring_damper", _global_patch)
-        first = export_cache.rollout_digest()
+        first = digest.rollout_digest()
         monkeypatch.setitem(globals(), "FACTOR", 2e-3)
-        assert export_cache.rollout_digest() != first
+        assert digest.rollout_digest() != first
     elif change == "a moved helper the rollout calls (mjxdiff.input.joints)":  # engines' energy walks joints.parts
         from mjxdiff.input import joints
 
@@ -186,17 +186,17 @@ def test_every_kind_of_code_change_changes_the_digest(change, monkeypatch):
         advance = mjx_forward._advance.__wrapped__  # under MJX's named_scope decorator
         assert advance.__defaults__ == (None,)  # qvel=None: semi-implicit
         monkeypatch.setattr(advance, "__defaults__", (0.0,))
-    assert export_cache.rollout_digest() != before, change
+    assert digest.rollout_digest() != before, change
     monkeypatch.undo()
-    assert export_cache.rollout_digest() == before
+    assert digest.rollout_digest() == before
 
 
 def test_the_digest_is_stable_across_rollouts_and_processes(pendulum):
     _, inputs = pendulum
-    before = export_cache.code_digest()
+    before = digest.code_digest()
     _rollout(inputs)
-    assert export_cache.code_digest() == before, "run-time state (counters, caches) is not code"
-    code = "from mjxdiff import export_cache, engines; print(export_cache.code_digest())"
+    assert digest.code_digest() == before, "run-time state (counters, caches) is not code"
+    code = "from mjxdiff.engine import digest, engines; print(digest.code_digest())"
     other = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert other.stdout.split()[-1] == before, other.stderr[-2000:]
 
@@ -204,22 +204,22 @@ def test_the_digest_is_stable_across_rollouts_and_processes(pendulum):
 def test_inside_code_read_once_the_code_is_read_once_and_a_patch_is_seen_after(monkeypatch):
     """A sweep reads the code once (a warm sweep asked ~130 times, a tenth of its CPU); a patch
     made inside is seen as soon as the block ends, and outside every call reads afresh."""
-    before = export_cache.rollout_digest()
+    before = digest.rollout_digest()
     reads = []
-    feed = export_cache._feed_module
-    monkeypatch.setattr(export_cache, "_feed_module", lambda d, module: (reads.append(module), feed(d, module))[1])
-    with export_cache.code_read_once():
-        assert export_cache.rollout_digest() == before
+    feed = digest._feed_module
+    monkeypatch.setattr(digest, "_feed_module", lambda d, module: (reads.append(module), feed(d, module))[1])
+    with digest.code_read_once():
+        assert digest.rollout_digest() == before
         first = len(reads)
         assert first
         monkeypatch.setattr(mjx_passive, "_spring_damper", _damping_patch(1e-3))
-        assert export_cache.rollout_digest() == before, "the block's one reading"
+        assert digest.rollout_digest() == before, "the block's one reading"
         assert len(reads) == first, "the code was read again inside the block"
-    patched = export_cache.rollout_digest()
+    patched = digest.rollout_digest()
     assert patched != before
     assert len(reads) == 2 * first
     monkeypatch.setattr(mjx_passive, "_spring_damper", _damping_patch(2e-3))
-    assert export_cache.rollout_digest() != patched
+    assert digest.rollout_digest() != patched
 
 
 def _artifact():
@@ -305,7 +305,7 @@ def test_scanning_for_live_functions_leaves_tuples_other_threads_build_alone():
     builder.start()
     try:
         for _ in range(100):
-            export_cache._live_functions({f"@{__file__}:nothing"})
+            trace_deps._live_functions({f"@{__file__}:nothing"})
             if errors:
                 break
     finally:

@@ -13,7 +13,8 @@ import pytest
 
 from mjxdiff.runner import guard
 from mjxdiff.input.scenario import load_scenario
-from mjxdiff.runner.sweep import SweepConfig, _out_of_memory, sweep
+from mjxdiff.runner.plan import out_of_memory
+from mjxdiff.runner.sweep import SweepConfig, sweep
 
 #: A humanoid stepping far longer than any budget of these tests.
 LONG = """name = "long_humanoid"
@@ -128,8 +129,8 @@ def test_mjx_and_xla_alarms_become_one_line_of_the_scenario():
 
 def test_an_xla_allocation_failure_names_the_batch_that_fits():
     inputs = type("I", (), {"batch": 8})()
-    line = _out_of_memory("RESOURCE_EXHAUSTED: Out of memory allocating 105414900936 bytes.", inputs,
-                          dict(plan=dict(group=8, max_memory=20 * 2**30)))
+    line = out_of_memory("RESOURCE_EXHAUSTED: Out of memory allocating 105414900936 bytes.", inputs,
+                         dict(plan=dict(group=8, max_memory=20 * 2**30)))
     assert line.startswith("out of memory: MJX's stepping of 8 member(s)")
     assert "98.2 GB" in line and "per member" in line and ("a batch of" in line or "not even one member" in line)
 

@@ -114,6 +114,17 @@ def test_docstring_examples_run():
   assert result.failed == 0
 
 
+def test_the_behaviour_statistics_are_exported_and_their_examples_run():
+  """Defined in mjxdiff.compare.statistics and exported by metrics (imported on first use), so
+  testmod(metrics) does not reach their examples."""
+  from mjxdiff.compare import statistics
+  for name in statistics.__all__:
+    assert name in metrics.__all__ and getattr(metrics, name) is getattr(statistics, name), name
+  result = doctest.testmod(statistics, optionflags=doctest.ELLIPSIS)
+  assert result.attempted >= 4
+  assert result.failed == 0
+
+
 # ---------------------------------------------------------------------------
 # quat_angle
 # ---------------------------------------------------------------------------

@@ -107,14 +107,15 @@ def test_every_scenario_carries_the_one_step_verdict(repo_root):
 def test_a_one_step_failure_fails_the_weak_pass_and_names_the_stage(quadruped, monkeypatch, fresh_mjx):
     """The sweep's second look at a weak pass: the gain bug makes it a failure that names the
     field, the member and step, and the first forward stage that differs from that state."""
-    from mjxdiff.runner import sweep
+    from mjxdiff.runner import followup
+    from mjxdiff.runner.stream import Case
     from mjxdiff.compare.verdict import ScenarioResult
 
     scenario, m, inputs, traj_c = quadruped
     weak = ScenarioResult(name="quadruped_1iter", status="pass", message="worst qpos 3.1 (...)", weak=("qpos",))
     _gain(monkeypatch)
-    case = sweep._Case("quadruped_1iter", m, inputs, scenario.tolerance, SweepConfig(), MJXEngine(), CEngine())
-    result, found, _ = sweep._onestep(weak, case, traj_c)
+    case = Case("quadruped_1iter", m, inputs, scenario.tolerance, SweepConfig(), MJXEngine(), CEngine())
+    result, found, _ = followup._onestep(weak, case, traj_c)
     assert result.status == "fail" and found["status"] == "fail"
     assert result.message.startswith(f"one-step check: {found['field']} of {found['object']} after step ")
     assert found["first_stage"] == "actuation" and "first field to differ: actuator_force (actuation" in result.message
@@ -124,7 +125,7 @@ def test_a_one_step_failure_fails_the_weak_pass_and_names_the_stage(quadruped, m
     from mjxdiff.compare import diagnose
 
     monkeypatch.setattr(diagnose, "drill_down", lambda *a, **k: 1 / 0)
-    result, found, _ = sweep._onestep(weak, case, traj_c)
+    result, found, _ = followup._onestep(weak, case, traj_c)
     assert result.status == "fail" and "first_stage" not in found
     assert found["drill_error"] == "ZeroDivisionError: division by zero", found
     assert "; the drill-down could not run: ZeroDivisionError: division by zero" in result.message

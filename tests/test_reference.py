@@ -53,20 +53,20 @@ def test_only_newton_on_a_sparse_branching_tree_is_suspect():
 
 
 def test_a_failure_on_a_suspect_model_says_how_to_rule_c_out(monkeypatch):
-    from mjxdiff.runner import sweep
+    from mjxdiff.runner import followup
 
     m = mujoco.MjModel.from_xml_string(DATA["xml"])
     monkeypatch.setattr(reference.mujoco, "__version__", "4.0.0")
     failed = ScenarioResult(name="tree", status="fail", message="qacc differs")
     info: dict = {}
-    said = sweep._suspect_reference(failed, m, info)
+    said = followup.suspect_reference(failed, m, info)
     assert said.message.startswith("qacc differs; the reference may be wrong here: MuJoCo C 4.0.0's sparse Cholesky")
     assert "pip install --no-deps mujoco-core==4.0.1" in said.message and "google-deepmind/mujoco#3767" in said.message
     assert info["suspect_reference"]["fixed_in"] == "4.0.1"
     passed = dataclasses.replace(failed, status="pass", message="ok")
-    assert sweep._suspect_reference(passed, m, {}) is passed
+    assert followup.suspect_reference(passed, m, {}) is passed
     monkeypatch.setattr(reference.mujoco, "__version__", "4.0.1")
-    assert sweep._suspect_reference(failed, m, {}) is failed
+    assert followup.suspect_reference(failed, m, {}) is failed
 
 
 def test_c_is_named_the_outlier_only_where_mjx_and_mjwarp_agree_and_both_fail_against_c():

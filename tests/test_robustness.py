@@ -97,7 +97,8 @@ def test_an_internal_error_is_that_scenarios_error(monkeypatch, where, workers):
 def test_a_crowded_process_lets_go_of_its_compiled_functions():
     """A long sweep must not run into the kernel's memory-map limit (LLVM then fails and the
     process segfaults): past the budget, compiled functions are dropped and the maps freed."""
-    from mjxdiff.runner.sweep import SweepConfig, _memory_maps, release_compiled_if_crowded, run_scenario
+    from mjxdiff.runner.plan import _memory_maps, release_compiled_if_crowded
+    from mjxdiff.runner.sweep import SweepConfig, run_scenario
 
     run_scenario(load_scenario("pendulum"), SweepConfig(batch=2, steps=20, diagnose="none"))
     held, limit = _memory_maps()

@@ -13,7 +13,7 @@ from hypothesis.errors import InvalidArgument
 from mujoco import mjx
 
 from mjxdiff import compat
-from mjxdiff.tools import strategies
+from mjxdiff.tools import mjcf_spec, strategies
 from mjxdiff.compare.support import refused_features
 from mjxdiff.tools.strategies import (
     CONTROL_FAMILIES,
@@ -230,7 +230,7 @@ def test_supported_pairs_table_matches_installed_mjx():
 
 
 def test_collision_masks_allow_exactly_the_supported_pairs():
-    masks = strategies._MASKS
+    masks = mjcf_spec._MASKS
     for a, b in itertools.combinations_with_replacement(masks, 2):
         if a == b == "plane":
             continue  # planes are static: never tested against each other

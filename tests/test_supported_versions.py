@@ -61,7 +61,7 @@ def test_the_report_names_the_versions_it_ran_on():
 def test_the_fast_compile_is_used_only_where_it_was_validated():
     import jax
 
-    from mjxdiff.engine.engines import xla_options
+    from mjxdiff.engine.xla import xla_options
 
     _, choice = xla_options("fast", 10)(jax.jit(lambda x: x + 1.0).lower(1.0))
     assert (choice["level"] == "fast") == compat.fast_compile_validated()

@@ -11,7 +11,8 @@ import pytest
 from mjxdiff.engine.engines import CEngine
 from mjxdiff.input.inputs import make_inputs
 from mjxdiff.input.scenario import Randomization, Scenario, load_model, load_scenario
-from mjxdiff.runner.sweep import SweepConfig, _ahead, run_inputs
+from mjxdiff.runner.stream import _ahead
+from mjxdiff.runner.sweep import SweepConfig, run_inputs
 
 
 def test_ahead_yields_every_item_in_order():
@@ -174,12 +175,13 @@ def test_scenarios_side_by_side_judge_as_one_after_another_each_in_its_own_preci
     import mujoco.mjx
     import numpy as np
 
-    from mjxdiff.engine import export_cache
-    from mjxdiff.runner.sweep import _precision, sweep
+    from mjxdiff.engine import digest
+    from mjxdiff.runner.current import jax_precision
+    from mjxdiff.runner.sweep import sweep
 
     reads = []
-    feed = export_cache._feed_module
-    monkeypatch.setattr(export_cache, "_feed_module", lambda d, module: (reads.append(module), feed(d, module))[1])
+    feed = digest._feed_module
+    monkeypatch.setattr(digest, "_feed_module", lambda d, module: (reads.append(module), feed(d, module))[1])
 
     scenarios = [load_scenario(n) for n in ("pendulum", "cartpole", "double_pendulum")]
     config = SweepConfig(seed=1, batch=2, steps=40, diagnose="none", precision="float32")
@@ -188,7 +190,7 @@ def test_scenarios_side_by_side_judge_as_one_after_another_each_in_its_own_preci
     seen = []  # the neighbour's dtypes: an assert in a thread would only warn
 
     def other_precision():  # a thread busy in float64 all along
-        with _precision("float64"):
+        with jax_precision("float64"):
             while not stop.is_set():
                 seen.append(jax.numpy.zeros(1).dtype)
                 time.sleep(0.001)

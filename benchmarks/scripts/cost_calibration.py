@@ -25,9 +25,10 @@ def child(path: str) -> None:
     import resource
 
     from mjxdiff.input import cost
-    from mjxdiff.engine import engines, export_cache
+    from mjxdiff.engine import engines, export_cache, xla
     from mjxdiff.input.scenario import load_scenario
-    from mjxdiff.runner.sweep import SweepConfig, _plan, _prepare
+    from mjxdiff.runner.plan import layout
+    from mjxdiff.runner.sweep import SweepConfig, _prepare
 
     engines.configure_jax("float64", cache_dir=tempfile.mkdtemp(prefix="calib-"))
     import jax
@@ -45,10 +46,10 @@ def child(path: str) -> None:
     out.update(estimate=est.as_dict(), estimate_s=round(time.perf_counter() - t, 2))
     print(json.dumps(dict(out, phase="estimated")), flush=True)
     engine = engines.MJXEngine()
-    groups, chunk = _plan(m, inputs, SweepConfig(), engine)
+    groups, chunk = layout(m, inputs, SweepConfig(), engine)
     group = inputs.take(groups[0]) if len(groups) > 1 else inputs
     seen = {}
-    choose0 = engines.xla_options
+    choose0 = xla.xla_options
 
     def xla_options(mode, steps):
         inner = choose0(mode, steps)
@@ -61,7 +62,7 @@ def child(path: str) -> None:
             return inner(lowered)
         return choose
 
-    engines.xla_options = xla_options
+    xla.xla_options = xla_options
     t = time.perf_counter()
     with jax.enable_x64(True):
         engine.compile_ahead(group, chunk)

@@ -6,13 +6,13 @@ import resource
 import sys
 
 from mjxdiff.engine import engines
-from mjxdiff.runner import sweep
+from mjxdiff.runner import plan
 from mjxdiff.compare import verdict
 from mjxdiff.input.scenario import load_scenario
 from mjxdiff.runner.sweep import SweepConfig, run_scenario
 engines.configure_jax("float64", sys.argv[1])
 if len(sys.argv) > 4:
-    sweep.PIECE_BUDGET_MIB = float(sys.argv[4])
+    plan.PIECE_BUDGET_MIB = float(sys.argv[4])
 
 
 def rss():

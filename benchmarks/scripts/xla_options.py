@@ -1,5 +1,5 @@
 """Compile seconds and stepping speed of MJX rollouts under XLA's option sets, and how far
-their results are from XLA's defaults (the numbers behind ``mjxdiff.engine.engines.xla_options``).
+their results are from XLA's defaults (the numbers behind ``mjxdiff.engine.xla.xla_options``).
 
     python benchmarks/scripts/xla_options.py [SCENARIOS] [BATCH] [STEPS]
     (default: ant,humanoid,box_stack,primitive_pairs 8 200)

@@ -23,7 +23,7 @@ with the solver converged (:func:`converge_solver`), with the envelope
 
 The sweep consults it only for a failing scenario whose drill-down starts in
 the constraint or acceleration stage, or finds every forward stage agreeing (the
-step's own constraint solves, e.g. RK4's four; see :mod:`mjxdiff.runner.sweep`); each
+step's own constraint solves, e.g. RK4's four; see :func:`mjxdiff.runner.followup.solver_floor`); each
 field then reports which bound held it (:data:`FLOORS`).
 """
 

@@ -12,7 +12,7 @@ per-step analogue of the rollout's chaos envelope.
 The same states tell whether the model's own solver settings converge: C stepped once as
 configured against C stepped once converged, beyond the same bound, means they do not (a
 speed-tuned robot's one iteration). The sweep then runs the converged twin
-(:func:`mjxdiff.runner.sweep._twin`) and, with ``evidence``, MJX's truncated step is compared with C's.
+(:func:`mjxdiff.runner.followup._twin`) and, with ``evidence``, MJX's truncated step is compared with C's.
 Both engines start each step from a cold solver (no warm start) at time 0 and the scenario's
 mocap poses; a converged solve does not depend on its starting point.
 """
@@ -124,6 +124,90 @@ def _through_rollout(inputs: BatchedInputs, configured: BatchedInputs, engine, r
     return rows, _first_record(engine.first_piece(pairs, chunk, steps=1))
 
 
+def _c_steps(c_engine: Engine, one: BatchedInputs, configured: BatchedInputs, precision: Precision):
+    """C's one step from every pair, in one rollout: (converged, converged from the 4-ulp nudged
+    state, as configured, as configured from the nudged state), each a one-step Trajectory."""
+    P = one.batch
+    batches = [one, perturb(one, precision), configured, perturb(configured, precision)]
+    joined = c_engine.rollout(functools.reduce(BatchedInputs.concat, batches))
+    return tuple(jax.tree.map(lambda a, i=i: a[i * P:(i + 1) * P], joined) for i in range(4))
+
+
+def _solver(tol: Tolerances, own: dict[str, np.ndarray], trunc: dict[str, np.ndarray],
+            healthy: np.ndarray) -> dict[str, Any]:
+    """Whether the model's own solver settings converge: ``ratio`` the worst |C as configured - C
+    converged| (``trunc``) / the pair's bound over healthy pairs and fields, ``field`` where it
+    is, ``converged`` whether that ratio is at most 1."""
+    solver: dict[str, Any] = dict(converged=True, ratio=0.0, field="")
+    for field in FIELDS:
+        if trunc[field].shape[-1]:
+            bound = _pair_bound(tol, field, own[field])
+            t = float(np.where(healthy, _worst(trunc[field]) / bound, 0.0).max())
+            if t > solver["ratio"]:
+                solver.update(ratio=t, field=field)
+    solver["converged"] = solver["ratio"] <= 1.0
+    return solver
+
+
+def _bound_scale(field: str, reference: Trajectory, healthy,
+                 bound: np.ndarray) -> tuple[float, float] | None:
+    """(tightest, median) over healthy pairs of ``bound`` / RMS of C's values of ``field`` after
+    the step (sensor values clipped to 1 in magnitude); None where that RMS is 0."""
+    values = np.asarray(getattr(reference, field))[healthy]
+    values = np.minimum(np.abs(values), 1.0) if field == "sensordata" else values
+    scale = float(np.sqrt(np.mean(np.where(np.isfinite(values), values, 0.0) ** 2)))
+    if scale > 0:
+        return float(bound[healthy].min() / scale), float(np.median(bound[healthy]) / scale)
+    return None
+
+
+def _judge_pairs(err: dict[str, np.ndarray], own: dict[str, np.ndarray], reference: Trajectory,
+                 healthy, tol: Tolerances, elements, member: np.ndarray, step: np.ndarray):
+    """The pairs judged field by field: (field -> worst error / bound over healthy pairs,
+    field -> :func:`_bound_scale`, the worst pair over fields as a dict of ``field``, ``object``,
+    ``element``, ``member``, ``step`` (the step applied, 0-based), ``error``, ``bound``, ``ratio``,
+    or None where no field has components). ``member``, ``step``: each pair's member id and record."""
+    ratios: dict[str, float] = {}
+    scales: dict[str, tuple[float, float]] = {}
+    worst = None
+    for field in FIELDS:
+        e = err[field]
+        if e.shape[-1] == 0:
+            continue
+        per_pair = _worst(e)
+        bound = _pair_bound(tol, field, own[field])
+        ratio = np.where(healthy, per_pair / bound, 0.0)
+        ratios[field] = float(ratio.max())
+        scale = _bound_scale(field, reference, healthy, bound)
+        if scale is not None:
+            scales[field] = scale
+        i = int(ratio.argmax())
+        if worst is None or ratio[i] > worst["ratio"]:
+            comp = int(np.nan_to_num(e[i], nan=np.inf).argmax())
+            element = elements[field][comp] if elements.get(field) else None
+            worst = dict(field=field, object=describe(element) if element else "", element=element,
+                         member=int(member[i]), step=int(step[i]) + 1,
+                         error=float(per_pair[i]), bound=float(bound[i]), ratio=float(ratio[i]))
+    return ratios, scales, worst
+
+
+def _as_configured(mjx_cfg: dict[str, np.ndarray], trunc: dict[str, np.ndarray], rows: np.ndarray,
+                   ok: np.ndarray) -> dict[str, Any]:
+    """Per field, the worst over the pairs ``ok`` of MJX's truncated step against C's
+    (``mjx_cfg``: ``error``) and of C's truncated step against its converged one (``trunc`` at
+    ``rows``: ``truncation``); ``field`` the one with the largest ``error / truncation``, and
+    ``ratio`` that ratio."""
+    fields = {}
+    for field in FIELDS:
+        if trunc[field].shape[-1] == 0:
+            continue
+        e = float(np.where(ok, _worst(mjx_cfg[field]), 0.0).max())
+        t = float(np.where(ok, np.nan_to_num(_worst(trunc[field][rows]), posinf=0.0), 0.0).max())
+        fields[field] = dict(error=e, truncation=t)
+    key = max(fields, key=lambda f: fields[f]["error"] / max(fields[f]["truncation"], 1e-300))
+    return dict(fields=fields, field=key, ratio=fields[key]["error"] / max(fields[key]["truncation"], 1e-300))
+
+
 def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine: Engine, c_engine: Engine,
           precision: Precision = "float64", states: int = STATES, evidence: bool = False,
           steps: np.ndarray | None = None, reuse: tuple[np.ndarray, int] | None = None) -> dict[str, Any]:
@@ -157,9 +241,7 @@ def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine:
     configured = one_step_inputs(inputs, traj_c, steps, converge=False)
     one = converged(configured)
     P = one.batch
-    batches = [one, perturb(one, precision), configured, perturb(configured, precision)]
-    joined = c_engine.rollout(functools.reduce(BatchedInputs.concat, batches))
-    c, nudged, c_cfg, nudged_cfg = (jax.tree.map(lambda a, i=i: a[i * P:(i + 1) * P], joined) for i in range(4))
+    c, nudged, c_cfg, nudged_cfg = _c_steps(c_engine, one, configured, precision)
     layout, mask = metrics.qpos_layout(m), rangefinder_mask(m)
     member_of, step_of = np.repeat(np.asarray(inputs.ids), S), np.tile(steps, inputs.batch)
     out: dict[str, Any] = dict(states=[int(j) for j in steps], ratios={}, bound_scale={})
@@ -167,63 +249,28 @@ def check(m, inputs: BatchedInputs, traj_c: Trajectory, tol: Tolerances, engine:
     if not healthy.any():
         return dict(out, pairs=0, status="error", message="MuJoCo C goes non-finite from every sampled state")
     own, trunc = _per_pair(nudged, c, layout, mask), _per_pair(c_cfg, c, layout, mask)
-    solver: dict[str, Any] = dict(converged=True, ratio=0.0, field="")
-    for field in FIELDS:
-        if trunc[field].shape[-1]:
-            bound = _pair_bound(tol, field, own[field])
-            t = float(np.where(healthy, _worst(trunc[field]) / bound, 0.0).max())
-            if t > solver["ratio"]:
-                solver.update(ratio=t, field=field)
-    solver["converged"] = solver["ratio"] <= 1.0
+    solver = _solver(tol, own, trunc, healthy)
     rows = np.arange(P)
-    if solver["converged"] and reuse is not None and hasattr(engine, "first_piece"):
+    through = reuse is not None and hasattr(engine, "first_piece")
+    if solver["converged"] and through:
         rows, x = _through_rollout(inputs, configured, engine, reuse, S)
         reference, nudged_ref, settings = _rows(c_cfg, rows), _rows(nudged_cfg, rows), "as configured (converged)"
     else:
         x, reference, nudged_ref, settings = engine.rollout(one), c, nudged, "converged"
     err, own = _per_pair(x, reference, layout, mask), _per_pair(nudged_ref, reference, layout, mask)
     healthy = (reference.diverged_at < 0) & (nudged_ref.diverged_at < 0)
-    elements = component_elements(m, layout)
     out.update(pairs=int(healthy.sum()), settings=settings)
-    worst = None
-    for field in FIELDS:
-        e = err[field]
-        if e.shape[-1] == 0:
-            continue
-        per_pair = _worst(e)
-        bound = _pair_bound(tol, field, own[field])
-        ratio = np.where(healthy, per_pair / bound, 0.0)
-        out["ratios"][field] = float(ratio.max())
-        values = np.asarray(getattr(reference, field))[healthy]
-        values = np.minimum(np.abs(values), 1.0) if field == "sensordata" else values
-        scale = float(np.sqrt(np.mean(np.where(np.isfinite(values), values, 0.0) ** 2)))
-        if scale > 0:
-            out["bound_scale"][field] = (float(bound[healthy].min() / scale), float(np.median(bound[healthy]) / scale))
-        i = int(ratio.argmax())
-        if worst is None or ratio[i] > worst["ratio"]:
-            comp = int(np.nan_to_num(e[i], nan=np.inf).argmax())
-            element = elements[field][comp] if elements.get(field) else None
-            worst = dict(field=field, object=describe(element) if element else "", element=element,
-                         member=int(member_of[rows[i]]), step=int(step_of[rows[i]]) + 1,
-                         error=float(per_pair[i]), bound=float(bound[i]), ratio=float(ratio[i]))
+    ratios, scales, worst = _judge_pairs(err, own, reference, healthy, tol, component_elements(m, layout),
+                                         member_of[rows], step_of[rows])
+    out.update(ratios=ratios, bound_scale=scales)
     out.update(worst or dict(ratio=0.0), solver=solver,
                weak=[f for f, (_, median) in out["bound_scale"].items() if median > WEAK_BOUND])
     out["status"] = "fail" if out["ratio"] > 1.0 else "pass"
     if evidence and not solver["converged"]:
-        if reuse is not None and hasattr(engine, "first_piece"):
+        if through:
             rows, x_cfg = _through_rollout(inputs, configured, engine, reuse, S)
         else:
             rows, x_cfg = np.arange(P), engine.rollout(configured)
-        mjx_cfg = _per_pair(x_cfg, _rows(c_cfg, rows), layout, mask)
         ok = (np.asarray(c.diverged_at)[rows] < 0) & (np.asarray(nudged.diverged_at)[rows] < 0)
-        fields = {}
-        for field in FIELDS:
-            if trunc[field].shape[-1] == 0:
-                continue
-            e = float(np.where(ok, _worst(mjx_cfg[field]), 0.0).max())
-            t = float(np.where(ok, np.nan_to_num(_worst(trunc[field][rows]), posinf=0.0), 0.0).max())
-            fields[field] = dict(error=e, truncation=t)
-        key = max(fields, key=lambda f: fields[f]["error"] / max(fields[f]["truncation"], 1e-300))
-        out["as_configured"] = dict(fields=fields, field=key,
-                                    ratio=fields[key]["error"] / max(fields[key]["truncation"], 1e-300))
+        out["as_configured"] = _as_configured(_per_pair(x_cfg, _rows(c_cfg, rows), layout, mask), trunc, rows, ok)
     return out

@@ -26,7 +26,7 @@ SERIES_POINTS = 256
 WEAK_BOUND = 0.01
 #: The cause (``diagnosis['cause']['cause']``) of a failure that only the model's own solver
 #: settings explain: the engines part as configured, held only by the solver floor, and agree
-#: with a converged solver (:func:`mjxdiff.runner.sweep._truncation`).
+#: with a converged solver (:func:`mjxdiff.runner.followup._truncation`).
 TRUNCATION = "solver truncation"
 
 

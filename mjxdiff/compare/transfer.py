@@ -432,13 +432,13 @@ def cached_check_scenario_states(cache: Path | None, m: mujoco.MjModel, qpos: np
 def _key(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, ctrl: np.ndarray, time: float,
          model_path: str | Path | None, precision: Precision) -> str:
     """Hex SHA-256 of what :func:`check_scenario_states` reads and runs: the code of MJX and of
-    this module, the versions and JAX settings (:func:`mjxdiff.engine.export_cache.rollout_digest`, as
+    this module, the versions and JAX settings (:func:`mjxdiff.engine.digest.rollout_digest`, as
     a rollout's artifact is keyed), the precision, the compiled model (``mj_saveModel``), the state
     and controls, and the model file (its spec gives the ``bind`` checks)."""
-    from mjxdiff.engine import export_cache
+    from mjxdiff.engine.digest import code_digest, rollout_digest
 
     h = hashlib.sha256()
-    for part in (export_cache.rollout_digest(), export_cache.code_digest((__name__,)), precision, repr(float(time))):
+    for part in (rollout_digest(), code_digest((__name__,)), precision, repr(float(time))):
         h.update(part.encode() + b"\0")
     model = np.empty(mujoco.mj_sizeModel(m), np.uint8)
     mujoco.mj_saveModel(m, None, model)

@@ -19,6 +19,7 @@ Statuses:
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Any
 
@@ -306,6 +307,129 @@ class _BehaviourTrack:
 _SERIES = ("qpos", "qvel", "act", "sensordata")
 
 
+@dataclasses.dataclass(frozen=True)
+class _Decision:
+    """What :meth:`Judge.result` decides from the data fed: the status (``kind``: the error kind;
+    ``weak``: the weak fields of a pass), the field results, the first divergence (None unless a
+    field failed the scenario), the blown-up members (:meth:`Judge._diverged`), (B,) masks of
+    members where C (``c_bad``) or only MJX (``mjx_bad``) blew up, judged (C finite), healthy
+    (both finite) and failing, the pass rate, each member's worst error / bound, the outlier
+    member beyond :data:`OUTLIER_RATIO` (None if none) and the failed fields."""
+
+    status: str
+    kind: str
+    weak: tuple[str, ...]
+    fields: list[FieldResult]
+    first: dict[str, Any] | None
+    diverged: list[dict[str, Any]]
+    c_bad: np.ndarray
+    mjx_bad: np.ndarray
+    judged: np.ndarray
+    healthy: np.ndarray
+    member_fails: np.ndarray
+    pass_rate: Any
+    worst_ratio: np.ndarray
+    outlier: int | None
+    failed: list[FieldResult]
+
+
+def _contact_allowance(batch: int, tol: Tolerances, noise: NoiseFloor | None,
+                       solver: NoiseFloor | None) -> np.ndarray:
+    """(B,) fraction of steps whose contact count may differ: the tolerance, or up to twice the
+    fraction C's own reruns show under each floor given (at most 1)."""
+    allowed = np.full(batch, tol.contact_mismatch)
+    for floor in (noise, solver):  # a contact-count mismatch may reach twice what C's own reruns show
+        if floor is not None:
+            allowed = np.maximum(allowed, np.minimum(1.0, 2 * floor.contact_fraction))
+    return allowed
+
+
+def _status(mjx_bad: bool, failed: bool, c_bad: bool, fields: list[FieldResult]) -> tuple[str, str, tuple[str, ...]]:
+    """(status, error kind, weak fields): ``fail`` where MJX blew up in some member or some field
+    failed, else ``error`` (``unstable``) where C blew up in some member, else ``pass`` with the
+    fields whose bound is weak."""
+    if mjx_bad or failed:
+        return "fail", "", ()
+    if c_bad:
+        return "error", "unstable", ()
+    return "pass", "", tuple(f.field for f in fields if f.weak)
+
+
+def _unstable_c(d: _Decision) -> str:
+    """The sentence on members where C itself blew up (the earliest named); empty if none."""
+    if not d.c_bad.any():
+        return ""
+    d0 = min((x for x in d.diverged if x["engine"] == "c"), key=lambda x: x["step"])
+    return (f"MuJoCo C itself goes non-finite or unstable in {int(d.c_bad.sum())} member(s) (first: "
+            f"member {d0['member']} at step {d0['step']}, t={d0['time']:g} s)")
+
+
+def _mjx_nonfinite_message(d: _Decision) -> str:
+    """The message where MJX goes non-finite while C stays finite: the earliest such member, its
+    fields still finite, and the first field out of bound where that came elsewhere or earlier."""
+    d0 = min((x for x in d.diverged if x["engine"] == "mjx"), key=lambda x: x["step"])
+    last = f"last finite step {d0['last_finite_step']}" if d0["step"] else "non-finite from the first step"
+    message = (f"MJX goes non-finite at step {d0['step']} (t={d0['time']:g} s), member {d0['member']}, while "
+               f"MuJoCo C stays finite ({int(d.mjx_bad.sum())} member(s)); non-finite: "
+               f"{', '.join(d0['nonfinite_fields']) or 'state'}; still finite: "
+               f"{', '.join(d0['finite_fields']) or 'nothing'}; {last}")
+    first = d.first
+    if first and (first["step"] < d0["step"] or first["member"] != d0["member"]):
+        message += (f"; first out of bound: {first['field']} of {first['object'] or 'member'} "
+                    f"at step {first['step']}, member {first['member']}")
+    return message
+
+
+def _failed_message(d: _Decision, enveloped: bool, threshold: float) -> str:
+    """The message where a field fails: the first divergence, and the outlier where it alone
+    fails a scenario whose pass rate would pass. ``enveloped``: judged against a noise floor."""
+    first = d.first
+    assert first is not None  # set for the first of the failed fields
+    where = "leaves the envelope" if enveloped else f"exceeds {first['tolerance']:.1e}"
+    message = (f"{first['field']} of {first['object'] or 'member ' + str(first['member'])} {where} "
+               f"at step {first['step']} (t={first['time']:.4g} s), member {first['member']}; "
+               f"worst {first['error']:.3g}")
+    if d.outlier is not None and d.pass_rate >= threshold:
+        message += (f"; member {d.outlier} is {d.worst_ratio[d.outlier]:.3g}x its bound: an outlier that far "
+                    f"out fails the scenario whatever the pass rate ({d.pass_rate:.0%})")
+    return message
+
+
+def _pass_message(d: _Decision) -> str:
+    """The message of a pass: the worst of qpos and qvel against its bound, the loosest weak
+    bound, and how many members were out of tolerance."""
+    fields = d.fields
+    worst = max((f for f in fields if f.field in ("qpos", "qvel")), key=lambda f: f.ratio)
+    message = f"worst {worst.field} {worst.max_error:.2g} (tol {worst.tolerance:.0e}"
+    message += f", envelope {worst.envelope:.1e})" if worst.envelope else ")"
+    if d.weak:
+        loosest = max((f for f in fields if f.weak), key=lambda f: f.bound_scale[1])
+        message += (f"; weak: the {loosest.field} bound is {loosest.bound_scale[1]:.2g}x its scale "
+                    f"{loosest.scale:.2g} at the median step (a difference that large would pass)")
+    if d.member_fails.any():
+        message += (f"; {int(d.member_fails.sum())}/{int(d.judged.sum())} members out of tolerance, "
+                    f"pass rate {d.pass_rate:.0%}")
+    return message
+
+
+def _message(d: _Decision, enveloped: bool, threshold: float) -> str:
+    """The verdict's message, written from its data ``d``: why it failed, why it is an error, or
+    how close a pass came; a failure also names the members C itself lost."""
+    unstable_c = _unstable_c(d)
+    if d.mjx_bad.any():
+        message = _mjx_nonfinite_message(d)
+    elif d.failed:
+        message = _failed_message(d, enveloped, threshold)
+    elif d.c_bad.any():
+        message = (f"{unstable_c}: an unstable scenario, not an MJX divergence (lower the timestep, "
+                   "the randomization or the stiffness)")
+    else:
+        message = _pass_message(d)
+    if d.status == "fail" and unstable_c:
+        message += f"; not judged: {unstable_c}"
+    return message
+
+
 class Judge:
     """Compares MJX against C (the reference) piece by piece and decides the scenario's status.
 
@@ -399,101 +523,75 @@ class Judge:
         nothing else fails). A member where MJX goes non-finite while C stays finite fails,
         and the scenario with it, whatever the threshold.
         """
-        m, tol, dt = self.m, self.tol, self.dt
+        d = self._decide(threshold, noise, solver)
+        return ScenarioResult(
+            name=name, status=d.status, message=_message(d, noise is not None, threshold), error_kind=d.kind,
+            fields=tuple(d.fields),
+            weak=d.weak,
+            first_divergence=d.first, diverged_members=tuple(d.diverged),
+            behaviour=self._behaviour(d.healthy), tolerances=self.tol.as_dict(),
+            pass_rate=float(d.pass_rate), threshold=threshold,
+            noise_rate=noise.rate if noise is not None else {})
+
+    def _decide(self, threshold: float, noise: NoiseFloor | None, solver: NoiseFloor | None) -> _Decision:
+        """The verdict's data on everything fed so far, its status included (see :meth:`result`)."""
         c_bad = self.diverged_at["c"] >= 0
         mjx_bad = (self.diverged_at["mjx"] >= 0) & ~c_bad
         judged, healthy = ~c_bad, ~c_bad & ~mjx_bad
         diverged = [self._diverged(engine, int(i)) for engine, bad in (("c", c_bad), ("mjx", mjx_bad))
                     for i in np.flatnonzero(bad)]
-        elements = component_elements(m, self.layout)
-        objects = {f: [describe(e) for e in column] for f, column in elements.items()}
-        fields = [track.result(key, judged, objects[key], dt) for key, track in self.fields.items()]
-        allowed = np.full(self.batch, tol.contact_mismatch)
-        for floor in (noise, solver):  # a contact-count mismatch may reach twice what C's own reruns show
-            if floor is not None:
-                allowed = np.maximum(allowed, np.minimum(1.0, 2 * floor.contact_fraction))
-        fields.append(self.contacts.result("contacts", allowed, judged))
-        member_fails = mjx_bad.copy()
-        for track in self.fields.values():
-            member_fails |= track.first_step >= 0
-        member_fails |= self.contacts.fraction > allowed
-        if self.rf_mask.any():
-            rf_allowed = np.full(self.batch, tol.rangefinder_mismatch)
-            fields.append(self.rangefinder.result("rangefinder", rf_allowed, judged))
-            member_fails |= self.rangefinder.fraction > rf_allowed
-        member_fails &= judged
+        elements = component_elements(self.m, self.layout)
+        fields, member_fails = self._field_results(judged, mjx_bad, elements, noise, solver)
         pass_rate = 1.0 - member_fails.sum() / max(int(judged.sum()), 1)
         worst_ratio = np.where(healthy, np.nan_to_num(np.max([t.max_ratio for t in self.fields.values()], axis=0),
                                                       nan=np.inf), 0.0)
         outlier = int(worst_ratio.argmax()) if worst_ratio.max() > OUTLIER_RATIO else None
         failed = [f for f in fields if not f.ok] if (pass_rate < threshold or mjx_bad.any()
                                                      or outlier is not None) else []
-        first = None
-        if failed:
-            f = min(failed, key=lambda f: (f.first_step if f.first_step >= 0 else 1 << 30))
-            step = max(f.first_step, 0)
-            time = None
-            if f.member >= 0:  # C's time after that step
-                track = ({"contacts": self.contacts, "rangefinder": self.rangefinder}.get(f.field)
-                         or self.fields[f.field])
-                exact = track.first_step[f.member] == step
-                time = float(track.first_time[f.member]) if exact else round((step + 1) * dt, 9)
-            first = dict(field=f.field, step=step, time=time, member=f.member, object=f.object,
-                         element=next((e for e in elements.get(f.field, ()) if describe(e) == f.object), None),
-                         error=f.max_error, tolerance=f.tolerance)
-        unstable_c = ""
-        if c_bad.any():
-            d0 = min((d for d in diverged if d["engine"] == "c"), key=lambda d: d["step"])
-            unstable_c = (f"MuJoCo C itself goes non-finite or unstable in {int(c_bad.sum())} member(s) (first: "
-                          f"member {d0['member']} at step {d0['step']}, t={d0['time']:g} s)")
-        kind, weak = "", ()
-        if mjx_bad.any():
-            status = "fail"
-            d0 = min((d for d in diverged if d["engine"] == "mjx"), key=lambda d: d["step"])
-            last = f"last finite step {d0['last_finite_step']}" if d0["step"] else "non-finite from the first step"
-            message = (f"MJX goes non-finite at step {d0['step']} (t={d0['time']:g} s), member {d0['member']}, while "
-                       f"MuJoCo C stays finite ({int(mjx_bad.sum())} member(s)); non-finite: "
-                       f"{', '.join(d0['nonfinite_fields']) or 'state'}; still finite: "
-                       f"{', '.join(d0['finite_fields']) or 'nothing'}; {last}")
-            if first and (first["step"] < d0["step"] or first["member"] != d0["member"]):
-                message += (f"; first out of bound: {first['field']} of {first['object'] or 'member'} "
-                            f"at step {first['step']}, member {first['member']}")
-        elif failed:
-            assert first is not None  # set above for the first of the failed fields
-            status = "fail"
-            where = "leaves the envelope" if noise is not None else f"exceeds {first['tolerance']:.1e}"
-            message = (f"{first['field']} of {first['object'] or 'member ' + str(first['member'])} {where} "
-                       f"at step {first['step']} (t={first['time']:.4g} s), member {first['member']}; "
-                       f"worst {first['error']:.3g}")
-            if outlier is not None and pass_rate >= threshold:
-                message += (f"; member {outlier} is {worst_ratio[outlier]:.3g}x its bound: an outlier that far "
-                            f"out fails the scenario whatever the pass rate ({pass_rate:.0%})")
-        elif c_bad.any():
-            status, kind = "error", "unstable"
-            message = (f"{unstable_c}: an unstable scenario, not an MJX divergence (lower the timestep, "
-                       "the randomization or the stiffness)")
-        else:
-            worst = max((f for f in fields if f.field in ("qpos", "qvel")), key=lambda f: f.ratio)
-            status = "pass"
-            message = f"worst {worst.field} {worst.max_error:.2g} (tol {worst.tolerance:.0e}"
-            message += f", envelope {worst.envelope:.1e})" if worst.envelope else ")"
-            weak = tuple(f.field for f in fields if f.weak)
-            if weak:
-                loosest = max((f for f in fields if f.weak), key=lambda f: f.bound_scale[1])
-                message += (f"; weak: the {loosest.field} bound is {loosest.bound_scale[1]:.2g}x its scale "
-                            f"{loosest.scale:.2g} at the median step (a difference that large would pass)")
-            if member_fails.any():
-                message += (f"; {int(member_fails.sum())}/{int(judged.sum())} members out of tolerance, "
-                            f"pass rate {pass_rate:.0%}")
-        if status == "fail" and unstable_c:
-            message += f"; not judged: {unstable_c}"
-        return ScenarioResult(
-            name=name, status=status, message=message, error_kind=kind, fields=tuple(fields),
-            weak=weak,
-            first_divergence=first, diverged_members=tuple(diverged),
-            behaviour=self._behaviour(healthy), tolerances=tol.as_dict(),
-            pass_rate=float(pass_rate), threshold=threshold,
-            noise_rate=noise.rate if noise is not None else {})
+        first = self._first_divergence(failed, elements) if failed else None
+        status, kind, weak = _status(bool(mjx_bad.any()), bool(failed), bool(c_bad.any()), fields)
+        return _Decision(status=status, kind=kind, weak=weak, fields=fields, first=first, diverged=diverged,
+                         c_bad=c_bad, mjx_bad=mjx_bad, judged=judged, healthy=healthy,
+                         member_fails=member_fails, pass_rate=pass_rate, worst_ratio=worst_ratio,
+                         outlier=outlier, failed=failed)
+
+    def _field_results(self, judged: np.ndarray, mjx_bad: np.ndarray, elements: dict[str, list[dict[str, str]]],
+                       noise: NoiseFloor | None, solver: NoiseFloor | None) -> tuple[list[FieldResult], np.ndarray]:
+        """The field results over the ``judged`` members (the series fields, ``contacts``, then
+        ``rangefinder`` where the model has one) and which judged members fail: MJX non-finite
+        (``mjx_bad``), a field out of its bound at some step, or more steps with a contact-count
+        (rangefinder) mismatch than allowed (:func:`_contact_allowance`)."""
+        objects = {f: [describe(e) for e in column] for f, column in elements.items()}
+        fields = [track.result(key, judged, objects[key], self.dt) for key, track in self.fields.items()]
+        allowed = _contact_allowance(self.batch, self.tol, noise, solver)
+        fields.append(self.contacts.result("contacts", allowed, judged))
+        member_fails = mjx_bad.copy()
+        for track in self.fields.values():
+            member_fails |= track.first_step >= 0
+        member_fails |= self.contacts.fraction > allowed
+        if self.rf_mask.any():
+            rf_allowed = np.full(self.batch, self.tol.rangefinder_mismatch)
+            fields.append(self.rangefinder.result("rangefinder", rf_allowed, judged))
+            member_fails |= self.rangefinder.fraction > rf_allowed
+        member_fails &= judged
+        return fields, member_fails
+
+    def _first_divergence(self, failed: list[FieldResult],
+                          elements: dict[str, list[dict[str, str]]]) -> dict[str, Any]:
+        """The first divergence among the ``failed`` fields (the one out of bound earliest): its
+        ``field``, ``step``, ``time`` (C's time after that step; None without a member),
+        ``member``, ``object``, ``element``, ``error`` (the field's worst) and ``tolerance``."""
+        f = min(failed, key=lambda f: (f.first_step if f.first_step >= 0 else 1 << 30))
+        step = max(f.first_step, 0)
+        time = None
+        if f.member >= 0:  # C's time after that step
+            track = ({"contacts": self.contacts, "rangefinder": self.rangefinder}.get(f.field)
+                     or self.fields[f.field])
+            exact = track.first_step[f.member] == step
+            time = float(track.first_time[f.member]) if exact else round((step + 1) * self.dt, 9)
+        return dict(field=f.field, step=step, time=time, member=f.member, object=f.object,
+                    element=next((e for e in elements.get(f.field, ()) if describe(e) == f.object), None),
+                    error=f.max_error, tolerance=f.tolerance)
 
     def _diverged(self, engine: str, member: int) -> dict[str, Any]:
         """Where ``engine`` blew up in ``member``: step, time, which fields were non-finite there."""

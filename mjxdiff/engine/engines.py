@@ -1,4 +1,4 @@
-"""The two engines behind one interface: MuJoCo C and MJX, batched.
+"""The engines behind one interface: MuJoCo C and MJX, batched.
 
 Both take the same :class:`~mjxdiff.input.inputs.BatchedInputs` and return a
 :class:`Trajectory` with the same fields and shapes. Recording follows
@@ -7,75 +7,57 @@ state, while ``sensordata`` and ``ncon`` were computed from the state before
 the step (both engines evaluate them in the forward pass that precedes
 integration).
 
-* :class:`CEngine` steps every member on all cores with :class:`mujoco.batch.Batch`.
+* :class:`CEngine` steps every member on all cores with :class:`mujoco.batch.Batch`
+  (:mod:`mjxdiff.engine.c`).
 * :class:`MJXEngine` runs ``jit(vmap(scan(mjx.step)))``. Each member's model is
   ``mjx.put_model`` of its own C model; model leaves that differ between
-  members are batched inputs (``vmap`` axis 0), the rest are shared. One
+  members are batched inputs (``vmap`` axis 0), the rest are shared
+  (:func:`put_models`, :mod:`mjxdiff.engine.models`). One
   compiled function therefore serves every randomized variant of a model
   structure: it is cached by JAX on (structure, which leaves vary, B, T), and
   across processes as a ``jax.export`` artifact (:mod:`mjxdiff.engine.export_cache`).
   Large batches are split across the host CPU devices (``shard_map``; XLA CPU
   runs one device per thread): one per core after :func:`configure_jax`, which
-  the CLI calls (see :class:`MJXEngine`).
+  the CLI calls (see :class:`MJXEngine`; XLA's configuration and compile counters are
+  :mod:`mjxdiff.engine.xla`).
+
+This module holds MJX's engines and the functions their rollouts trace, and re-exports the
+public names of the others (:class:`CEngine`, :class:`UnsupportedError`, :func:`put_models`,
+:func:`configure_jax`, :func:`compile_count`, ...).
 """
 
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import functools
 import io
-import os
 import threading
-from pathlib import Path
 from typing import Any, Iterator
 
-# Load-bearing, the XLA CPU thread pool: jax's batched LAPACK kernels (the Newton solver's
-# Cholesky) split a large enough batch into tasks on XLA's intra-op pool and block their own
-# thread until those finish. If every pool thread is blocked that way, nothing runs the tasks
-# and the rollout never returns (0% CPU; gdb: two threads in CholeskyFactorization::Kernel,
-# the rest idle). The pool has one thread per core by default, so two concurrent kernels
-# deadlock a 2-core machine: two devices of a split batch (humanoid, 64 members per device,
-# 3/3 hangs), or two kernels one device runs side by side (the concurrency-optimised
-# scheduler; 56-dof primitive_pairs). PJRT_NPROC sizes the pool: with more threads than
-# kernels that can block at once (one per device; pool = cores + devices) it cannot
-# deadlock (3/3 passes). The scheduler and the multithreaded Eigen pool (PyAutoFit #1528)
-# stay off as well.
-# All of this is read once, when JAX's backend starts, so it is set by configure_jax (the
-# CLI calls it first), never by importing mjxdiff: a research process that imports the
-# metrics keeps its own XLA settings.
-#
-# Host devices to split MJX's batch over: configure_jax(devices=N), MJXDIFF_DEVICES, default
-# one per core. A single XLA CPU device runs a vmapped MJX rollout on about one core; split
-# over devices, each runs its share on its own thread. MJXEngine splits only batches big
-# enough to gain from it.
-#: CPUs this process may use: ``MJXDIFF_CORES`` (what a cluster task was given, see
-#: :mod:`mjxdiff.runner.executors`), else the machine's. Host devices, C threads and compile workers follow it.
-CORES = int(os.environ.get("MJXDIFF_CORES") or 0) or os.cpu_count() or 1
-#: XLA flags that keep a blocking LAPACK kernel from starving the pool (see above).
-SAFETY_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false", "--xla_cpu_multi_thread_eigen=false")
-_DEVICE_FLAG = "--xla_force_host_platform_device_count"
-
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
 
 with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import warp" to stdout
     from mujoco import mjx
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
-from mjxdiff.compat import (BALANCED_COMPILE, FAST_COMPILE, Batch, SimulationError, data_impl,  # noqa: E402,F401
-                            disable_bit, fast_compile_validated, full_inertia, jaxlib_validated, jit_for_few_calls)
+from mjxdiff.compat import (BALANCED_COMPILE, FAST_COMPILE, Batch, data_impl, disable_bit,  # noqa: E402,F401
+                            full_inertia, jit_for_few_calls)
 
 from mjxdiff.input.precision import Precision  # noqa: E402
-from mjxdiff import compat  # noqa: E402
-from mjxdiff.engine import export_cache, stages  # noqa: E402
+from mjxdiff.engine import export_cache, stages, xla  # noqa: E402
+from mjxdiff.engine.c import CEngine  # noqa: E402
+from mjxdiff.engine.digest import untraced  # noqa: E402
+from mjxdiff.engine.models import UnsupportedError, _unsupported, put_models  # noqa: E402
+from mjxdiff.engine.xla import (CORES, COMPILE_MODES, _ensure_safe_backend, _traced, compile_count,  # noqa: E402,F401
+                                compile_seconds, configure_jax, device_count, xla_compiles)
 from mjxdiff.input import joints  # noqa: E402
 from mjxdiff.engine.stages import Forward  # noqa: E402
-from mjxdiff.input.inputs import BatchedInputs, roundoff_moved  # noqa: E402
+from mjxdiff.input.inputs import BatchedInputs  # noqa: E402
 # Trajectory and Engine live in mjxdiff.trajectory (no MJX there); kept importable from here
-from mjxdiff.engine.trajectory import Engine, Streaming, Trajectory, concat, first_true, resync_blocks, shifted  # noqa: E402
+from mjxdiff.engine.trajectory import Engine, Trajectory, concat, first_true, resync_blocks, shifted  # noqa: E402
 
 __all__ = [
     "CEngine",
@@ -93,401 +75,6 @@ __all__ = [
     "put_models",
     "warp_capacity",
 ]
-
-
-class UnsupportedError(Exception):
-    """MJX refused the model (``NotImplementedError`` in ``put_model``, ``make_data`` or
-    while tracing ``mjx.step``); ``feature`` names what."""
-
-    def __init__(self, feature: str):
-        super().__init__(feature)
-        self.feature = feature
-
-
-@contextlib.contextmanager
-def _unsupported():
-    """Turns MJX's ``NotImplementedError`` into :class:`UnsupportedError`, naming the feature."""
-    try:
-        yield
-    except NotImplementedError as e:
-        raise UnsupportedError(" ".join(str(e).split()) or type(e).__name__) from None
-
-
-def _backend_started() -> bool:
-    from jax._src import xla_bridge
-
-    return xla_bridge.backends_are_initialized()
-
-
-def _flag_value(flags: str, name: str) -> str | None:
-    values = [f.split("=", 1)[1] for f in flags.split() if f.startswith(name + "=")]
-    return values[-1] if values else None
-
-
-def _xla_settings(devices: int | None) -> tuple[str, str, int]:
-    """(XLA_FLAGS, PJRT_NPROC, devices) mjxdiff wants: the safety flags, and ``devices`` host
-    devices (None: an inherited device-count flag, else ``MJXDIFF_DEVICES``, else one per core)."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    if devices is None and os.environ.get("MJXDIFF_DEVICES"):
-        devices = int(os.environ["MJXDIFF_DEVICES"])
-    if devices is None:
-        devices = int(_flag_value(flags, _DEVICE_FLAG) or CORES)
-    kept = [f for f in flags.split() if not f.startswith(_DEVICE_FLAG)]
-    wanted = kept + [f for f in SAFETY_FLAGS if f.split("=")[0] not in flags] + [f"{_DEVICE_FLAG}={devices}"]
-    return " ".join(wanted), os.environ.get("PJRT_NPROC") or str(CORES + devices), devices
-
-
-_CONFIGURED = export_cache.untraced({"done": False})
-
-
-def configure_jax(precision: Precision = "float64", cache_dir: str | os.PathLike | None = None,
-                  devices: int | None = None) -> None:
-    """Sets up JAX for mjxdiff in this process: XLA's CPU devices and thread pool, precision,
-    persistent compilation cache. The CLI calls it first; importing mjxdiff changes nothing.
-
-    XLA reads its flags once, when JAX's backend starts (the first computation). Before
-    that, this sets ``XLA_FLAGS`` (``devices`` host devices and :data:`SAFETY_FLAGS`) and
-    ``PJRT_NPROC`` (cores + devices: a pool a blocking kernel per device cannot starve).
-    After that it changes neither and says so in one line on stderr if the running backend
-    differs (MJX then splits its batch over the devices there are).
-
-    Args:
-      precision: ``float64`` (``jax_enable_x64``, the default: algorithmic
-        differences are not drowned by rounding) or ``float32``.
-      cache_dir: persistent compilation cache directory; ``None`` uses
-        ``$MJXDIFF_CACHE`` or ``~/.cache/mjxdiff/jax``; ``""`` disables it.
-      devices: host CPU devices; None: ``MJXDIFF_DEVICES``, else an inherited
-        ``--xla_force_host_platform_device_count``, else one per core.
-    """
-    if precision not in ("float32", "float64"):
-        raise ValueError(f"precision must be float32 or float64, got {precision!r}")
-    if devices is not None and devices < 1:
-        raise ValueError(f"devices must be positive, got {devices!r}")
-    flags, nproc, want = _xla_settings(devices)
-    if not _backend_started():
-        os.environ["XLA_FLAGS"], os.environ["PJRT_NPROC"] = flags, nproc
-    elif device_count() != want or not all(f in os.environ.get("XLA_FLAGS", "") for f in SAFETY_FLAGS):
-        import sys
-
-        print(f"mjxdiff: JAX's backend had already started ({device_count()} CPU device(s), XLA_FLAGS="
-              f"{os.environ.get('XLA_FLAGS', '')!r}); mjxdiff's settings ({want} device(s), {' '.join(SAFETY_FLAGS)}) "
-              "take effect only if configure_jax runs before the first JAX computation", file=sys.stderr)
-    _CONFIGURED["done"] = True
-    jax.config.update("jax_enable_x64", precision == "float64")
-    if cache_dir is None:
-        cache_dir = os.environ.get("MJXDIFF_CACHE", Path.home() / ".cache" / "mjxdiff" / "jax")
-    if not jaxlib_validated():
-        cache_dir = ""  # a loaded rollout crashes some jaxlib releases (mjxdiff.compat.VALIDATED_JAXLIB)
-    if cache_dir:
-        # XLA's executables per CPU type (export_cache.cpu_type), mjxdiff's portable artifacts beside them
-        xla_dir = Path(cache_dir).expanduser() / f"{export_cache.XLA_PREFIX}{export_cache.cpu_type()}"
-        jax.config.update("jax_compilation_cache_dir", str(xla_dir))
-        # every compile, however small: a sweep's many small eager ops (stacking leaves,
-        # casts, metrics of each shape) otherwise recompile in every new process
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-
-
-def _ensure_safe_backend() -> None:
-    """Before MJX's first computation in a process that never called :func:`configure_jax`:
-    the :data:`SAFETY_FLAGS` (nothing else), if JAX has not started yet; without them a
-    vmapped Newton solver can hang XLA's CPU pool. Called when an engine is used, not on import."""
-    if _CONFIGURED["done"]:
-        return
-    _CONFIGURED["done"] = True
-    if not _backend_started():
-        flags = os.environ.get("XLA_FLAGS", "")
-        os.environ["XLA_FLAGS"] = " ".join([flags] + [f for f in SAFETY_FLAGS if f.split("=")[0] not in flags]).strip()
-
-
-def _record_buffer(m: mujoco.MjModel, d: mujoco.MjData, item, batch: int, steps: int) -> np.ndarray:
-    """A zeroed (B, T, ...) array of the shape and dtype ``Batch.rollout`` records ``item`` in."""
-    if not isinstance(item, str):  # an mjtState spec
-        return np.zeros((batch, steps, mujoco.mj_stateSize(m, int(item))))
-    value = getattr(d, item)
-    template = value if isinstance(value, np.ndarray) else np.zeros((), np.int32)  # int scalars: int32
-    return np.zeros((batch, steps, *template.shape), template.dtype)
-
-
-def _with_energy(m: mujoco.MjModel) -> mujoco.MjModel:
-    m = copy.copy(m)
-    m.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_ENERGY
-    return m
-
-
-class _Shake:
-    """The per-step moves of :meth:`CEngine.stream`'s ``jitter``: one generator per member and field."""
-
-    def __init__(self, inputs: BatchedInputs, jitter: np.ndarray):
-        self.rows = np.flatnonzero(jitter)
-        self.size = jitter[self.rows, None]
-        self.rngs = [(np.random.default_rng([inputs.seed, int(inputs.ids[i]), 1]),
-                      np.random.default_rng([inputs.seed, int(inputs.ids[i]), 2])) for i in self.rows]
-
-    def move(self, x: np.ndarray, field: int) -> None:
-        """Moves the jittered rows of ``x`` (B, n) in place, one step's worth."""
-        signs = np.stack([2.0 * rng[field].integers(0, 2, x.shape[1]) - 1.0 for rng in self.rngs])
-        x[self.rows] = roundoff_moved(x[self.rows], signs, self.size)
-
-
-def _rollout_shaken(b: Any, k: int, control: np.ndarray, record: tuple, out: dict, shake: _Shake) -> np.ndarray:
-    """``b.rollout(k, ...)`` one step at a time, ``shake`` moving the state after each step.
-    Returns the ids of the members MuJoCo raised a :class:`SimulationError` for."""
-    one = {item: np.zeros_like(buf[:, :1]) for item, buf in out.items()}
-    raised: list[np.ndarray] = []
-    for i in range(k):
-        try:
-            b.rollout(1, control=control[:, i:i + 1], record=record, out=one)
-        except SimulationError as e:
-            raised.append(np.asarray(e.ids))
-        for item, buf in out.items():
-            buf[:, i] = one[item][:, 0]
-        shake.move(b.qpos, 0)  # views of the batch's state: moved in place
-        shake.move(b.qvel, 1)
-    return np.concatenate(raised) if raised else np.zeros(0, int)
-
-
-class CEngine(Streaming):
-    """MuJoCo C: :class:`mujoco.batch.Batch` over all cores, one model per member."""
-
-    name = "c"
-    precision: Precision = "float64"
-    capabilities: frozenset[str] = frozenset()
-
-    def __init__(self, nthread: int | None = None):
-        #: C threads (0: all CPUs); default :data:`CORES`, all of them unless ``MJXDIFF_CORES`` says otherwise
-        self.nthread = (0 if CORES == (os.cpu_count() or 1) else CORES) if nthread is None else nthread
-
-    def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]) -> Forward:
-        """``mj_forward`` of a copy of ``d``, read back (:func:`mjxdiff.engine.stages.read`)."""
-        d = copy.copy(d)
-        mujoco.mj_forward(m, d)
-        return stages.read(m, d, fields)
-
-    def resync(self, inputs: BatchedInputs, reference: Trajectory, every: int = 1) -> Trajectory:
-        """C restarted from ``reference``'s state every ``every`` steps (as :meth:`MJXEngine.resync`):
-        the S = ceil(T / every) blocks of every member step side by side, as B x S members of one
-        rollout of ``every`` steps; ``time`` continues from the reference's."""
-        B, T, k = inputs.batch, inputs.steps, every
-        states, ctrl, starts = resync_blocks(inputs, reference, every)
-        S = len(starts)
-        flat = {f: x.reshape(B * S, *x.shape[2:]) for f, x in states.items()}
-        blocks = dataclasses.replace(inputs, qpos=flat["qpos"], qvel=flat["qvel"], act=flat["act"],
-                                     ctrl=ctrl.reshape(B * S, k, -1), factors={},
-                                     models=tuple(mi for mi in inputs.models for _ in range(S)), member_ids=None)
-        traj = self.rollout(blocks)
-
-        def back(x):
-            return np.asarray(x).reshape(B, S * k, *np.shape(x)[2:])[:, :T]
-        fields = {f.name: back(getattr(traj, f.name)) for f in dataclasses.fields(Trajectory)
-                  if f.name not in ("diverged_at", "time")}
-        at = np.asarray(traj.diverged_at).reshape(B, S)
-        at = np.where(at >= 0, at + starts, -1)
-        first = np.where((at >= 0).any(axis=1), at[np.arange(B), (at >= 0).argmax(axis=1)], -1)
-        time = np.asarray(traj.time) + flat["time"][:, None]
-        return Trajectory(**fields, time=back(time), diverged_at=np.where(first < T, first, -1))
-
-    def stream(self, inputs: BatchedInputs, chunk: int, jitter: np.ndarray | None = None) -> Iterator[Trajectory]:
-        """The rollout in consecutive pieces of ``chunk`` steps (the last may be shorter).
-
-        One :class:`~mujoco.batch.Batch` carries on from where the previous
-        piece stopped, so the pieces concatenate to :meth:`rollout`'s result
-        bit for bit. ``diverged_at`` counts steps from the start of the
-        rollout and may repeat in later pieces; the first one counts.
-
-        ``jitter``: (B,) relative sizes; after every step, member ``i``'s ``qpos`` and ``qvel``
-        move by ``jitter[i] * max(|x|, 1)`` per component with a random sign (drawn from
-        generators seeded by (seed, member id), so the pieces are the same however the steps are
-        cut): MuJoCo's parity method's float32 shadow of C (:data:`mjxdiff.compare.noise.STEP_JITTER`).
-        Records are taken before the move.
-        """
-        models = inputs.models
-        if inputs.energy:  # C computes d.energy itself; MJX refuses the flag, so only C's copies get it
-            models = tuple(_with_energy(mi) for mi in models)
-        m, B = models[0], inputs.batch
-        b = Batch(m, B, nthread=self.nthread)
-        b.set_models(list(models))
-        b.qpos[:] = inputs.qpos
-        b.qvel[:] = inputs.qvel
-        if m.na:
-            b.act[:] = inputs.act
-        time_spec = mujoco.mjtState.mjSTATE_TIME
-        record = ("qpos", "qvel", "act", "sensordata", "ncon", time_spec) + (("energy",) if inputs.energy else ())
-        d = mujoco.MjData(m)
-        raised = np.zeros(B, bool)
-        last_time = np.zeros((B, 1))
-        shake = None if jitter is None or not np.any(jitter) else _Shake(inputs, np.asarray(jitter, float))
-        for start in range(0, inputs.steps, chunk):
-            k = min(chunk, inputs.steps - start)
-            # preallocated, so that records survive a SimulationError in some members
-            out = {item: _record_buffer(m, d, item, B, k) for item in record}
-            try:
-                if shake is None:
-                    b.rollout(k, control=inputs.ctrl[:, start:start + k], record=record, out=out)
-                else:
-                    raised[_rollout_shaken(b, k, inputs.ctrl[:, start:start + k], record, out, shake)] = True
-            except SimulationError as e:
-                raised[np.asarray(e.ids)] = True
-            time = out[time_spec][..., 0]
-            # A member whose warning counters rise stops, and its records then repeat.
-            warned = (b.warning[:, :, 1].sum(axis=1) > 0) | raised
-            stalled = first_true(time <= np.concatenate([last_time, time[:, :-1]], axis=1))
-            last_time = time[:, -1:]
-            # numpy's stubs type .all(axis) as maybe a scalar
-            nonfinite = first_true(~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1))  # pyright: ignore[reportArgumentType]
-            diverged = np.where(warned, np.maximum(stalled, 0), nonfinite)
-            yield Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"],
-                             sensordata=out["sensordata"], time=time, ncon=out["ncon"].astype(np.int64),
-                             energy=out.get("energy", np.zeros((B, k, 0))),
-                             diverged_at=shifted(diverged, start))
-
-
-_NUMERIC_NAMES: dict[tuple[type, tuple[type, ...]], tuple[str, ...]] = export_cache.untraced({})
-
-
-def _numeric_names(example, kinds: tuple[type, ...]) -> tuple[str, ...]:
-    """The public attributes of ``example``'s type holding ``kinds`` (the same for every instance)."""
-    key = (type(example), kinds)
-    if key not in _NUMERIC_NAMES:
-        _NUMERIC_NAMES[key] = tuple(name for name in dir(example) if not name.startswith("_")
-                                    and isinstance(getattr(example, name), kinds))
-    return _NUMERIC_NAMES[key]
-
-
-def _c_fields(m: mujoco.MjModel) -> dict[str, np.ndarray]:
-    """Every numeric field of a C model, keyed like the MJX leaf it becomes (``body_mass``, ``opt.gravity``)."""
-    out = {name: getattr(m, name) for name in _numeric_names(m, (np.ndarray,))}
-    for struct in ("opt", "stat"):
-        sub = getattr(m, struct)
-        out.update({f"{struct}.{name}": np.asarray(getattr(sub, name))
-                    for name in _numeric_names(sub, (np.ndarray, float, int))})
-    return out
-
-
-def _patched_columns(models: list[mujoco.MjModel], mx0: mjx.Model, impl: str = "jax"
-                     ) -> dict[int, list[np.ndarray]] | None:
-    """Per-member values of the MJX leaves that differ, read from the C models, without
-    ``put_model`` per member; None when that is not safe.
-
-    Safe when every C field that differs between the members becomes one MJX
-    leaf unchanged (same values as member 0's leaf), and ``put_model`` of the
-    last member differs from member 0's exactly in those leaves, holding the
-    C values (no derived leaf depends on them).
-    """
-    paths = {jax.tree_util.keystr(path).lstrip("."): k
-             for k, (path, _) in enumerate(jax.tree_util.tree_flatten_with_path(mx0)[0])}
-    leaves0 = [np.asarray(x) for x in jax.tree.leaves(mx0)]
-    fields = [_c_fields(mi) for mi in models]
-    first = {name: value.tobytes() for name, value in fields[0].items()}  # bytes: 0.2 s -> 0.01 s for 64 humanoids
-    differ = {name for f in fields[1:] for name, value in f.items() if value.tobytes() != first[name]}
-    columns = {}
-    for name in differ:
-        k = paths.get(name)
-        if k is None or fields[0][name].size != leaves0[k].size or not np.array_equal(
-                fields[0][name].reshape(leaves0[k].shape), leaves0[k]):
-            return None
-        columns[k] = [f[name].reshape(leaves0[k].shape).astype(leaves0[k].dtype) for f in fields]
-    probe = [np.asarray(x) for x in jax.tree.leaves(compat.put_model(models[-1], impl))]
-    if len(probe) != len(leaves0) or any(not np.array_equal(p, columns[k][-1] if k in columns else leaves0[k])
-                                         for k, p in enumerate(probe)):
-        return None
-    return columns
-
-
-def put_models(models: tuple[mujoco.MjModel, ...], impl: str = "jax") -> tuple[mjx.Model, tuple[bool, ...]]:
-    """``mjx.put_model`` of every member (MJX's ``impl``), with varying leaves stacked.
-
-    Members usually differ only in randomized parameters that MJX copies
-    straight from the C model; those leaves are read from the C models and
-    ``put_model`` runs twice, not once per member (it costs about 15 ms on
-    the ant; see :func:`_patched_columns` for when this falls back).
-
-    Returns:
-      (mx, varying): an ``mjx.Model`` whose leaves are either shared (as in
-      member 0) or stacked along a new leading batch axis, and a per-leaf
-      tuple saying which were stacked.
-
-    Raises:
-      UnsupportedError: MJX does not implement a feature the model uses.
-      ValueError: members differ in a field MJX treats as static structure.
-    """
-    if models[0].nv == 0:  # MJX's scans over the kinematic tree raise ValueError on it while tracing
-        raise UnsupportedError("a model without degrees of freedom (nv = 0): MJX cannot step it "
-                               "('Scan across Model with zero DoFs unsupported')")
-    with _unsupported():
-        mx0 = compat.put_model(models[0], impl)
-    leaves0, treedef = jax.tree.flatten(mx0)
-    distinct = list({id(mi): mi for mi in models}.values())
-    index = {id(mi): i for i, mi in enumerate(distinct)}
-    columns = _patched_columns(distinct, mx0, impl) if len(distinct) > 1 else {}
-    if columns is None:  # put_model per distinct member, and compare every leaf
-        per_member = [leaves0]
-        for mi in distinct[1:]:
-            leaves, td = jax.tree.flatten(compat.put_model(mi, impl))
-            if td != treedef:
-                first, this = _c_fields(distinct[0]), _c_fields(mi)
-                leaves = {jax.tree_util.keystr(p).lstrip(".") for p, _ in jax.tree_util.tree_flatten_with_path(mx0)[0]}
-                names = sorted(k for k, v in first.items() if v.tobytes() != this[k].tobytes() and k not in leaves)
-                raise ValueError(f"batch members differ in {', '.join(names)}, which MJX compiles into the rollout "
-                                 "(static): draw it once per scenario (in the model), not per member")
-            per_member.append([np.asarray(x) for x in leaves])
-        columns = {k: [np.asarray(col[k]) for col in per_member] for k in range(len(leaves0))
-                   if any(not np.array_equal(col[k], per_member[0][k]) for col in per_member[1:])}
-    varying = tuple(k in columns for k in range(len(leaves0)))
-    stacked = [jnp.asarray(np.stack([columns[k][index[id(mi)]] for mi in models])) if k in columns else leaf
-               for k, leaf in enumerate(leaves0)]  # numpy: jnp.stack compiles once per leaf shape
-    return jax.tree.unflatten(treedef, stacked), varying
-
-
-_COMPILES = export_cache.untraced({"count": 0, "seconds": 0.0, "xla": 0})
-# JAX's own timings of tracing, lowering and XLA compilation (a persistent-cache hit is
-# timed as the load that replaces compilation), by the compile phase each counts in.
-_COMPILE_EVENTS = {"/jax/core/compile/jaxpr_trace_duration": "trace",
-                   "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
-                   "/jax/core/compile/backend_compile_duration": "xla"}
-# the part of a backend compile that was a persistent-cache hit's load (timed inside it)
-_CACHE_RETRIEVAL = "/jax/compilation_cache/cache_retrieval_time_sec"
-
-
-def _on_duration(event: str, duration_secs: float, **_) -> None:
-    kind = _COMPILE_EVENTS.get(event)
-    if kind is not None:
-        _COMPILES["seconds"] += duration_secs
-        export_cache.count("seconds", duration_secs)
-        export_cache.count(kind, duration_secs)
-    elif event == _CACHE_RETRIEVAL:
-        export_cache.count("xla", -duration_secs)
-        export_cache.count("cache_load", duration_secs)
-    if kind == "xla":
-        _COMPILES["xla"] += 1
-
-
-def _traced() -> None:
-    _COMPILES["count"] += 1
-    export_cache.count("traced")
-
-
-# JAX calls it during a trace; it counts, and emits nothing the trace records
-jax.monitoring.register_event_duration_secs_listener(export_cache.untraced(_on_duration))
-
-
-def compile_count() -> int:
-    """How many times the MJX rollout has been traced (compiled) in this process.
-
-    A rollout loaded from a saved artifact (:mod:`mjxdiff.engine.export_cache`) is not
-    traced and not counted here: see :func:`export_cache.loaded_count`.
-    """
-    return _COMPILES["count"]
-
-
-def xla_compiles() -> int:
-    """XLA compiles of any JAX function in this process so far (a persistent-cache hit counts too)."""
-    return _COMPILES["xla"]
-
-
-def compile_seconds() -> float:
-    """Seconds this process has spent compiling JAX functions (trace, lower, XLA compile or cache load)."""
-    return _COMPILES["seconds"]
 
 
 def clear_compiled() -> None:
@@ -682,67 +269,14 @@ def _canonical_ints(dx: mjx.Data) -> mjx.Data:
     return jax.tree.map(lambda x: x.astype(int_t) if jnp.issubdtype(x.dtype, jnp.integer) else x, dx)
 
 
-def device_count() -> int:
-    """Host CPU devices JAX has (see :func:`configure_jax`)."""
-    return len(jax.devices("cpu"))
-
-
-#: Values of :class:`MJXEngine`'s ``compile``.
-COMPILE_MODES = ("auto", "fast", "optimized")
-#: Seconds per flop (XLA's cost analysis of one step of the batch) that :data:`FAST_COMPILE`
-#: adds to stepping over :data:`BALANCED_COMPILE`: the largest measured, with a margin (ant
-#: 3.7e-9, humanoid 2.8e-9, box_stack 0.8e-9, primitive_pairs 0.5e-9).
-FAST_SECONDS_PER_FLOP = 4e-9
-#: Stepping seconds ``auto`` may add to save compile time: :data:`FAST_COMPILE` saved
-#: 1.3-2.2 s over :data:`BALANCED_COMPILE` (ant, humanoid, box_stack, primitive_pairs).
-FAST_BUDGET_SECONDS = 1.0
-
-_LAST_CHOICE = export_cache.untraced(threading.local())  # per thread: never part of a code digest
-_HELD = export_cache.untraced(threading.local())  # per thread: MJXEngine.holding's pieces
+_LAST_CHOICE = untraced(threading.local())  # per thread: never part of a code digest
+_HELD = untraced(threading.local())  # per thread: MJXEngine.holding's pieces
 
 
 def last_choice() -> dict | None:
-    """What :func:`xla_options` chose for the last stream this thread started (None if not compiled here)."""
+    """What :func:`~mjxdiff.engine.xla.xla_options` chose for the last stream this thread started (None if not
+    compiled here)."""
     return getattr(_LAST_CHOICE, "value", None)
-
-
-def xla_options(mode: str, steps: int) -> export_cache.Options:
-    """Chooses how hard XLA optimises a rollout from the stepping it will do.
-
-    A sweep's rollout (8 members x 300 steps) steps for well under a second and
-    compiles for 2-11 s, so its compile time decides how long the answer takes;
-    a long soak run is the opposite. ``auto`` compiles with :data:`FAST_COMPILE` when
-    the stepping that costs, estimated as ``FAST_SECONDS_PER_FLOP x flops x steps``
-    (``flops``: XLA's cost analysis of one step of the whole batch), stays below
-    :data:`FAST_BUDGET_SECONDS`, else with :data:`BALANCED_COMPILE`; ``fast`` always
-    with :data:`FAST_COMPILE`; ``optimized`` with XLA's defaults. All compile the
-    same StableHLO: results agree to rounding (the emitters and LLVM levels vectorise
-    and contract differently), which the verdict's envelope covers
-    (``tests/test_compile_options.py``); measured in ``benchmarks/scripts/xla_options.py``.
-
-    Returns:
-      ``options(lowered) -> (XLA options, choice)``, the choice being what the report records:
-      ``level`` (``fast``, ``balanced`` or ``optimized``), ``mode``, and for ``auto``
-      ``flops_per_step`` and ``fast_extra_seconds`` (the estimate).
-    """
-    def choose(lowered):
-        choice: dict[str, Any] = dict(mode=mode)
-        level = mode
-        if mode == "auto":
-            try:
-                flops = float(lowered.cost_analysis().get("flops", 0.0))
-            except Exception:  # noqa: BLE001 - no estimate: compile for stepping
-                flops = float("inf")
-            extra = FAST_SECONDS_PER_FLOP * flops * steps
-            choice.update(flops_per_step=flops, fast_extra_seconds=round(extra, 3))
-            level = "fast" if extra < FAST_BUDGET_SECONDS else "balanced"
-        if level == "fast" and not fast_compile_validated():
-            level = "balanced"  # LLVM level 0 miscompiles MJX on some jaxlib and MJX releases (mjxdiff.compat)
-        choice["level"] = level
-        options = {"fast": FAST_COMPILE, "balanced": BALANCED_COMPILE}.get(level, {})
-        return dict(options), choice
-
-    return choose
 
 
 #: ``mjx.forward``, compiled to run once per state: every stage of one state, for the drill-down.
@@ -774,7 +308,7 @@ class MJXEngine:
         the batch and the devices there are); 1: never split. A batch that
         does not divide evenly is padded with copies of its last member,
         whose records are dropped.
-      compile: how hard XLA optimises a rollout (:func:`xla_options`): ``auto``
+      compile: how hard XLA optimises a rollout (:func:`~mjxdiff.engine.xla.xla_options`): ``auto``
         chooses from the expected stepping work, ``fast`` always compiles quickly,
         ``optimized`` always uses XLA's defaults.
     """
@@ -794,7 +328,8 @@ class MJXEngine:
         a rollout (:func:`export_cache.bind`: keyed on the code it traces, loaded by later runs),
         but not counted among the rollouts a run loaded or traced."""
         mx, dx = mjx.put_model(m), mjx.put_data(m, d)
-        dx = export_cache.bind(mjx.forward, (mx, dx), {}, xla_options("fast", 1), ("fast", 1), counted=False)(mx, dx)
+        options = xla.xla_options("fast", 1)
+        dx = export_cache.bind(mjx.forward, (mx, dx), {}, options, ("fast", 1), counted=False)(mx, dx)
         return Forward({f: np.asarray(getattr(dx, f)).ravel() for f in fields}, np.asarray(mjx.full_m(mx, dx)),
                        stages.contacts_mjx(m, dx))
 
@@ -812,7 +347,7 @@ class MJXEngine:
     def _bind(self, fn, args: tuple, static: dict[str, Any], steps: int):
         """``fn`` compiled for ``args`` (:func:`export_cache.bind`: keyed on the code it traces,
         saved for later runs), XLA's options chosen for ``steps`` steps of stepping."""
-        return export_cache.bind(fn, args, static, xla_options(self.compile, steps), (self.compile, steps))
+        return export_cache.bind(fn, args, static, xla.xla_options(self.compile, steps), (self.compile, steps))
 
     def __init__(self, devices: int | None = None, compile: str = "auto"):
         _ensure_safe_backend()
@@ -876,7 +411,7 @@ class MJXEngine:
         horizon and piece length share one prepared, compiled piece: the models put on the devices
         once, the code digested and the function bound once (~0.5 s a call saved on a warm sweep).
         A sweep holds one per scenario, where nothing changes the code between its calls; a call
-        outside any block binds afresh (:func:`export_cache.fresh_digest`)."""
+        outside any block binds afresh (:func:`~mjxdiff.engine.trace_deps.fresh_digest`)."""
         outer = getattr(_HELD, "pieces", None)
         _HELD.pieces = {}
         try:

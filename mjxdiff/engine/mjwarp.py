@@ -27,7 +27,8 @@ import mujoco
 import numpy as np
 
 from mjxdiff.errors import one_line
-from mjxdiff.engine.engines import _unsupported, overflow_names, warp_capacity
+from mjxdiff.engine.engines import overflow_names, warp_capacity
+from mjxdiff.engine.models import _unsupported
 from mjxdiff.engine import stages
 from mjxdiff.input.precision import Precision
 from mjxdiff.engine.stages import Forward

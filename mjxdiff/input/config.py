@@ -5,24 +5,17 @@ from __future__ import annotations
 
 import dataclasses
 
-from mjxdiff.engine.engines import COMPILE_MODES
+from mjxdiff.input.options import COMPILE_MODES, IMPLS, NOISE_FLOOR_MODES, WARP_IMPLS, CompileMode, Diagnose, NoiseFloor
 from mjxdiff.input.precision import Precision
 from mjxdiff.input.scenario import Scenario
 
 __all__ = ["IMPLS", "NOISE_FLOOR_MODES", "WARP_IMPLS", "SweepConfig"]
 
 
-#: When C's perturbed rerun runs (:attr:`SweepConfig.noise_floor`).
-NOISE_FLOOR_MODES = ("on-demand", "always")
-#: Implementations a sweep can judge against MuJoCo C.
-IMPLS = ("mjx", "warp", "mjx.warp")
-#: The implementations that run MuJoCo Warp (itself, or MJX's vendored copy): float32 only.
-WARP_IMPLS = ("warp", "mjx.warp")
-
-
 @dataclasses.dataclass(frozen=True)
 class SweepConfig:
-    """Settings shared by every scenario of a sweep.
+    """Settings shared by every scenario of a sweep. The values a sweep's options fill, their
+    types and choices are declared once, in :mod:`mjxdiff.input.options`.
 
     Attributes:
       seed: master seed for all randomization.
@@ -56,7 +49,7 @@ class SweepConfig:
         engines step (:func:`mjxdiff.input.adjust.drop_unsupported`); changes the dynamics, so
         off by default and reported as ``adjusted``.
       compile: how hard XLA optimises each MJX rollout: ``auto`` (from the stepping it
-        will do, :func:`mjxdiff.engine.engines.xla_options`), ``fast`` or ``optimized``.
+        will do, :func:`mjxdiff.engine.xla.xla_options`), ``fast`` or ``optimized``.
       compile_workers: threads that run scenarios side by side, each from compile to
         verdict (:func:`sweep`); None: :func:`default_compile_workers`; 0: none, one
         scenario after another on the calling thread.
@@ -66,7 +59,7 @@ class SweepConfig:
       onestep: the one-step check on every scenario that ran (:mod:`mjxdiff.compare.onestep`): from
         states of C's rollout, one step in both engines, bounded by C's own rounding; it can
         fail the scenario on its own (``info['onestep']``), and it tells whether the model's
-        solver settings converge, which decides the converged twin (:func:`_sharp`).
+        solver settings converge, which decides the converged twin (:func:`mjxdiff.runner.followup.sharp`).
       impl: the implementation judged against C: ``mjx`` or ``warp`` (MuJoCo Warp on the
         CPU, :mod:`mjxdiff.engine.mjwarp`; float32, so ``precision`` becomes ``float32``: tolerance
         floors, the perturbation of C's rerun and the metrics are float32's; no host-interface
@@ -95,14 +88,14 @@ class SweepConfig:
     quick: bool = False
     threshold: float = 0.95
     envelope: bool = True
-    noise_floor: str = "on-demand"
-    diagnose: str = "full"
+    noise_floor: NoiseFloor = "on-demand"
+    diagnose: Diagnose = "full"
     reproducers: str | None = None
     piece_steps: int | None = None
     group_size: int | None = None
     adjust: bool = True
     drop_unsupported: bool = False
-    compile: str = "auto"
+    compile: CompileMode = "auto"
     compile_workers: int | None = None
     transfer: bool = True
     onestep: bool = True

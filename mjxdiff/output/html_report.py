@@ -131,6 +131,61 @@ def _e(x: Any) -> str:
     return html.escape(str(x))
 
 
+def _scenario_row(sc: dict[str, Any], ch: dict[str, Any], plots: str) -> str:
+    """The scenarios table's row of ``sc``: its name (a link to its section where it has one),
+    status, what was tested, known entry, baseline change ``ch``, worst field, that field's ratio
+    to its bound and first step out, seconds, compile seconds and sharp checks."""
+    fields = sc.get("fields") or {}
+    worst = max(fields.items(), key=lambda kv: _num(kv[1].get("ratio")), default=(None, {}))
+    secs = (sc.get("info") or {}).get("seconds", {})
+    total = sum(x for k, x in secs.items() if k != "compiled_ahead" and isinstance(x, (int, float)))
+    first = worst[1].get("first_step")
+    name = (f"<a href='#{_e(sc['name'])}'>{_e(sc['name'])}</a>" if _has_section(sc, plots)
+            else _e(sc["name"]))
+    return (f"<tr><td>{name}</td>"
+            f"<td class='{_e(sc['status'])}'>{_e(sc['status'])}{' (weak)' if sc.get('weak') else ''}</td>"
+            f"<td>{_e(tested(sc.get('info') or {}))}</td>"
+            f"<td>{_e(sc.get('known', {}).get('id', ''))}"
+            f"</td><td>{_e(ch.get('change', ''))}</td><td>{_e(worst[0] or '')}</td>"
+            f"<td>{_num(worst[1].get('ratio')):.3g}</td>"
+            f"<td>{_e(first if isinstance(first, int) and first >= 0 else 'none')}</td>"
+            f"<td>{total:.2f}</td><td>{_num(secs.get('compile')):.2f}</td>"
+            f"<td>{_e(report.format_checks(sc.get('info') or {}).removeprefix('checks: '))}</td></tr>")
+
+
+def _scenario_section(sc: dict[str, Any], out_dir: str | Path | None, plots: str) -> list[str]:
+    """The parts of ``sc``'s own section: heading, known entry and advice, message, error plots
+    (per ``plots``), behaviour table, diagnosis and reproducer link (relative to ``out_dir``)."""
+    failing = sc["status"] == "fail"
+    parts = [f"<h2 id='{_e(sc['name'])}'>{_e(sc['name'])}: {_e(sc['status'])}</h2>"]
+    if sc.get("known"):
+        k = sc["known"]
+        parts.append(f"<p><b>known: {_e(k['id'])}</b> ({_e(k['title'])}). Evidence: {_e(k['evidence'])}</p>")
+        if k.get("advice"):
+            parts.append(f"<p><b>What to do</b>: {_e(k['advice'])}</p>")
+    parts.append(f"<pre>{_e(sc.get('message', ''))}</pre>")
+    if plots != "none":
+        for field, f in (sc.get("fields") or {}).items():
+            if f.get("series") and (not failing or int(f.get("first_step", -1)) >= 0 or plots == "all"):
+                parts.append(f"<img alt='{_e(sc['name'])} {_e(field)} error vs time' "
+                             f"src='{error_plot(sc['name'], field, f)}'>")
+    b = sc.get("behaviour") or {}
+    if b.get("c") and b.get("mjx"):
+        parts.append("<table><tr><th>behaviour</th><th>MuJoCo C</th><th>MJX</th><th>relative difference</th></tr>"
+                     + "".join(f"<tr><td>{_e(k)}</td><td>{_num(b['c'][k]):.6g}</td><td>{_num(b['mjx'].get(k)):.6g}"
+                               f"</td><td>{_num(b.get('relative_difference', {}).get(k)):.3g}</td></tr>"
+                               for k in b["c"]) + "</table>")
+    if sc.get("diagnosis"):
+        parts.append(f"<details><summary>diagnosis</summary><pre>{_e(json.dumps(sc['diagnosis'], indent=1))}"
+                     "</pre></details>")
+    rep = (sc.get("info") or {}).get("reproducer")
+    if rep:
+        href = os.path.relpath(rep, out_dir) if out_dir else rep
+        parts.append(f"<p>reproducer: <a href='{_e(Path(href).as_posix())}'>{_e(href)}</a> "
+                     f"(<code>python -m mjxdiff replay {_e(rep)}</code>)</p>")
+    return parts
+
+
 def render(doc: dict[str, Any], out_dir: str | Path | None = None, plots: str = "failing") -> str:
     """The page as a string; ``out_dir`` makes reproducer links relative to where it is written."""
     import matplotlib
@@ -155,24 +210,7 @@ def render(doc: dict[str, Any], out_dir: str | Path | None = None, plots: str = 
     parts.append("<h2>Scenarios</h2><table><tr><th>scenario</th><th>status</th><th>tested</th><th>known</th>"
                  "<th>baseline</th><th>worst field</th><th>ratio to bound</th><th>first step out</th><th>seconds</th>"
                  "<th>compile s</th><th>sharp checks (one-step, converged twin)</th></tr>")
-    for sc in scenarios:
-        fields = sc.get("fields") or {}
-        worst = max(fields.items(), key=lambda kv: _num(kv[1].get("ratio")), default=(None, {}))
-        secs = (sc.get("info") or {}).get("seconds", {})
-        total = sum(x for k, x in secs.items() if k != "compiled_ahead" and isinstance(x, (int, float)))
-        ch = changes.get(sc["name"], {})
-        first = worst[1].get("first_step")
-        name = (f"<a href='#{_e(sc['name'])}'>{_e(sc['name'])}</a>" if _has_section(sc, plots)
-                else _e(sc["name"]))
-        parts.append(f"<tr><td>{name}</td>"
-                     f"<td class='{_e(sc['status'])}'>{_e(sc['status'])}{' (weak)' if sc.get('weak') else ''}</td>"
-                     f"<td>{_e(tested(sc.get('info') or {}))}</td>"
-                     f"<td>{_e(sc.get('known', {}).get('id', ''))}"
-                     f"</td><td>{_e(ch.get('change', ''))}</td><td>{_e(worst[0] or '')}</td>"
-                     f"<td>{_num(worst[1].get('ratio')):.3g}</td>"
-                     f"<td>{_e(first if isinstance(first, int) and first >= 0 else 'none')}</td>"
-                     f"<td>{total:.2f}</td><td>{_num(secs.get('compile')):.2f}</td>"
-                     f"<td>{_e(report.format_checks(sc.get('info') or {}).removeprefix('checks: '))}</td></tr>")
+    parts.extend(_scenario_row(sc, changes.get(sc["name"], {}), plots) for sc in scenarios)
     parts.append("</table>")
     for section, key in (("History anomalies", "anomalies"),):
         items = (doc.get("history") or {}).get(key) or []
@@ -183,35 +221,8 @@ def render(doc: dict[str, Any], out_dir: str | Path | None = None, plots: str = 
             f"<li>{_e(c['change'])}: {_e(c['scenario'])} {_e(c.get('detail', ''))}</li>"
             for c in changes.values() if c["change"] != "same") + "</ul>")
     for sc in scenarios:
-        failing = sc["status"] == "fail"
-        if not _has_section(sc, plots):
-            continue
-        parts.append(f"<h2 id='{_e(sc['name'])}'>{_e(sc['name'])}: {_e(sc['status'])}</h2>")
-        if sc.get("known"):
-            k = sc["known"]
-            parts.append(f"<p><b>known: {_e(k['id'])}</b> ({_e(k['title'])}). Evidence: {_e(k['evidence'])}</p>")
-            if k.get("advice"):
-                parts.append(f"<p><b>What to do</b>: {_e(k['advice'])}</p>")
-        parts.append(f"<pre>{_e(sc.get('message', ''))}</pre>")
-        if plots != "none":
-            for field, f in (sc.get("fields") or {}).items():
-                if f.get("series") and (not failing or int(f.get("first_step", -1)) >= 0 or plots == "all"):
-                    parts.append(f"<img alt='{_e(sc['name'])} {_e(field)} error vs time' "
-                                 f"src='{error_plot(sc['name'], field, f)}'>")
-        b = sc.get("behaviour") or {}
-        if b.get("c") and b.get("mjx"):
-            parts.append("<table><tr><th>behaviour</th><th>MuJoCo C</th><th>MJX</th><th>relative difference</th></tr>"
-                         + "".join(f"<tr><td>{_e(k)}</td><td>{_num(b['c'][k]):.6g}</td><td>{_num(b['mjx'].get(k)):.6g}"
-                                   f"</td><td>{_num(b.get('relative_difference', {}).get(k)):.3g}</td></tr>"
-                                   for k in b["c"]) + "</table>")
-        if sc.get("diagnosis"):
-            parts.append(f"<details><summary>diagnosis</summary><pre>{_e(json.dumps(sc['diagnosis'], indent=1))}"
-                         "</pre></details>")
-        rep = (sc.get("info") or {}).get("reproducer")
-        if rep:
-            href = os.path.relpath(rep, out_dir) if out_dir else rep
-            parts.append(f"<p>reproducer: <a href='{_e(Path(href).as_posix())}'>{_e(href)}</a> "
-                         f"(<code>python -m mjxdiff replay {_e(rep)}</code>)</p>")
+        if _has_section(sc, plots):
+            parts.extend(_scenario_section(sc, out_dir, plots))
     parts.append("</body></html>")
     return "\n".join(parts)
 

@@ -50,7 +50,7 @@ def versions() -> dict[str, str]:
 
 def machine() -> dict[str, Any]:
     """What the numbers were measured on: cores, and the host devices MJX's batch is split over."""
-    from mjxdiff.engine.engines import device_count
+    from mjxdiff.engine.xla import device_count
 
     return dict(cpus=os.cpu_count(), platform=platform.machine(), jax_cpu_devices=device_count())
 
@@ -144,10 +144,10 @@ def write_pending(r: ScenarioResult) -> ScenarioResult:
 def code() -> dict[str, str]:
     """What was tested, by content rather than version string: SHA-256 digests of the MJX code
     loaded in this process and of everything a compiled rollout depends on
-    (:func:`mjxdiff.engine.export_cache.code_digest`, :func:`~mjxdiff.engine.export_cache.rollout_digest`)."""
-    from mjxdiff.engine import export_cache
+    (:func:`mjxdiff.engine.digest.code_digest`, :func:`~mjxdiff.engine.digest.rollout_digest`)."""
+    from mjxdiff.engine import digest
 
-    return dict(mjx=export_cache.code_digest(), rollout=export_cache.rollout_digest())
+    return dict(mjx=digest.code_digest(), rollout=digest.rollout_digest())
 
 
 def format_cache(cache: dict[str, Any]) -> str:

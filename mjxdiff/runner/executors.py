@@ -102,7 +102,8 @@ def run_payload(p: Payload) -> dict[str, Any]:
     delay = float(os.environ.get(_DELAY_ENV) or 0)
     if delay:
         time.sleep(delay)
-    from mjxdiff.engine import engines, export_cache
+    from mjxdiff.engine import engines
+    from mjxdiff.engine.digest import code_digest
     from mjxdiff.output import report
     from mjxdiff.runner.sweep import sweep
 
@@ -115,7 +116,7 @@ def run_payload(p: Payload) -> dict[str, Any]:
         scenario = dataclasses.replace(p.scenario, model=str(Path(tmp, p.scenario.model)))
         [r] = sweep([scenario], p.config)
     return dict(result=report.result_dict(r), pending=[list(x) for x in r.pending],
-                mjx=export_cache.code_digest(names=list(p.names)), host=socket.gethostname(), pid=os.getpid(),
+                mjx=code_digest(names=list(p.names)), host=socket.gethostname(), pid=os.getpid(),
                 wall=time.perf_counter() - t0 - delay)
 
 
@@ -130,6 +131,60 @@ def _lost(e: BaseException) -> bool:
     return isinstance(e, lost)
 
 
+def _ray_init(address: str | None, cpus: int) -> None:
+    """Connects to the Ray cluster at ``address``, or (None) starts a new Ray instance here with
+    at least ``cpus`` CPUs; quiet (no dashboard, no worker logs)."""
+    import ray
+
+    with warnings.catch_warnings():
+        # Ray starts its processes by fork + exec; JAX warns of any fork in its threaded process
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        if address:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+        else:
+            # "local": a new instance, never another one already running here (ray.init's default)
+            ray.init(address="local", num_cpus=max(cpus, os.cpu_count() or 1),
+                     object_store_memory=OBJECT_STORE_BYTES, include_dashboard=False, log_to_driver=False,
+                     logging_level=logging.ERROR)
+
+
+def _worker_env(cpus: int) -> dict[str, str]:
+    """The environment variables a Ray task runs with: ``cpus`` cores and devices, and the
+    driver's worker delay, cache and scenario directories where set."""
+    env = {"MJXDIFF_CORES": str(cpus), "MJXDIFF_DEVICES": str(cpus)}
+    for key in (_DELAY_ENV, "MJXDIFF_CACHE", "MJXDIFF_SCENARIOS"):
+        if os.environ.get(key):
+            env[key] = os.environ[key]
+    return env
+
+
+def _failed_result(name: str, lost: bool, failures: list[str]) -> ScenarioResult:
+    """The ``error`` (``worker``) of a unit whose last attempt was lost (``lost``) or raised,
+    naming how many attempts failed and the last one's ``failures`` entry."""
+    why = "its worker was lost" if lost else "the worker raised"
+    return ScenarioResult(name=name, status="error", error_kind="worker",
+                          message=f"{why} on {len(failures)} attempt(s): {failures[-1]}")
+
+
+def _worker_result(got: dict[str, Any], scenario, digest: str) -> ScenarioResult:
+    """The verdict a worker returned (:func:`run_payload`'s ``got``) on the driver: its pending
+    files, the worker's host and pid, the driver's model path; an ``error`` (``worker``) instead
+    where the worker's MJX digest is not the driver's ``digest``."""
+    from mjxdiff.output import report
+
+    r = report.result_from_dict(got["result"])
+    info = {**r.info, "worker": dict(host=got["host"], pid=got["pid"])}
+    if "model" in info:
+        info["model"] = str(scenario.model)  # the driver's name for it, not the worker's copy
+    r = dataclasses.replace(r, pending=tuple(tuple(x) for x in got["pending"]), info=info)
+    if got["mjx"] != digest:
+        r = ScenarioResult(name=r.name, status="error", error_kind="worker",
+                           message=f"the worker on {got['host']} runs other MJX code (digest "
+                                   f"{got['mjx'][:12]}, the driver's {digest[:12]}): not a verdict on "
+                                   "the tested code; install the same MJX on every node")
+    return r
+
+
 def ray_sweep(jobs: list[tuple[Any, Any, Any]], arrived: Callable[[Any, ScenarioResult, list[str], float | None], None],
               address: str | None, cpus: int, cache_dir: str | None,
               say: Callable[[str], None] | None = None) -> dict[int, ScenarioResult]:
@@ -141,28 +196,16 @@ def ray_sweep(jobs: list[tuple[Any, Any, Any]], arrived: Callable[[Any, Scenario
     caller orders them)."""
     import ray
 
-    from mjxdiff.engine import export_cache
+    from mjxdiff.engine.digest import code_digest, loaded_modules
     from mjxdiff.input.scenario import ScenarioError
 
-    names = export_cache.loaded_modules()
-    digest = export_cache.code_digest(names=names)
+    names = loaded_modules()
+    digest = code_digest(names=names)
     started_here = not ray.is_initialized()
     if started_here:
-        with warnings.catch_warnings():
-            # Ray starts its processes by fork + exec; JAX warns of any fork in its threaded process
-            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
-            if address:
-                ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
-            else:
-                # "local": a new instance, never another one already running here (ray.init's default)
-                ray.init(address="local", num_cpus=max(cpus, os.cpu_count() or 1),
-                         object_store_memory=OBJECT_STORE_BYTES, include_dashboard=False, log_to_driver=False,
-                         logging_level=logging.ERROR)
-    env = {"MJXDIFF_CORES": str(cpus), "MJXDIFF_DEVICES": str(cpus)}
-    for key in (_DELAY_ENV, "MJXDIFF_CACHE", "MJXDIFF_SCENARIOS"):
-        if os.environ.get(key):
-            env[key] = os.environ[key]
-    task = ray.remote(run_payload).options(num_cpus=cpus, max_retries=0, runtime_env={"env_vars": env})
+        _ray_init(address, cpus)
+    task = ray.remote(run_payload).options(num_cpus=cpus, max_retries=0,
+                                           runtime_env={"env_vars": _worker_env(cpus)})
     results: dict[int, ScenarioResult] = {}
     try:
         capacity = max(1, int(2 * ray.cluster_resources().get("CPU", cpus) // cpus))
@@ -201,24 +244,9 @@ def ray_sweep(jobs: list[tuple[Any, Any, Any]], arrived: Callable[[Any, Scenario
                         say(f"{scenario.name}: worker lost ({type(e).__name__}); submitted again")
                     submit(unit, scenario, config, p)
                 else:
-                    why = "its worker was lost" if lost else "the worker raised"
-                    finish(unit, ScenarioResult(name=scenario.name, status="error", error_kind="worker",
-                                                message=f"{why} on {len(failures[unit.index])} attempt(s): "
-                                                        f"{failures[unit.index][-1]}"))
+                    finish(unit, _failed_result(scenario.name, lost, failures[unit.index]))
                 continue
-            from mjxdiff.output import report
-
-            r = report.result_from_dict(got["result"])
-            info = {**r.info, "worker": dict(host=got["host"], pid=got["pid"])}
-            if "model" in info:
-                info["model"] = str(scenario.model)  # the driver's name for it, not the worker's copy
-            r = dataclasses.replace(r, pending=tuple(tuple(x) for x in got["pending"]), info=info)
-            if got["mjx"] != digest:
-                r = ScenarioResult(name=r.name, status="error", error_kind="worker",
-                                   message=f"the worker on {got['host']} runs other MJX code (digest "
-                                           f"{got['mjx'][:12]}, the driver's {digest[:12]}): not a verdict on "
-                                           "the tested code; install the same MJX on every node")
-            finish(unit, r, got["wall"])
+            finish(unit, _worker_result(got, scenario, digest), got["wall"])
     finally:
         if started_here:
             ray.shutdown()

@@ -217,15 +217,15 @@ def sweep(scenarios: Sequence[Scenario], config, limits: Limits | None = None, p
     ``config.budget`` and ``config.max_memory``, when unset, become the limits', so that the
     child plans within them (:func:`mjxdiff.input.cost.plan`).
     """
-    from mjxdiff.engine import export_cache
+    from mjxdiff.engine.digest import code_digest, loaded_modules
 
     sweep_module = importlib.import_module("mjxdiff.runner.sweep")
     limits = limits or Limits(default_memory())
     config = dataclasses.replace(config, budget=config.budget or limits.budget,
                                  max_memory=config.max_memory or limits.memory)
     progress = sys.stderr.isatty() if progress is None else progress
-    names = export_cache.loaded_modules()
-    digest = export_cache.code_digest(names=names)
+    names = loaded_modules()
+    digest = code_digest(names=names)
     watch = _Watch(len(scenarios))
     lock = threading.Lock()
     t0 = time.monotonic()
@@ -273,18 +273,7 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
     in flight: run the rest one at a time), ``patched`` (the child's MJX is not this process's)."""
     from mjxdiff.input import cost
     from mjxdiff.engine import export_cache
-    read, write = os.pipe()
-    proc = subprocess.Popen([sys.executable, "-m", "mjxdiff.runner.guard", str(write)], stdin=subprocess.PIPE,
-                            stderr=subprocess.PIPE, pass_fds=(write,), env=dict(os.environ, PYTHONUNBUFFERED="1"))
-    os.close(write)
-    inbox: queue.Queue = queue.Queue()
-    stream = os.fdopen(read, "rb")
-    threading.Thread(target=_read_messages, args=(stream, inbox), daemon=True).start()
-    threading.Thread(target=_read_stderr, args=(proc.stderr, watch, lock), daemon=True).start()
-    assert proc.stdin is not None  # stdin=PIPE
-    pickle.dump(dict(scenarios=scenarios, config=config, names=names, cache_dir=cache_dir, devices=devices,
-                     progress=False), proc.stdin)
-    proc.stdin.close()
+    proc, inbox = _start_child(scenarios, config, names, cache_dir, devices, watch, lock)
     done = 0  # results of this child, in its order
     outcome = "done"
     try:
@@ -302,23 +291,10 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
                     return "patched"
                 if kind == "cache":
                     export_cache.merge_events(msg[1])
-                elif kind == "event" and msg[2] == "finished":
-                    _finished(index[msg[1]], msg[3]["result"], watch, lock)
-                    deliver()
-                elif kind == "event" and msg[2] == "verdict":  # the rollout's, before the checks after it
-                    with lock:
-                        watch.flying.setdefault(index[msg[1]], _Flight(time.monotonic())).verdict = msg[3]["result"]
                 elif kind == "event":
-                    _, k, phase, detail = msg
-                    i = index[k]
-                    with lock:
-                        flight = watch.flying.setdefault(i, _Flight(time.monotonic()))
-                        flight.phase, flight.phase_at = phase, time.monotonic()
-                        if phase == "estimated":
-                            flight.estimate = dict(line=detail.get("line"), compile_s=detail.get("compile_s"),
-                                                   member_bytes=detail.get("member_bytes"),
-                                                   stepping_s=detail.get("stepping_s"))
-                    _say(progress, i, len(watch.results), watch.n, scenarios[k].name, flight, t0)
+                    _record_event(msg, index, scenarios, watch, lock, progress, t0)
+                    if msg[2] == "finished":
+                        deliver()
                 elif kind == "result":  # in order; a scenario's own "finished" may have brought it
                     if index[done] not in watch.results:
                         _finished(index[done], msg[1], watch, lock)
@@ -331,55 +307,122 @@ def _run_child(scenarios: list[Scenario], index: list[int], config, limits: Limi
                 flying = dict(watch.flying)
                 for flight in flying.values():
                     flight.peak = max(flight.peak, rss)
-            for i, flight in flying.items():
-                if progress and flight.phase in ("compiling", "stepping") and now - max(flight.said, flight.phase_at) \
-                        > HEARTBEAT_S:
-                    flight.said = now
-                    _say(progress, i, len(watch.results), watch.n, scenarios[index.index(i)].name, flight, t0,
-                         heartbeat=True)
-            if rss > limits.memory or 0 < cost.available_bytes() < MIN_AVAILABLE_BYTES:
-                _kill(proc)
-                if len(flying) <= 1:  # none in flight: the next one was about to start
-                    i = next(iter(flying), next(j for j in index if j not in watch.results))
-                    flight = flying.get(i)
-                    watch.results[i] = _with_alarms(_stopped(scenarios[index.index(i)].name, "memory", "", flight,
-                                                             limits, rss), watch.alarms.pop(i, []))
-                    outcome = "stopped"
-                else:
-                    outcome = "crowded"
-                break
-            late = [i for i, f in flying.items()
-                    if limits.budget is not None and now - f.started > limits.budget + _grace(limits.budget)]
-            if late:
-                _kill(proc)
-                for i in late:
-                    why = f"its budget of {limits.budget:.0f} s (--budget) ran out"
-                    watch.results[i] = _with_alarms(_stopped(scenarios[index.index(i)].name, "budget", why,
-                                                             flying[i], limits, rss), watch.alarms.pop(i, []))
-                outcome = "stopped"
-                break
-            if limits.sweep_budget is not None and now - t0 > limits.sweep_budget:
-                _kill(proc)
-                for i, flight in flying.items():
-                    watch.results[i] = _stopped(scenarios[index.index(i)].name, "budget",
-                                                f"the sweep's budget of {limits.sweep_budget:.0f} s (--sweep-budget) "
-                                                "ran out", flight, limits, rss)
-                outcome = "stopped"
+            _heartbeats(flying, now, progress, scenarios, index, watch, t0)
+            stop = _enforce_limits(proc, flying, rss, now, scenarios, index, limits, watch, t0)
+            if stop is not None:
+                outcome = stop
                 break
     finally:
         _kill(proc)
         with lock:
             watch.flying.clear()
     if outcome == "done" and done < len(scenarios):  # the child died on its own (a crash, a signal)
-        code = proc.returncode
-        how = f"signal {signal.Signals(-code).name}" if code and code < 0 else f"exit status {code}"
         lost = [i for i in index if i not in watch.results]
         i = lost[0]
-        watch.results[i] = ScenarioResult(
-            name=scenarios[index.index(i)].name, status="error", error_kind="engine",
-            message=f"the sweep's process died ({how}) while running this scenario; the others go on")
+        watch.results[i] = _died(scenarios[index.index(i)].name, proc.returncode)
         outcome = "stopped"
     return outcome
+
+
+def _start_child(scenarios: list[Scenario], config, names: list[str], cache_dir, devices, watch: _Watch,
+                 lock: threading.Lock) -> tuple[subprocess.Popen, queue.Queue]:
+    """Starts the child process sweeping ``scenarios`` (sent pickled on its stdin) and the threads
+    that read its messages (into the returned queue) and its stderr; returns (process, queue)."""
+    read, write = os.pipe()
+    proc = subprocess.Popen([sys.executable, "-m", "mjxdiff.runner.guard", str(write)], stdin=subprocess.PIPE,
+                            stderr=subprocess.PIPE, pass_fds=(write,), env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    os.close(write)
+    inbox: queue.Queue = queue.Queue()
+    stream = os.fdopen(read, "rb")
+    threading.Thread(target=_read_messages, args=(stream, inbox), daemon=True).start()
+    threading.Thread(target=_read_stderr, args=(proc.stderr, watch, lock), daemon=True).start()
+    assert proc.stdin is not None  # stdin=PIPE
+    pickle.dump(dict(scenarios=scenarios, config=config, names=names, cache_dir=cache_dir, devices=devices,
+                     progress=False), proc.stdin)
+    proc.stdin.close()
+    return proc, inbox
+
+
+def _record_event(msg: tuple, index: list[int], scenarios: list[Scenario], watch: _Watch, lock: threading.Lock,
+                  progress: bool | None, t0: float) -> None:
+    """Records the child's ``("event", k, phase, detail)`` on its scenario ``k``: a finished
+    scenario's result, the rollout's verdict (before the checks after it), or the phase it
+    entered (with the estimate), said as progress."""
+    if msg[2] == "finished":
+        _finished(index[msg[1]], msg[3]["result"], watch, lock)
+    elif msg[2] == "verdict":  # the rollout's, before the checks after it
+        with lock:
+            watch.flying.setdefault(index[msg[1]], _Flight(time.monotonic())).verdict = msg[3]["result"]
+    else:
+        _, k, phase, detail = msg
+        i = index[k]
+        with lock:
+            flight = watch.flying.setdefault(i, _Flight(time.monotonic()))
+            flight.phase, flight.phase_at = phase, time.monotonic()
+            if phase == "estimated":
+                flight.estimate = dict(line=detail.get("line"), compile_s=detail.get("compile_s"),
+                                       member_bytes=detail.get("member_bytes"),
+                                       stepping_s=detail.get("stepping_s"))
+        _say(progress, i, len(watch.results), watch.n, scenarios[k].name, flight, t0)
+
+
+def _heartbeats(flying: dict[int, _Flight], now: float, progress: bool | None, scenarios: list[Scenario],
+                index: list[int], watch: _Watch, t0: float) -> None:
+    """Says again, with ``progress``, each scenario in flight that has been compiling or stepping
+    for more than :data:`HEARTBEAT_S` since it was last said."""
+    for i, flight in flying.items():
+        if progress and flight.phase in ("compiling", "stepping") and now - max(flight.said, flight.phase_at) \
+                > HEARTBEAT_S:
+            flight.said = now
+            _say(progress, i, len(watch.results), watch.n, scenarios[index.index(i)].name, flight, t0,
+                 heartbeat=True)
+
+
+def _enforce_limits(proc: subprocess.Popen, flying: dict[int, _Flight], rss: int, now: float,
+                    scenarios: list[Scenario], index: list[int], limits: Limits, watch: _Watch,
+                    t0: float) -> str | None:
+    """Kills the child past a limit and records the scenarios it stopped: the memory limit (or the
+    machine's :data:`MIN_AVAILABLE_BYTES`), a scenario's budget plus its grace, the sweep's
+    budget. Returns ``stopped``, ``crowded`` (memory, several scenarios in flight) or None (within
+    every limit)."""
+    from mjxdiff.input import cost
+
+    if rss > limits.memory or 0 < cost.available_bytes() < MIN_AVAILABLE_BYTES:
+        _kill(proc)
+        if len(flying) > 1:
+            return "crowded"
+        # none in flight: the next one was about to start
+        i = next(iter(flying), next(j for j in index if j not in watch.results))
+        flight = flying.get(i)
+        watch.results[i] = _with_alarms(_stopped(scenarios[index.index(i)].name, "memory", "", flight,
+                                                 limits, rss), watch.alarms.pop(i, []))
+        return "stopped"
+    late = [i for i, f in flying.items()
+            if limits.budget is not None and now - f.started > limits.budget + _grace(limits.budget)]
+    if late:
+        _kill(proc)
+        for i in late:
+            why = f"its budget of {limits.budget:.0f} s (--budget) ran out"
+            watch.results[i] = _with_alarms(_stopped(scenarios[index.index(i)].name, "budget", why,
+                                                     flying[i], limits, rss), watch.alarms.pop(i, []))
+        return "stopped"
+    if limits.sweep_budget is not None and now - t0 > limits.sweep_budget:
+        _kill(proc)
+        for i, flight in flying.items():
+            watch.results[i] = _stopped(scenarios[index.index(i)].name, "budget",
+                                        f"the sweep's budget of {limits.sweep_budget:.0f} s (--sweep-budget) "
+                                        "ran out", flight, limits, rss)
+        return "stopped"
+    return None
+
+
+def _died(name: str, code: int | None) -> ScenarioResult:
+    """The ``error`` (``engine``) of the scenario running when the child died on its own with
+    return ``code`` (negative: the signal)."""
+    how = f"signal {signal.Signals(-code).name}" if code and code < 0 else f"exit status {code}"
+    return ScenarioResult(
+        name=name, status="error", error_kind="engine",
+        message=f"the sweep's process died ({how}) while running this scenario; the others go on")
 
 
 def _grace(budget: float) -> float:
@@ -455,11 +498,12 @@ def _child(fd: int) -> None:
             out.flush()
 
     from mjxdiff.engine import engines, export_cache
+    from mjxdiff.engine.digest import code_digest
 
     sweep_module = importlib.import_module("mjxdiff.runner.sweep")
 
     engines.configure_jax(task["config"].precision, task["cache_dir"], task["devices"])
-    send("digest", export_cache.code_digest(names=task["names"]))
+    send("digest", code_digest(names=task["names"]))
     sweep_module.sweep(task["scenarios"], task["config"], progress=False,
                        on_result=lambda r: send("result", r),
                        on_event=lambda k, phase, detail: send("event", k, phase, detail))

@@ -9,7 +9,7 @@ leaves every finished unit on disk and at most a torn last line, which :func:`re
 Each unit record carries its *key* (:func:`unit_key`): the digests of the scenario (its
 settings and compiled model), the sweep's settings that decide verdicts (:func:`config_digest`:
 seed, batch, steps, precision, checks; not where files go, how many workers or devices),
-the MJX code loaded (:func:`mjxdiff.engine.export_cache.code_digest`), mjxdiff's own source
+the MJX code loaded (:func:`mjxdiff.engine.digest.code_digest`), mjxdiff's own source
 (:func:`mjxdiff_digest`) and the versions of MuJoCo, MJX and JAX. A record is reused only
 under the same key; one whose key no current unit has is *stale* (listed, never merged).
 

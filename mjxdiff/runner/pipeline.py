@@ -26,9 +26,10 @@ import dataclasses
 import os
 import time
 from pathlib import Path
-from typing import Any, Callable, Literal, Sequence
+from typing import Any, Callable, Sequence
 
 from mjxdiff.errors import one_line
+from mjxdiff.input.options import PAIRS, WARP_IMPLS, SweepOptions, config_values
 from mjxdiff.output import baseline, report
 from mjxdiff.runner import journal
 from mjxdiff.compare import known
@@ -39,61 +40,6 @@ __all__ = ["OptionsError", "SweepOptions", "SweepRun", "Unit", "compute", "merge
 
 class OptionsError(ValueError):
     """Options a sweep cannot run with; the message is one line."""
-
-
-def _isolate_default() -> bool:
-    return os.environ.get("MJXDIFF_ISOLATE", "1") != "0"
-
-
-@dataclasses.dataclass(frozen=True)
-class SweepOptions:
-    """Everything ``mjxdiff sweep`` takes, by its flag's name (``--noise-floor`` is
-    ``noise_floor``), with the same defaults; ``mjxdiff sweep --help`` says what each does."""
-
-    scenarios: tuple[str, ...] = ()
-    seed: int = 0
-    batch: int | None = None
-    steps: int | None = None
-    precision: Literal["float64", "float32"] = "float64"
-    threshold: float = 0.95
-    envelope: bool = True
-    noise_floor: Literal["on-demand", "always"] = "on-demand"
-    diagnose: Literal["none", "basic", "full"] = "full"
-    adjust: bool = True
-    drop_unsupported: bool = False
-    drop_costly_pairs: bool = False
-    budget: float = 600.0
-    sweep_budget: float | None = None
-    max_memory: int | None = None
-    isolate: bool = dataclasses.field(default_factory=_isolate_default)
-    onestep: bool = True
-    transfer: bool = True
-    compile: Literal["auto", "fast", "optimized"] = "auto"
-    compile_workers: int | None = None
-    out: str | None = None
-    impl: Literal["mjx", "warp", "mjx.warp", "both", "all"] = "mjx"
-    plots: Literal["failing", "all", "none"] = "failing"
-    history: str | None = None
-    no_history: bool = False
-    history_keep: int = 500
-    baseline: str | None = None
-    fail_on: Literal["any", "new"] = "any"
-    known: str | None = None
-    format: Literal["text", "json"] = "text"
-    quick: bool = False
-    cache_dir: str | None = None
-    progress: bool | None = None
-    allow_untested_versions: bool = False
-    resume: str | None = None
-    rerun: Literal["errors", "failed"] = "errors"
-    shard: str | None = None
-    executor: Literal["local", "ray"] = "local"
-    address: str | None = None
-    cpus_per_scenario: int | None = None
-
-    def as_config(self) -> dict[str, Any]:
-        """The options as ``report.json``'s ``config`` records them."""
-        return dict(command="sweep", **dataclasses.asdict(self)) | dict(scenarios=list(self.scenarios))
 
 
 @dataclasses.dataclass
@@ -150,42 +96,22 @@ def _scenarios(options: SweepOptions) -> tuple[list, list[ScenarioResult]]:
 
 
 def sweep_config(options: SweepOptions):
-    """The :class:`mjxdiff.runner.sweep.SweepConfig` of the options (reproducers under ``out``)."""
+    """The :class:`mjxdiff.runner.sweep.SweepConfig` of the options (reproducers under ``out``):
+    the fields :class:`SweepOptions` declares with ``config`` (:func:`~mjxdiff.input.options.config_values`)."""
     from mjxdiff.runner.sweep import SweepConfig
 
-    o = options
-    return SweepConfig(seed=o.seed, batch=o.batch, steps=o.steps, precision=o.precision,
-                       reproducers=str(Path(o.out) / "reproducers") if o.out else None, quick=o.quick,
-                       threshold=o.threshold, envelope=o.envelope, noise_floor=o.noise_floor, diagnose=o.diagnose,
-                       adjust=o.adjust, drop_unsupported=o.drop_unsupported, compile=o.compile,
-                       compile_workers=o.compile_workers, transfer=o.transfer, onestep=o.onestep,
-                       drop_costly=o.drop_costly_pairs, budget=o.budget, max_memory=o.max_memory)
-
-
-#: The judged pairs of each ``impl``: (name suffix, changes to the sweep's config).
-_PAIRS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
-    "mjx": (("", {}),),
-    "warp": (("", dict(impl="warp")),),
-    # MJWarp against MJX: C's envelope as the floor
-    "both": (("", {}), ("@warp", dict(impl="warp")),
-             ("@mjx-warp", dict(impl="warp", reference="mjx", diagnose="none", reproducers=None))),
-    "mjx.warp": (("", dict(impl="mjx.warp")),),
-    # every implementation against C, and MJWarp against MJX
-    "all": (("", {}), ("@warp", dict(impl="warp")), ("@mjx.warp", dict(impl="mjx.warp")),
-            ("@mjx-warp", dict(impl="warp", reference="mjx", diagnose="none", reproducers=None))),
-}
+    return SweepConfig(**config_values(options),
+                       reproducers=str(Path(options.out) / "reproducers") if options.out else None)
 
 
 #: Every pair's name suffix, longest first (``@mjx-warp`` before ``@warp``).
-_SUFFIXES = sorted({suffix for pairs in _PAIRS.values() for suffix, _ in pairs if suffix}, key=len, reverse=True)
+_SUFFIXES = sorted({suffix for pairs in PAIRS.values() for suffix, _ in pairs if suffix}, key=len, reverse=True)
 
 
 def _pair_configs(config, impl: str) -> list[tuple[str, Any]]:
     """(name suffix, SweepConfig) of each judged pair of ``impl``."""
-    from mjxdiff.input.config import WARP_IMPLS  # imports the engines: with the config, never before it
-
     out = []
-    for suffix, change in _PAIRS[impl]:
+    for suffix, change in PAIRS[impl]:
         if change.get("impl") in WARP_IMPLS and "reproducers" not in change and config.reproducers:
             change = dict(change, reproducers=str(Path(config.reproducers) / change["impl"]))
         out.append((suffix, dataclasses.replace(config, **change)))
@@ -210,9 +136,9 @@ def _units(config, scenarios: list, impl: str, journaled: bool) -> list[Unit]:
     units = []
     if journaled:
         from mjxdiff import compat
-        from mjxdiff.engine import export_cache
+        from mjxdiff.engine.digest import code_digest
 
-        mjx, own, versions = export_cache.code_digest(), journal.mjxdiff_digest(), compat.installed()
+        mjx, own, versions = code_digest(), journal.mjxdiff_digest(), compat.installed()
         digests = [journal.scenario_digest(s) for s in scenarios]
     for p, (suffix, pair_config) in enumerate(_pair_configs(config, impl)):
         for i, s in enumerate(scenarios):
@@ -310,19 +236,11 @@ def _open_journal(options: SweepOptions, total: int, done: dict[int, ScenarioRes
     return writer
 
 
-def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.Entry | None], None] | None = None,
-            ) -> SweepRun:
-    """Sweeps, then labels known divergences, reads the history's anomalies and the baseline's
-    changes, and decides the exit code: 1 on any ``fail`` or ``error`` (with ``fail_on="new"``,
-    only on failures no accepted known entry explains and, with a baseline, that it did not
-    have), else 0. Writes nothing: the reproducers of failures are carried (``pending``) for
-    :func:`write`.
-
-    ``on_result(result, known_entry)`` is called as each scenario's verdict arrives (the
-    results of ``impl="both"``'s other pairs renamed ``NAME@warp``, ``NAME@mjx-warp``)."""
-    import mjxdiff
-
-    entered = _clocks()
+def _checked(options: SweepOptions) -> tuple[SweepOptions, tuple[known.Entry, ...], Any, tuple[int, int] | None]:
+    """``options`` checked before anything runs (resumed in place where ``resume`` has no
+    ``out``), the known entries, the baseline (None without one) and the shard (None without
+    one). Raises :class:`OptionsError` on untested versions, an unreadable known file or
+    baseline, MJWarp or Ray missing, Ray's options without Ray, or a ``resume`` without journal."""
     from mjxdiff import compat
 
     why = compat.gate(options.allow_untested_versions)
@@ -355,12 +273,66 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
     if options.resume and not (Path(options.resume) / journal.FILE).is_file():
         raise OptionsError(f"--resume {options.resume}: no {journal.FILE} there (a sweep run with --out "
                            f"{options.resume} writes one)")
+    return options, entries, base, shard
+
+
+def _sweep_local(options: SweepOptions, config, limits, units: list[Unit], done: dict[int, ScenarioResult],
+                 writer: journal.Journal | None, on_result, entries: tuple[known.Entry, ...]) -> None:
+    """Sweeps the ``units`` not yet ``done`` on this machine, pair by pair (in the guard's child
+    processes held to ``limits`` with ``options.isolate``), delivering each verdict as it arrives
+    (:func:`_deliver`); ``done`` gets them by unit index, renamed after their pair."""
+    from mjxdiff.runner import guard
+    from mjxdiff.runner.sweep import sweep
+
+    for suffix, pair_config in _pair_configs(config, options.impl):
+        todo = [u for u in units if u.suffix == suffix and u.index not in done]
+        arriving = iter(todo)
+
+        def arrived(r: ScenarioResult) -> None:
+            _deliver(next(arriving), r, done, writer, on_result, entries)
+        picked = [u.scenario for u in todo]
+        if not picked:
+            continue
+        if options.isolate:
+            swept = guard.sweep(picked, pair_config, limits, options.progress, arrived, options.cache_dir)
+        else:
+            swept = sweep(picked, pair_config, options.progress, arrived)
+        # a scenario's name seeds its inputs: the pair's results are renamed after the sweep
+        done.update({u.index: dataclasses.replace(r, name=r.name + suffix) for u, r in zip(todo, swept)})
+
+
+def _process_timing(entered: tuple[float, float], started: tuple[float, float],
+                    swept: tuple[float, float]) -> dict[str, dict[str, float]]:
+    """The process's (wall, CPU) seconds by phase: ``startup`` (the interpreter and the imports,
+    once per process: zero for a later run in it), ``prepare`` (from ``entered`` to
+    ``started``), ``sweep`` (to ``swept``) and ``finish`` (to now)."""
+    import mjxdiff
+
+    # start-up: the interpreter and the imports, once per process (a later run in it has none)
+    startup = (dict(wall=entered[0] - mjxdiff._IMPORTED_AT, cpu=entered[1])  # noqa: SLF001
+               if not _STARTED.get("done") else dict(wall=0.0, cpu=0.0))
+    _STARTED["done"] = True
+    return dict(startup=startup, prepare=_between(entered, started), sweep=_between(started, swept),
+                finish=_between(swept, _clocks()))
+
+
+def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.Entry | None], None] | None = None,
+            ) -> SweepRun:
+    """Sweeps, then labels known divergences, reads the history's anomalies and the baseline's
+    changes, and decides the exit code: 1 on any ``fail`` or ``error`` (with ``fail_on="new"``,
+    only on failures no accepted known entry explains and, with a baseline, that it did not
+    have), else 0. Writes nothing: the reproducers of failures are carried (``pending``) for
+    :func:`write`.
+
+    ``on_result(result, known_entry)`` is called as each scenario's verdict arrives (the
+    results of ``impl="both"``'s other pairs renamed ``NAME@warp``, ``NAME@mjx-warp``)."""
+    entered = _clocks()
+    options, entries, base, shard = _checked(options)
     scenarios, bad = _scenarios(options)
     if bad and not scenarios and not options.resume:  # nothing to run: said in a second, MJX never imported
         raise OptionsError("; ".join(r.message for r in bad))
     from mjxdiff.engine import engines, export_cache  # JAX and MJX: imported once there is something to run
     from mjxdiff.runner import guard
-    from mjxdiff.runner.sweep import sweep
 
     engines.configure_jax(options.precision, options.cache_dir)
     config = sweep_config(options)
@@ -373,25 +345,12 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
     cache_before = export_cache.events()
     done, book = _resumed(options, units)
     resumed = set(done)
-    writer = _open_journal(options, len(scenarios) * len(_PAIRS[options.impl]), done)
+    writer = _open_journal(options, len(scenarios) * len(PAIRS[options.impl]), done)
     try:
         if options.executor == "ray":
             _ray(options, config, units, done, writer, on_result, entries)
-        for suffix, pair_config in _pair_configs(config, options.impl) if options.executor == "local" else ():
-            todo = [u for u in units if u.suffix == suffix and u.index not in done]
-            arriving = iter(todo)
-
-            def arrived(r: ScenarioResult) -> None:
-                _deliver(next(arriving), r, done, writer, on_result, entries)
-            picked = [u.scenario for u in todo]
-            if not picked:
-                continue
-            if options.isolate:
-                swept = guard.sweep(picked, pair_config, limits, options.progress, arrived, options.cache_dir)
-            else:
-                swept = sweep(picked, pair_config, options.progress, arrived)
-            # a scenario's name seeds its inputs: the pair's results are renamed after the sweep
-            done.update({u.index: dataclasses.replace(r, name=r.name + suffix) for u, r in zip(todo, swept)})
+        if options.executor == "local":
+            _sweep_local(options, config, limits, units, done, writer, on_result, entries)
     finally:
         if writer is not None:
             writer.close()
@@ -410,13 +369,7 @@ def compute(options: SweepOptions, on_result: Callable[[ScenarioResult, known.En
     if book is not None:
         doc["journal"] = book
     out = _finish(options, results, bad, seconds, doc, entries, base)
-    # start-up: the interpreter and the imports, once per process (a later run in it has none)
-    startup = (dict(wall=entered[0] - mjxdiff._IMPORTED_AT, cpu=entered[1])  # noqa: SLF001
-               if not _STARTED.get("done") else dict(wall=0.0, cpu=0.0))
-    _STARTED["done"] = True
-    process = dict(startup=startup, prepare=_between(entered, started), sweep=_between(started, swept),
-                   finish=_between(swept, _clocks()))
-    doc["timing"] = report.timing(doc["scenarios"], process)
+    doc["timing"] = report.timing(doc["scenarios"], _process_timing(entered, started, swept))
     return out
 
 
@@ -444,7 +397,7 @@ def _c_outliers(results: list[ScenarioResult]) -> list[ScenarioResult]:
 
 
 def _pair_of(name: str) -> tuple[str, str]:
-    """(scenario, pair suffix) of a result's name under ``impl="both"`` (:data:`_PAIRS`)."""
+    """(scenario, pair suffix) of a result's name under ``impl="both"`` (:data:`PAIRS`)."""
     for suffix in _SUFFIXES:
         if name.endswith(suffix):
             return name[:-len(suffix)], suffix

@@ -33,6 +33,7 @@ from typing import Any, Callable, Sequence
 from mjxdiff.engine import export_cache
 from mjxdiff.engine.engines import SPLIT_MIN_MEMBERS, CEngine, MJXEngine, compile_count, device_count
 from mjxdiff.input.inputs import BatchedInputs, make_inputs
+from mjxdiff.input.options import NoiseFloor
 from mjxdiff.input.scenario import Scenario, load_model
 from mjxdiff.runner.sweep import SweepConfig, run_inputs
 
@@ -173,7 +174,7 @@ def _tester_overhead(scenario: Scenario, m, inputs: BatchedInputs, repeats: int)
     c_engine, under_test = CEngine(), MJXEngine()
     tol = scenario.tolerance.for_precision("float64")
 
-    def verify(mode: str) -> Callable[[], Any]:
+    def verify(mode: NoiseFloor) -> Callable[[], Any]:
         config = SweepConfig(diagnose="none", noise_floor=mode)
         return lambda: run_inputs(scenario.name, m, inputs, tol, config, under_test, c_engine)
 

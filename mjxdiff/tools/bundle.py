@@ -185,7 +185,7 @@ def write(shrunk: Shrunk, out: str | Path, source: str | Path | None = None, ori
     """Writes the bundle of ``shrunk`` into the directory ``out`` (made if missing): see the
     module's docstring. ``source``: the directory the original model's relative asset paths
     start from; ``origin``: what was shrunk (a path or a name), for the README."""
-    from mjxdiff.engine import export_cache
+    from mjxdiff.engine.digest import code_digest
     from mjxdiff.output import report
 
     out = Path(out)
@@ -198,7 +198,7 @@ def write(shrunk: Shrunk, out: str | Path, source: str | Path | None = None, ori
     doc = dict(signature=dataclasses.asdict(sig), magnitude=size, before=dataclasses.asdict(shrunk.before),
                after=dataclasses.asdict(shrunk.after), candidates=shrunk.candidates, compiles=shrunk.compiles,
                seconds=round(shrunk.seconds, 1), complete=shrunk.complete, edits=list(shrunk.log), ablations=tried,
-               versions=report.versions(), mjx_code_digest=export_cache.code_digest(), origin=origin)
+               versions=report.versions(), mjx_code_digest=code_digest(), origin=origin)
     atomic_write(out / "signature.json", json.dumps(doc, indent=1) + "\n")
     atomic_write(out / "README.md", _readme(doc, title))
     return out

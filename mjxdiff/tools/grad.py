@@ -106,7 +106,7 @@ def _reference(mx, dx, u):
 def _jacobian_fn(parts: tuple, nv: int, na: int, code: str):
     """jit(jacfwd) of one mjx.step around a state, for models with these joints (the model
     itself is an argument: one compile serves every member and state) and this MJX ``code``
-    (:func:`mjxdiff.engine.export_cache.code_digest`: an edited or patched MJX is traced anew). Called
+    (:func:`mjxdiff.engine.digest.code_digest`: an edited or patched MJX is traced anew). Called
     once per state, so compiled for compile time (:func:`mjxdiff.compat.jit_for_few_calls`)."""
     f = _next(parts, nv)
 
@@ -137,12 +137,12 @@ def mjx_jacobians(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | N
     """(A, B, C, D) of one ``mjx.step`` at ``state`` (qpos, qvel, act, ctrl), by ``jax.jacfwd`` in
     float64 (run under ``jax.enable_x64``): A (n, n) and B (n, nu) of the next state, C
     (nsensordata, n) and D (nsensordata, nu) of the sensors at the state, n = 2 nv + na.
-    ``code``: the MJX code digest when the caller has it (:func:`mjxdiff.engine.export_cache.code_digest`,
+    ``code``: the MJX code digest when the caller has it (:func:`mjxdiff.engine.digest.code_digest`,
     computed here otherwise: about 0.4 s)."""
-    from mjxdiff.engine import export_cache
+    from mjxdiff.engine.digest import code_digest
 
     d = _data(m, state)
-    fn = _jacobian_fn(joints.parts(m), m.nv, m.na, code or export_cache.code_digest())
+    fn = _jacobian_fn(joints.parts(m), m.nv, m.na, code or code_digest())
     AC, BD = (np.asarray(j) for j in fn(mjx.put_model(m), mjx.put_data(m, d), jnp.asarray(d.ctrl)))
     n = 2 * m.nv + m.na
     return AC[:n], BD[:n], AC[n:], BD[n:]
@@ -155,11 +155,11 @@ def mjx_fd(m: mujoco.MjModel, state: dict[str, np.ndarray], code: str | None = N
     ``jax.jacfwd`` they tell a derivative-only disagreement (MJX's differences agree with C's)
     from a forward one (they agree with MJX's gradient) and from MJX's forward jumping inside
     the stencil (its differences grow as 1 / eps)."""
-    from mjxdiff.engine import export_cache
+    from mjxdiff.engine.digest import code_digest
 
     d = _data(m, state)
     n, nu = 2 * m.nv + m.na, m.nu
-    fn = _values_fn(joints.parts(m), m.nv, m.na, code or export_cache.code_digest())
+    fn = _values_fn(joints.parts(m), m.nv, m.na, code or code_digest())
     basis = np.eye(n + nu)
     steps = np.concatenate([sign * eps * basis for eps in (EPS / 10, EPS) for sign in (1.0, -1.0)])
     out = np.asarray(fn(mjx.put_model(m), mjx.put_data(m, d), jnp.asarray(d.ctrl), jnp.asarray(steps[:, :n]),
@@ -446,15 +446,16 @@ def check_scenario(scenario, count: int = 8, seed: int = 0, reproducers=None) ->
         states = sample_states(scenario, m, count, seed)
     except Exception as e:  # noqa: BLE001 - one scenario's trouble is its own
         return dict(name=scenario.name, status="error", message=one_line(e))
-    from mjxdiff.engine import export_cache
+    from mjxdiff.engine.digest import code_digest
+    from mjxdiff.engine.trace_deps import fresh_digest
 
-    export_cache.fresh_digest()  # JAX's own caches forget MJX code that has changed since
+    fresh_digest()  # JAX's own caches forget MJX code that has changed since
     from mjxdiff.runner.sweep import release_compiled_if_crowded
 
     if release_compiled_if_crowded():  # many scenarios in one process: the kernel's map limit
         _jacobian_fn.cache_clear()
         _values_fn.cache_clear()
-    code = export_cache.code_digest()
+    code = code_digest()
     results: list[StateResult] = []
     judged_at: list[tuple[mujoco.MjModel, dict[str, np.ndarray]]] = []
     try:
@@ -524,12 +525,13 @@ def _save_reproducer(directory, scenario, result: StateResult, judged_at, config
 def replay(rep) -> tuple[StateResult, bool]:
     """A derivative reproducer (:class:`mjxdiff.output.reproducer.GradReproducer`) judged again: the
     result, and whether it has the saved status and worst entry (matrix, row, column)."""
-    from mjxdiff.engine import export_cache
+    from mjxdiff.engine.digest import code_digest
+    from mjxdiff.engine.trace_deps import fresh_digest
 
-    export_cache.fresh_digest()
+    fresh_digest()
     with enable_x64(True):
         r = judge_state(rep.model, rep.state, rep.index, rep.verdict.get("member", 0), rep.verdict.get("step", 0),
-                        export_cache.code_digest())
+                        code_digest())
     then = rep.verdict.get("worst") or {}
     same = r.status == rep.verdict["status"] and (
         r.status != "fail" or all(then.get(k) == r.worst.get(k) for k in ("matrix", "row", "column")))

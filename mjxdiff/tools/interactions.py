@@ -308,6 +308,76 @@ _OBJ = {int(mujoco.mjtObj.mjOBJ_BODY): "body", int(mujoco.mjtObj.mjOBJ_XBODY): "
         int(mujoco.mjtObj.mjOBJ_GEOM): "geom", int(mujoco.mjtObj.mjOBJ_SITE): "site"}
 
 
+def _present(x) -> str:
+    """``present`` where some of ``x`` is nonzero, else ``none``."""
+    return "present" if np.any(x) else "none"
+
+
+def _frame_sensor_rows(m: mujoco.MjModel, seen: Observed) -> list[dict[str, str]]:
+    """The ``frame sensors`` group's rows: one per frame sensor (none with sensors disabled)."""
+    out = []
+    if not m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_SENSOR):
+        for s in range(m.nsensor):
+            kind = _FRAME_SENSORS.get(int(m.sensor_type[s]))
+            if kind is None:
+                continue
+            ref = _OBJ.get(int(m.sensor_reftype[s]), "none") if m.sensor_refid[s] >= 0 else "none"
+            frame = "none" if ref == "none" else "rotated" if seen.ref_rotated.get(s) else "identity"
+            out.append({"sensor.type": kind,
+                        "sensor.objtype": _OBJ.get(int(m.sensor_objtype[s]), "other"),
+                        "sensor.reftype": ref, "ref.frame": frame})
+    return out
+
+
+def _tendon_rows(m: mujoco.MjModel, seen: Observed) -> list[dict[str, str]]:
+    """The ``tendon springs`` group's rows: per tendon, one per side of its spring's length
+    observed (one without the length where none was)."""
+    out = []
+    for k in range(m.ntendon):
+        a, b = m.tendon_lengthspring[k]
+        spring = "none" if m.tendon_stiffness[k] <= 0 else "range" if b > a else "point"
+        fixed = m.wrap_type[m.tendon_adr[k]] == int(mujoco.mjtWrap.mjWRAP_JOINT)
+        row = {"tendon.type": "fixed" if fixed else "spatial",
+               "tendon.spring": spring, "tendon.limited": "yes" if m.tendon_limited[k] else "no",
+               "tendon.damping": _present(m.tendon_damping[k])}
+        for where in sorted(seen.tendon_length.get(k, ())) or [None]:
+            out.append(dict(row, **({"tendon.length": where} if where else {})))
+    return out
+
+
+def _equality_rows(m: mujoco.MjModel, refsafe: str) -> list[dict[str, str]]:
+    """The ``equality constraints`` group's rows: one per active equality constraint of a known
+    type (none with equality constraints disabled); ``refsafe`` the flag's state."""
+    out = []
+    if m.neq and not m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_EQUALITY):
+        names = {0: "connect", 1: "weld", 2: "joint", 3: "tendon"}
+        for e in range(m.neq):
+            kind = names.get(int(m.eq_type[e]))
+            if kind is None:
+                continue
+            if m.eq_active0[e]:
+                out.append({"eq.type": kind, "eq.solref": _solref(m.eq_solref[e], m.opt.timestep),
+                            "flag.refsafe": refsafe})
+    return out
+
+
+def _limit_rows(m: mujoco.MjModel, seen: Observed, refsafe: str) -> list[dict[str, str]]:
+    """The ``joint limits`` group's rows: per limited ball, slide or hinge joint, one per limit
+    side observed (``none`` where none was; no rows with limits disabled)."""
+    out = []
+    if not m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_LIMIT):
+        types = {0: None, 1: "ball", 2: "slide", 3: "hinge"}
+        for j in np.flatnonzero(m.jnt_limited):
+            kind = types.get(int(m.jnt_type[j]))
+            if kind is None:
+                continue
+            base = {"joint.type": kind, "joint.solref": _solref(m.jnt_solref[j], m.opt.timestep),
+                    "flag.refsafe": refsafe, "joint.margin": "positive" if m.jnt_margin[j] > 0 else "zero"}
+            for side in sorted(seen.limit.get(int(j), ())) or ["none"]:
+                out.append(dict(base, **{"joint.limit": side}))
+    return out
+
+
 def rows(m: mujoco.MjModel, seen: Observed) -> dict[str, list[dict[str, str]]]:
     """Group name -> one ``{factor: level}`` per element of the group's scope that a compared
     field depends on (one per model for ``model`` groups; none where the group's elements are
@@ -317,10 +387,7 @@ def rows(m: mujoco.MjModel, seen: Observed) -> dict[str, list[dict[str, str]]]:
                                       "refsafe")}
     integrator = _INTEGRATORS[int(m.opt.integrator)]
     out: dict[str, list[dict[str, str]]] = {g.name: [] for g in GROUPS}
-
-    def present(x):
-        return "present" if np.any(x) else "none"
-
+    present = _present
     actuation = m.nu and not m.opt.disableflags & int(dis.mjDSBL_ACTUATION)
     velocity = actuation and np.any(((m.actuator_gaintype == 1) & (m.actuator_gainprm[:, 2] != 0))
                                     | ((m.actuator_biastype == 1) & (m.actuator_biasprm[:, 2] != 0)))
@@ -352,45 +419,10 @@ def rows(m: mujoco.MjModel, seen: Observed) -> dict[str, list[dict[str, str]]]:
             "actuator.biastype": _BIAS.get(int(m.actuator_biastype[a]), "user"),
             "actuator.dyntype": _DYN.get(int(m.actuator_dyntype[a]), "user"),
             "actuator.actearly": "yes" if m.actuator_actearly[a] else "no"})
-    if not m.opt.disableflags & int(dis.mjDSBL_SENSOR):
-        for s in range(m.nsensor):
-            kind = _FRAME_SENSORS.get(int(m.sensor_type[s]))
-            if kind is None:
-                continue
-            ref = _OBJ.get(int(m.sensor_reftype[s]), "none") if m.sensor_refid[s] >= 0 else "none"
-            frame = "none" if ref == "none" else "rotated" if seen.ref_rotated.get(s) else "identity"
-            out["frame sensors"].append({"sensor.type": kind,
-                                         "sensor.objtype": _OBJ.get(int(m.sensor_objtype[s]), "other"),
-                                         "sensor.reftype": ref, "ref.frame": frame})
-    for k in range(m.ntendon):
-        a, b = m.tendon_lengthspring[k]
-        spring = "none" if m.tendon_stiffness[k] <= 0 else "range" if b > a else "point"
-        fixed = m.wrap_type[m.tendon_adr[k]] == int(mujoco.mjtWrap.mjWRAP_JOINT)
-        row = {"tendon.type": "fixed" if fixed else "spatial",
-               "tendon.spring": spring, "tendon.limited": "yes" if m.tendon_limited[k] else "no",
-               "tendon.damping": present(m.tendon_damping[k])}
-        for where in sorted(seen.tendon_length.get(k, ())) or [None]:
-            out["tendon springs"].append(dict(row, **({"tendon.length": where} if where else {})))
-    if m.neq and not m.opt.disableflags & int(dis.mjDSBL_EQUALITY):
-        names = {0: "connect", 1: "weld", 2: "joint", 3: "tendon"}
-        for e in range(m.neq):
-            kind = names.get(int(m.eq_type[e]))
-            if kind is None:
-                continue
-            if m.eq_active0[e]:
-                out["equality constraints"].append({"eq.type": kind,
-                                                    "eq.solref": _solref(m.eq_solref[e], m.opt.timestep),
-                                                    "flag.refsafe": flags["refsafe"]})
-    if not m.opt.disableflags & int(dis.mjDSBL_LIMIT):
-        types = {0: None, 1: "ball", 2: "slide", 3: "hinge"}
-        for j in np.flatnonzero(m.jnt_limited):
-            kind = types.get(int(m.jnt_type[j]))
-            if kind is None:
-                continue
-            base = {"joint.type": kind, "joint.solref": _solref(m.jnt_solref[j], m.opt.timestep),
-                    "flag.refsafe": flags["refsafe"], "joint.margin": "positive" if m.jnt_margin[j] > 0 else "zero"}
-            for side in sorted(seen.limit.get(int(j), ())) or ["none"]:
-                out["joint limits"].append(dict(base, **{"joint.limit": side}))
+    out["frame sensors"].extend(_frame_sensor_rows(m, seen))
+    out["tendon springs"].extend(_tendon_rows(m, seen))
+    out["equality constraints"].extend(_equality_rows(m, flags["refsafe"]))
+    out["joint limits"].extend(_limit_rows(m, seen, flags["refsafe"]))
     return out
 
 

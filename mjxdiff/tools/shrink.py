@@ -168,9 +168,10 @@ class _Forward:
     def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]):
         from mujoco import mjx
 
-        from mjxdiff.engine import export_cache, stages
+        from mjxdiff.engine import stages
+        from mjxdiff.engine.trace_deps import fresh_digest
         from mjxdiff.engine.stages import Forward
-        export_cache.fresh_digest()  # never a trace of MJX code since changed
+        fresh_digest()  # never a trace of MJX code since changed
         mx = mjx.put_model(m)
         dx = _jitted("forward")(mx, mjx.put_data(m, d))
         return Forward({f: np.asarray(getattr(dx, f)).ravel() for f in fields}, np.asarray(mjx.full_m(mx, dx)),
@@ -561,46 +562,81 @@ def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None
     if _shows_safely(explicit, state, target):
         best = explicit
     before = counts(best, steps_before)
-    log: list[str] = []
-    tried = 0
+    run = _Shrinking(best, state, target, t0, budget, say)
+    complete = True
+    try:
+        if target.check == "forward":  # first, only the bodies of what the drill-down names
+            run.focus()
+        run.drop_elements()
+        run.fuse_and_box()
+        run.default_options()
+        say(f"shrink: options {_option_changes(spec)} -> {_option_changes(run.best)} changed from the defaults")
+        run.round()
+    except (_Budget, KeyboardInterrupt):
+        complete = False
+        say("shrink: stopped (budget or interrupt): the best so far")
+    return Shrunk(run.best, run.state, target, before, counts(run.best), run.tried, _compiles() - compiles0,
+                  time.perf_counter() - t0, tuple(run.log), complete)
 
-    kept_compiles = [_compiles()]
 
-    def shows(candidate: mujoco.MjSpec, s: State) -> bool:
-        nonlocal tried
-        if time.perf_counter() - t0 > budget:
+@dataclasses.dataclass
+class _Shrinking:
+    """A shrink in progress (:func:`shrink`): the smallest model so far, ``best``, and the
+    ``state`` it shows ``target`` from, the ``log`` of what each pass removed and the candidates
+    ``tried``. Each pass keeps what it removes as it goes, so that a stop (the budget, Ctrl-C)
+    keeps the best so far."""
+
+    best: mujoco.MjSpec
+    state: State
+    target: Signature
+    t0: float
+    budget: float
+    say: Callable[[str], None]
+    log: list[str] = dataclasses.field(default_factory=list)
+    tried: int = 0
+    kept_compiles: int = dataclasses.field(default_factory=_compiles)
+
+    def shows(self, candidate: mujoco.MjSpec, s: State) -> bool:
+        """Whether ``candidate``, compiled by C (and from its own MJCF), shows the target from
+        ``s``; raises :class:`_Budget` once the budget is spent."""
+        if time.perf_counter() - self.t0 > self.budget:
             raise _Budget
-        tried += 1
-        if _compiles() - kept_compiles[0] >= KEEP_COMPILED:
+        self.tried += 1
+        if _compiles() - self.kept_compiles >= KEEP_COMPILED:
             # each structure's executables stay in JAX's caches: a humanoid's shrink ran LLVM out of
             # memory ("Cannot allocate memory") after some 60; few structures are ever tried twice
             jax.clear_caches()
-            kept_compiles[0] = _compiles()
+            self.kept_compiles = _compiles()
         try:
             m = candidate.compile()
             mujoco.MjSpec.from_string(candidate.to_xml()).compile()  # and one whose MJCF a bundle can write and load
         except Exception:  # noqa: BLE001 - a candidate C cannot compile is not kept
             return False
         try:
-            return probe(m, s) == target
+            return probe(m, s) == self.target
         except Exception:  # noqa: BLE001 - nor one an engine cannot run
             return False
 
-    complete = True
-    try:
-        if target.check == "forward":  # first, only the bodies of what the drill-down names
-            m = best.compile()
-            focus, names = focus_bodies(m, _drill(m, state).object), element_names(best, "bodies")
-            if focus and len(focus) < len(names):
-                candidate = drop(best, "bodies", [n for n in names if n not in focus], m, state)
-                if shows(candidate, state):
-                    best = candidate
-                    log.append(f"bodies: {len(names)} -> {len(focus)} (those of the object named)")
-                    say(f"shrink: bodies {len(names)} -> {len(focus)}, those of the object the drill-down names")
+    def focus(self) -> None:
+        """Keeps only the bodies of the object the drill-down names, where that still shows."""
+        m = self.best.compile()
+        focus, names = focus_bodies(m, _drill(m, self.state).object), element_names(self.best, "bodies")
+        if focus and len(focus) < len(names):
+            candidate = drop(self.best, "bodies", [n for n in names if n not in focus], m, self.state)
+            if self.shows(candidate, self.state):
+                self.best = candidate
+                self.log.append(f"bodies: {len(names)} -> {len(focus)} (those of the object named)")
+                self.say(f"shrink: bodies {len(names)} -> {len(focus)}, those of the object the drill-down names")
+
+    def drop_elements(self) -> None:
+        """Drops elements of each kind (:data:`KINDS`, :func:`ddmin`), again while a pass drops
+        something."""
+        state = self.state
         dropped_any = True
         while dropped_any:  # again while a pass drops something: what an element named may go now
             dropped_any = False
             for kind in KINDS:
+                best = self.best
                 names = element_names(best, kind)
                 if not names:
                     continue
@@ -608,61 +644,69 @@ def shrink(spec: mujoco.MjSpec, state: State, signature: Signature | None = None
 
                 def edit(dropped, k=kind, b=best, m=m):
                     return drop(b, k, dropped, m, state)
-                kept = ddmin(names, lambda keep, ns=names: shows(edit([n for n in ns if n not in keep]), state))
+                kept = ddmin(names, lambda keep, ns=names: self.shows(edit([n for n in ns if n not in keep]), state))
                 smaller = edit([n for n in names if n not in kept])
                 with contextlib.suppress(Exception):  # compiling adds back what <size nkey="5"/> asks for
                     smaller.compile()
                 if len(element_names(smaller, kind)) < len(names):  # else no progress
-                    best, dropped_any = smaller, True
-                    log.append(f"{kind}: {len(names)} -> {len(kept)}")
-                    say(f"shrink: {kind} {len(names)} -> {len(kept)} ({tried} candidates, "
-                        f"{time.perf_counter() - t0:.0f} s)")
+                    self.best, dropped_any = smaller, True
+                    self.log.append(f"{kind}: {len(names)} -> {len(kept)}")
+                    self.say(f"shrink: {kind} {len(names)} -> {len(kept)} ({self.tried} candidates, "
+                             f"{time.perf_counter() - self.t0:.0f} s)")
+
+    def fuse_and_box(self) -> None:
+        """Fuses bodies without joints into their parents, and replaces meshes by boxes, where
+        that still shows."""
+        state, shows, log = self.state, self.shows, self.log
+        best = self.best
         if len(best.bodies) > 1:
             candidate = fused(best)
             if len(candidate.bodies) < len(best.bodies) and shows(candidate, state):
                 log.append(f"bodies without joints fused: {len(best.bodies) - 1} -> {len(candidate.bodies) - 1}")
-                best = candidate
+                self.best = best = candidate
         meshes = mesh_geoms(best)
         if meshes:
             m = best.compile()
             kept = ddmin(meshes, lambda keep, b=best, m=m: shows(boxed(b, m, [n for n in meshes if n not in keep]),
                                                                   state))
             if len(kept) < len(meshes):
-                best = boxed(best, m, [n for n in meshes if n not in kept])
+                self.best = boxed(best, m, [n for n in meshes if n not in kept])
                 log.append(f"meshes as boxes: {len(meshes) - len(kept)} of {len(meshes)}")
+
+    def default_options(self) -> None:
+        """Sets each option changed from the default back to it, and clears each set bit of the
+        disable and enable flags, where that still shows."""
         default = mujoco.MjSpec().option
-        for o in changed_options(best):
-            candidate = best.copy()
+        for o in changed_options(self.best):
+            candidate = self.best.copy()
             setattr(candidate.option, o, getattr(default, o))
-            if shows(candidate, state):
-                best = candidate
-                log.append(f"option {o}: default")
+            if self.shows(candidate, self.state):
+                self.best = candidate
+                self.log.append(f"option {o}: default")
         for flags in ("disableflags", "enableflags"):
             for bit in range(32):
-                if getattr(best.option, flags) & (1 << bit):
-                    candidate = best.copy()
-                    setattr(candidate.option, flags, getattr(best.option, flags) & ~(1 << bit))
-                    if shows(candidate, state):
-                        best = candidate
-                        log.append(f"option {flags}: bit {bit} cleared")
-        say(f"shrink: options {_option_changes(spec)} -> {_option_changes(best)} changed from the defaults")
+                if getattr(self.best.option, flags) & (1 << bit):
+                    candidate = self.best.copy()
+                    setattr(candidate.option, flags, getattr(self.best.option, flags) & ~(1 << bit))
+                    if self.shows(candidate, self.state):
+                        self.best = candidate
+                        self.log.append(f"option {flags}: bit {bit} cleared")
+
+    def round(self) -> None:
+        """Rounds the model's numbers, then the state's, to the fewest significant digits (2, 3
+        or 6) that still show."""
         for digits in (2, 3, 6):
-            candidate = rounded(best, digits)
-            if shows(candidate, state):
-                best = candidate
-                log.append(f"model: {digits} significant digits")
+            candidate = rounded(self.best, digits)
+            if self.shows(candidate, self.state):
+                self.best = candidate
+                self.log.append(f"model: {digits} significant digits")
                 break
         for digits in (2, 3, 6):
-            shorter = state.rounded(digits)
-            if shows(best, shorter):
-                state = shorter
-                log.append(f"state: {digits} significant digits")
+            shorter = self.state.rounded(digits)
+            if self.shows(self.best, shorter):
+                self.state = shorter
+                self.log.append(f"state: {digits} significant digits")
                 break
-    except (_Budget, KeyboardInterrupt):
-        complete = False
-        say("shrink: stopped (budget or interrupt): the best so far")
-    return Shrunk(best, state, target, before, counts(best), tried, _compiles() - compiles0,
-                  time.perf_counter() - t0, tuple(log), complete)
 
 
 def _shows_safely(spec: mujoco.MjSpec, state: State, target: Signature) -> bool:
