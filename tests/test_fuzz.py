@@ -18,6 +18,15 @@ from mjxdiff.testing import MJXMismatch, assert_mjx_matches_c, compare
 ROLLOUTS = dataclasses.replace(JUDGE, diagnose="none", transfer=False)
 
 
+
+def _drilled_contact(rep) -> dict:
+    """The contact detail (:func:`mjxdiff.compare.diagnose.contact_detail`) of the drill-down from a
+    reproducer's first state, member 0, or {}."""
+    from mjxdiff.compare import diagnose
+
+    i = rep.inputs
+    return diagnose.drill_down(rep.model, i.qpos[0], i.qvel[0], i.act[0], i.ctrl[0, 0], 0.0).contact or {}
+
 def bias_force_0p1_percent(monkeypatch):
     """Coriolis/centrifugal/gravity force 0.1% too large (any moving model shows it)."""
     orig = mjx_smooth.rne
@@ -195,6 +204,8 @@ def test_only_the_regularized_capsule_divergence_is_excused(fresh_mjx, monkeypat
     assert known.status == "fail" and known.first_divergence is not None, known.message
     assert (known.first_divergence["step"], known.first_divergence["object"]) == (0, "joint 'j1'")
     assert known_contact_divergence(rep.model, rep.inputs, known) == "capsule segment solves"
+    # the sweep's drill-down tells it too, as data the catalogue reads (capsule-regularisation)
+    assert _drilled_contact(rep).get("explained") == "segment regularisation", _drilled_contact(rep)
 
     orig = mjx_math.closest_segment_to_segment_points
     monkeypatch.setattr(mjx_math, "closest_segment_to_segment_points",
@@ -202,5 +213,6 @@ def test_only_the_regularized_capsule_divergence_is_excused(fresh_mjx, monkeypat
     bug = run_inputs("fuzz", rep.model, rep.inputs, rep.tolerances, config)
     assert bug.status == "fail" and bug.first_divergence is not None, bug.message
     assert known_contact_divergence(rep.model, rep.inputs, bug) is None, bug.message
+    assert _drilled_contact(rep) and "explained" not in _drilled_contact(rep), _drilled_contact(rep)
     monkeypatch.setattr(segments, "explains", lambda *args: True)
     assert known_contact_divergence(rep.model, rep.inputs, bug) == "capsule segment solves", "only the formulas refuse"

@@ -170,9 +170,9 @@ def test_a_reproducer_is_shrunk_from_its_failing_member_s_state(repo_root):
     state with its controls: the committed fuzz find of a tendon's armature across two trees
     shows the qM divergence at once (the bundle tests/data/bundles/tendon-armature-trees was
     shrunk from it)."""
-    from mjxdiff.cli.tools import shrink_input as _shrink_input
+    from mjxdiff.cli.tools import shrink_input
 
-    spec, found, source = _shrink_input(str(repo_root / "tests/data/fuzz_tendon_armature_trees.json"), None, 1)
+    spec, found, source = shrink_input(str(repo_root / "tests/data/fuzz_tendon_armature_trees.json"), None, 1)
     assert found is not None and source is None
     state, signature, step = found
     assert (signature, step) == (shrink.Signature("forward", "inertia", "qM"), 0)

@@ -193,7 +193,7 @@ def shrink_parser(sub) -> argparse.ArgumentParser:
     return sh
 
 
-def _shrink_input(path: str, keyframe: int | None, steps: int):
+def shrink_input(path: str, keyframe: int | None, steps: int):
     """(spec, state, signature, step, source directory) of a model file or a reproducer."""
     import mujoco
     import numpy as np
@@ -226,7 +226,7 @@ def cmd_shrink(args: argparse.Namespace) -> int:
 
     engines.configure_jax("float64")
     try:
-        spec, found, source = _shrink_input(args.model, args.keyframe, args.steps)
+        spec, found, source = shrink_input(args.model, args.keyframe, args.steps)
     except NotImplementedError as e:
         print(f"mjxdiff shrink: error: unsupported by MJX, nothing to compare: {one_line(e)}", file=sys.stderr)
         return 2

@@ -156,17 +156,71 @@ def _element(m: mujoco.MjModel, field: str, index: int) -> dict[str, str] | None
     return None
 
 
-def contact_detail(pair: str, geoms: tuple[str, ...], c: int, mjx: int, part: str | None) -> dict[str, Any]:
+def contact_detail(pair: str, geoms: tuple[str, ...], c: int, mjx: int, part: str | None,
+                   explained: str | None = None) -> dict[str, Any]:
     """A geom pair's contact disagreement as data: ``pair`` the geom types, sorted and joined by
     ``-`` (``plane-mesh``; a flex is ``flex``), ``geoms`` their names, ``c`` and ``mjx`` each
-    engine's contact count, ``part`` what differs most where the counts agree (``dist``,
-    ``position``, ``friction``, ``normal``, ``tangent frame``), ``count`` where they do not."""
-    return dict(pair=pair, geoms=list(geoms), c=c, mjx=mjx, part=part if c == mjx else "count")
+    engine's contact count, ``part`` what differs where the counts agree (the geometry first:
+    ``dist``, ``position`` or ``normal``; else ``friction`` or ``tangent frame``), ``count`` where
+    they do not; ``explained`` what known formula accounts for the difference in full, where one
+    does (``segment regularisation``: :func:`mjxdiff.compare.segments.explains`), else absent."""
+    out = dict(pair=pair, geoms=list(geoms), c=c, mjx=mjx, part=part if c == mjx else "count")
+    return out | (dict(explained=explained) if explained else {})
 
 
-def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float, str, dict[str, Any] | None]:
+#: What each number of a collected contact is (:func:`_contacts_c`).
+_CONTACT_PARTS = ("dist",) + ("position",) * 3 + ("friction",) * 2 + ("normal",) * 3 + ("tangent frame",) * 6
+#: The numbers of a contact's geometry: where they differ, a frame or friction that differs with
+#: them follows from them, and the geometry is what the contact's difference is.
+_GEOMETRY = np.array([i for i, part in enumerate(_CONTACT_PARTS) if part in ("dist", "position", "normal")])
+_NORMAL = slice(6, 9)
+
+
+def _part(diff: np.ndarray, floor: float) -> tuple[str, float]:
+    """(what differs, by how much) of a geom pair's contacts, from ``diff`` (per number, the
+    largest |mjx - c| over its matched contacts): the geometry's largest where it is over
+    ``floor``, else the largest of all."""
+    i = int(_GEOMETRY[diff[_GEOMETRY].argmax()]) if diff[_GEOMETRY].max() > floor else int(diff.argmax())
+    return _CONTACT_PARTS[i], float(diff[i])
+
+
+def _normal_angle(a: list[tuple[float, ...]], b: list[tuple[float, ...]]) -> float:
+    """The largest angle, degrees, between matched contacts' normals."""
+    na, nb = np.asarray(a)[:, _NORMAL], np.asarray(b)[:, _NORMAL]
+    cos = np.sum(na * nb, axis=1) / np.maximum(np.linalg.norm(na, axis=1) * np.linalg.norm(nb, axis=1), 1e-300)
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max())
+
+
+def _regularisation_explains(m: mujoco.MjModel, d: mujoco.MjData | None, pair: tuple[int, ...],
+                             a: list[tuple[float, ...]], b: list[tuple[float, ...]]) -> bool:
+    """Whether a sphere-capsule or capsule-capsule pair's single contact differs between C
+    (``a``) and the engine (``b``) by MJX's regularized segment solve alone: C's is the segment
+    formulas exactly, the engine's the same with :data:`mjxdiff.compare.segments.EPS`, each within
+    :data:`~mjxdiff.compare.segments.TOLERANCE` (dist, position, normal). ``d``: C's data after
+    ``mj_forward`` at the state (None: not known, so not explained)."""
+    from mjxdiff.compare import segments
+
+    if d is None or len(pair) != 2 or min(pair) < 0 or len(a) != 1 or len(b) != 1:
+        return False
+    if not segments.regularized((int(m.geom_type[pair[0]]), int(m.geom_type[pair[1]]))):
+        return False
+    g1, g2 = sorted(pair, key=lambda g: (int(m.geom_type[g]), g))  # a sphere first, as MJX collides it
+    sign = 1.0 if g1 < g2 else -1.0  # the collected normal points from the lower geom id to the higher
+
+    def fits(got: tuple[float, ...], eps: float) -> bool:
+        dist, pos, normal = segments.contact(m, d, g1, g2, eps)
+        want = np.concatenate([[dist], pos, sign * normal])
+        return float(np.abs(np.asarray(got)[[0, 1, 2, 3, 6, 7, 8]] - want).max()) <= segments.TOLERANCE
+    return fits(a[0], 0.0) and fits(b[0], segments.EPS)
+
+
+def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts, floor: float = 0.0,
+                  d: mujoco.MjData | None = None) -> tuple[float, str, dict[str, Any] | None]:
     """Worst contact disagreement: inf for a geom pair whose contact count differs, else the
-    largest |dist|, |pos| or |friction| difference, each engine's contacts matched by position.
+    largest |dist|, |pos|, |friction| or frame difference, each engine's contacts matched by
+    position. What differs (:func:`_part`) is the geometry where it differs by more than
+    ``floor``; a normal's difference is said as an angle. ``d``: C's data after ``mj_forward``,
+    to tell MJX's capsule regularisation (:func:`_regularisation_explains`).
     Returns (error, the pair's description, its :func:`contact_detail`; None if no pair)."""
     worst, obj, detail = 0.0, "", None
     for pair in sorted(set(cc) | set(cx)):
@@ -184,15 +238,13 @@ def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts) -> tuple[float,
             geoms = [g for g in pair if g >= 0]
             kinds = "-".join(["flex"] * (len(pair) - len(geoms)) + [
                 mujoco.mjtGeom(t).name[len("mjGEOM_"):].lower() for t in sorted(m.geom_type[geoms])])
-            which = _CONTACT_PARTS[int(diff.argmax())] if diff.size else None
-            part = f"; {which} differs by {err:.2g}" if which else ""
-            worst, obj = err, f"geoms {names} ({kinds}: C {len(a)}, MJX {len(b)} contacts{part})"
-            detail = contact_detail(kinds, named, len(a), len(b), which)
+            which, amount = _part(diff, floor) if diff.size else (None, 0.0)
+            said = (f"; normal differs by {_normal_angle(a, b):.2g} degrees" if which == "normal"
+                    else f"; {which} differs by {amount:.2g}" if which else "")
+            explained = "segment regularisation" if diff.size and _regularisation_explains(m, d, pair, a, b) else None
+            worst, obj = err, f"geoms {names} ({kinds}: C {len(a)}, MJX {len(b)} contacts{said})"
+            detail = contact_detail(kinds, named, len(a), len(b), which, explained)
     return worst, obj, detail
-
-
-#: What each number of a collected contact is (:func:`_contacts_c`).
-_CONTACT_PARTS = ("dist",) + ("position",) * 3 + ("friction",) * 2 + ("normal",) * 3 + ("tangent frame",) * 6
 
 
 def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray | jax.Array,
@@ -228,7 +280,9 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
     for stage, fields in STAGES:
         for f in fields:
             if f == "contact":
-                err, obj, detail = _contact_diff(m, reference.contacts, contacts_x)
+                dc = copy.copy(d)
+                mujoco.mj_forward(m, dc)  # C's poses, for the capsule formulas
+                err, obj, detail = _contact_diff(m, reference.contacts, contacts_x, 1e3 * rtol, dc)
                 diffs.append(StageDiff(stage, f, err, obj, err > 1e3 * rtol, detail))
                 continue
             c, x = values_c[f], values_x[f]

@@ -21,9 +21,10 @@ drill-down or of the one-step check's (``collision``, ``sensors``, ``constraint`
 first divergent field (``qpos``, ``qvel``, ``sensordata``, ``transfer``, ...), ``pair``
 matches in full the geom types of a contact pair that a drill-down found differing
 (``plane-mesh``, ``box-box``: sorted as MuJoCo numbers them, plane first, a flex ``flex``) and
-``part`` matches in full what differs most there (``count``, ``dist``, ``position``, ``friction``,
-``normal``, ``tangent frame``), ``element`` matches in full an element the failure names as
-``kind:type`` (``sensor:accelerometer``, ``joint:free``, ``tendon:spatial-sidesite``: the first
+``part`` matches in full what differs there (``count``; else the geometry first: ``dist``,
+``position``, ``normal``; else ``friction``, ``tangent frame``), ``explained`` equals what known
+formula accounts for that pair's difference in full (``segment regularisation``), ``element``
+matches in full an element the failure names as ``kind:type`` (``sensor:accelerometer``, ``joint:free``, ``tendon:spatial-sidesite``: the first
 divergence's, or a drill-down's first differing field's), all three read from the report's
 data; ``pattern`` is found in the message plus the drill-down's object (text, for what has no
 field of its own: a reworded message can change the label, so the catalogue uses none, and

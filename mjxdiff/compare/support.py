@@ -284,6 +284,9 @@ class Entry:
     #: A regular expression one of the model's features (:func:`model_features`, ``info.features``)
     #: must match in full: what a divergence needs in the model that no drill-down shows.
     feature: str | None = None
+    #: What known formula must account in full for that pair's contacts' difference
+    #: (:func:`mjxdiff.compare.diagnose.contact_detail`'s ``explained``), read from the drill-down's data.
+    explained: str | None = None
 
     def _element_fits(self, s: dict[str, Any]) -> bool:
         if self.element is None:
@@ -292,11 +295,12 @@ class Entry:
                    for e in elements_shown(s))
 
     def _contact_fits(self, s: dict[str, Any]) -> bool:
-        if self.pair is None and self.part is None:
+        if self.pair is None and self.part is None and self.explained is None:
             return True
         return not contacts_ruled_out(s) and any(
             (self.pair is None or re.fullmatch(self.pair, c.get("pair", "")) is not None)
             and (self.part is None or re.fullmatch(self.part, c.get("part") or "") is not None)
+            and (self.explained is None or c.get("explained") == self.explained)
             for c in contacts_shown(s))
 
     def matches(self, s: dict[str, Any]) -> bool:
@@ -430,7 +434,8 @@ _MEASURED: tuple[Entry, ...] = (
                  "behaviour (mjxdiff closedloop) instead of the trajectory"),
     Entry("plane-cylinder-rim", "plane-cylinder: MJX adds the second rim point only near parallel",
           "primitives_on_plane notes: the second rim point only when the axis is within ~1e-3 of parallel; a "
-          "cylinder sunk into a plane: C 4 contacts, MJX 3", stage="collision", pair="plane-cylinder",
+          "cylinder sunk into a plane: C 4 contacts, MJX 3. A rim point missing, not one misplaced: a count",
+          stage="collision", pair="plane-cylinder", part="count",
           remedy="use a capsule (or a sphere) for a cylinder's collision geom where its shape allows; a tilted "
                  "cylinder on a plane otherwise gets other contact forces"),
     Entry("contact-tangent-frame", "contact tangent frames: MJX's plane-capsule (and other) frames differ from C's, "
@@ -461,7 +466,10 @@ _MEASURED: tuple[Entry, ...] = (
           "primitive_pairs notes: closest_segment_point divides by |ab|^2 + 1e-6; a sphere rolling along a 1 m "
           "capsule rail drifts 2e-3 qvel in 300 steps. The regularisation moves a contact; it makes or drops "
           "none, so a count that differs is not it (a capsule-capsule radius slip of MJX, C 1 and MJX 0 contacts, "
-          "was labelled so)", pair=r"sphere-capsule|capsule-\w+", part=r"dist|position|normal|tangent frame|friction",
+          "was labelled so); labelled only where the segment formulas with and without the 1e-6 give each "
+          "engine's contact (mjxdiff.compare.segments), so that a slip in MJX's segment solve is not it",
+          pair=r"sphere-capsule|capsule-\w+", part=r"dist|position|normal|tangent frame|friction",
+          explained="segment regularisation",
           versions=(MEASURED_ON, "3.3.5", "3.9.0"),
           remedy="split long capsules into shorter ones (the tilt grows with the contact's distance from the "
                  "segment's origin), or use sphere geoms for rolling contacts along a capsule"),

@@ -41,6 +41,7 @@ import threading
 import time
 from typing import Callable, Sequence
 
+from mjxdiff.input.options import parse_size
 from mjxdiff.input.scenario import Scenario
 from mjxdiff.compare.result import ScenarioResult
 
@@ -96,15 +97,6 @@ def default_memory() -> int:
     from mjxdiff.input import cost
 
     return int(MEMORY_SHARE * (cost.available_bytes() or 8 * 2**30 / MEMORY_SHARE))
-
-
-def parse_size(text: str) -> int:
-    """Bytes of ``'12G'``, ``'800M'``, ``'1.5GB'``, ``'4096'`` (bytes); ValueError otherwise."""
-    found = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([kKmMgGtT]?)(i?[bB])?\s*", text)
-    if not found:
-        raise ValueError(f"not a size: {text!r} (e.g. 12G, 800M)")
-    scale = {"": 1, "k": 2**10, "m": 2**20, "g": 2**30, "t": 2**40}[found.group(2).lower()]
-    return int(float(found.group(1)) * scale)
 
 
 @dataclasses.dataclass
