@@ -24,8 +24,8 @@ matches in full the geom types of a contact pair that a drill-down found differi
 ``part`` matches in full what differs there (``count``; else the geometry first: ``dist``,
 ``position``, ``normal``; else ``friction``, ``tangent frame``), ``explained`` equals what known
 formula accounts for that pair's difference in full (``segment regularisation``), ``element``
-matches in full an element the failure names as ``kind:type`` (``sensor:accelerometer``, ``joint:free``, ``tendon:spatial-sidesite``: the first
-divergence's, or a drill-down's first differing field's), all three read from the report's
+matches in full an element the failure names as ``kind:type`` (``sensor:accelerometer``,
+``joint:free``, ``tendon:spatial-sidesite``: the first divergence's, or a drill-down's first differing field's), all three read from the report's
 data; ``pattern`` is found in the message plus the drill-down's object (text, for what has no
 field of its own: a reworded message can change the label, so the catalogue uses none, and
 loading an entry that has one warns once), ``cause`` equals the attributed cause (``--diagnose full``), ``integrator``
