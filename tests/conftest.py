@@ -164,6 +164,7 @@ GROUPS = {
 #: Files of long tests (a compile each of patched MJX or of generated models, fuzz searches,
 #: a cold cache), scheduled first with the ``slow`` ones and :data:`GROUPS`.
 LONG_FILES = ("test_export_cache_fail_closed.py", "test_fuzz.py", "test_sensing_scenario.py", "test_wider_reach.py",
+              "test_contact_geometry.py",
               "test_stale_code.py", "test_solver_floor.py")
 
 
