@@ -25,14 +25,15 @@ matches in full the geom types of a contact pair that a drill-down found differi
 ``position``, ``normal``; else ``friction``, ``tangent frame``), ``explained`` equals what known
 formula accounts for that pair's difference in full (``segment regularisation``), ``element``
 matches in full an element the failure names as ``kind:type`` (``sensor:accelerometer``,
-``joint:free``, ``tendon:spatial-sidesite``: the first divergence's, or a drill-down's first differing field's), all three read from the report's
-data; ``pattern`` is found in the message plus the drill-down's object (text, for what has no
-field of its own: a reworded message can change the label, so the catalogue uses none, and
-loading an entry that has one warns once), ``cause`` equals the attributed cause (``--diagnose full``), ``integrator``
-is among the model's integrators, ``scenario`` matches the scenario's name, ``impl`` lists the
-implementations under test the entry is about (``mjx``, ``warp``, ``mjx.warp``; ``info.impl``;
-left out, any: the catalogue's entries about MJX's code say ``mjx``). An entry with ``pair`` or
-``part`` needs the contacts to be the whole story: it matches no failure that stays with
+``joint:free``, ``tendon:spatial-sidesite``: the first divergence's, or a drill-down's first
+differing field's), all three read from the report's data; ``pattern`` is found in the message plus
+the drill-down's object (text, for what has no field of its own: a reworded message can change the
+label, so the catalogue uses none, and loading an entry that has one warns once), ``cause`` equals
+the attributed cause (``--diagnose full``), ``integrator`` is among the model's integrators,
+``scenario`` matches the scenario's name, ``impl`` lists the implementations under test the entry is
+about (``mjx``, ``warp``, ``mjx.warp``; ``info.impl``; left out, any: the catalogue's entries about
+MJX's code say ``mjx``). An entry with ``pair`` or ``part`` needs the contacts to be the whole
+story: it matches no failure that stays with
 contacts disabled (:func:`mjxdiff.compare.support.contacts_ruled_out`) and no drill-down in which a stage
 that reads no contact differs too (``beside_contacts``).
 """
