@@ -192,26 +192,21 @@ def _normal_angle(a: list[tuple[float, ...]], b: list[tuple[float, ...]]) -> flo
 
 
 def _regularisation_explains(m: mujoco.MjModel, d: mujoco.MjData | None, pair: tuple[int, ...],
-                             a: list[tuple[float, ...]], b: list[tuple[float, ...]]) -> bool:
-    """Whether a sphere-capsule or capsule-capsule pair's single contact differs between C
-    (``a``) and the engine (``b``) by MJX's regularized segment solve alone: C's is the segment
-    formulas exactly, the engine's the same with :data:`mjxdiff.compare.segments.EPS`, each within
-    :data:`~mjxdiff.compare.segments.TOLERANCE` (dist, position, normal). ``d``: C's data after
-    ``mj_forward`` at the state (None: not known, so not explained)."""
+                             b: list[tuple[float, ...]]) -> bool:
+    """Whether a geom pair's single contact differs between C and the engine (``b``, its collected
+    contacts: :func:`mjxdiff.engine.stages.contacts_c`'s form) by MJX's regularized segment solve
+    alone (:func:`mjxdiff.compare.segments.explains`, read from C's own contact in ``d``: C's data
+    after ``mj_forward`` at the state; None: not known, so not explained)."""
     from mjxdiff.compare import segments
 
-    if d is None or len(pair) != 2 or min(pair) < 0 or len(a) != 1 or len(b) != 1:
+    if d is None or len(b) != 1 or min(pair) < 0:  # a flex side has no segment
         return False
-    if not segments.regularized((int(m.geom_type[pair[0]]), int(m.geom_type[pair[1]]))):
+    cons = [c for c in d.contact[:d.ncon] if tuple(sorted((int(c.geom1), int(c.geom2)))) == pair]
+    if len(cons) != 1:
         return False
-    g1, g2 = sorted(pair, key=lambda g: (int(m.geom_type[g]), g))  # a sphere first, as MJX collides it
-    sign = 1.0 if g1 < g2 else -1.0  # the collected normal points from the lower geom id to the higher
-
-    def fits(got: tuple[float, ...], eps: float) -> bool:
-        dist, pos, normal = segments.contact(m, d, g1, g2, eps)
-        want = np.concatenate([[dist], pos, sign * normal])
-        return float(np.abs(np.asarray(got)[[0, 1, 2, 3, 6, 7, 8]] - want).max()) <= segments.TOLERANCE
-    return fits(a[0], 0.0) and fits(b[0], segments.EPS)
+    x = np.asarray(b[0])
+    sign = 1.0 if cons[0].geom1 < cons[0].geom2 else -1.0  # collected normals point to the higher geom id
+    return segments.explains(m, d, cons[0], (float(x[0]), x[1:4], sign * x[6:9]))
 
 
 def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts, floor: float = 0.0,
@@ -241,7 +236,7 @@ def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts, floor: float = 
             which, amount = _part(diff, floor) if diff.size else (None, 0.0)
             said = (f"; normal differs by {_normal_angle(a, b):.2g} degrees" if which == "normal"
                     else f"; {which} differs by {amount:.2g}" if which else "")
-            explained = "segment regularisation" if diff.size and _regularisation_explains(m, d, pair, a, b) else None
+            explained = "segment regularisation" if diff.size and _regularisation_explains(m, d, pair, b) else None
             worst, obj = err, f"geoms {names} ({kinds}: C {len(a)}, MJX {len(b)} contacts{said})"
             detail = contact_detail(kinds, named, len(a), len(b), which, explained)
     return worst, obj, detail
