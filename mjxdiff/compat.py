@@ -343,40 +343,46 @@ class LoopBatch:
             self._arrays[f][i] = getattr(d, f)
         self.warning[i] = [(w.lastinfo, w.number) for w in d.warning]
 
-    def get_data(self, sim: int) -> mujoco.MjData:
-        """A copy of simulation ``sim``'s ``MjData`` with its state."""
-        return copy.copy(self._load(sim))
+    def get_data(self, sim: int, data: mujoco.MjData | None = None) -> mujoco.MjData:
+        """Simulation ``sim``'s ``MjData`` with its state and the derived fields of its last
+        step: a copy, or copied into ``data``."""
+        d = self._load(sim)
+        if data is None:
+            return copy.copy(d)
+        mujoco.mj_copyData(data, self._models[sim], d)  # pyright: ignore[reportAttributeAccessIssue]
+        return data
 
     def rollout(self, nstep: int, control=None, record: Sequence[Any] = ("qpos",),
-                out: dict[Any, np.ndarray] | None = None) -> dict[Any, np.ndarray]:
-        """Each simulation advanced ``nstep`` ``mj_step`` calls, ``ctrl`` set from ``control``
-        (nsim, nstep, nu) before each, ``record`` items (MjData field names or mjtState specs)
-        recorded after each; a simulation whose warning counters rise stops and its remaining
-        records repeat its last ones."""
+                out: dict[Any, np.ndarray] | None = None, ids=None) -> dict[Any, np.ndarray]:
+        """Each simulation of ``ids`` (default all) advanced ``nstep`` ``mj_step`` calls, ``ctrl``
+        set from ``control`` (n, nstep, nu) before each, ``record`` items (MjData field names or
+        mjtState specs) recorded after each into (n, nstep, ...) arrays; a simulation whose
+        warning counters rise stops and its remaining records repeat its last ones."""
+        ids = range(self.nsim) if ids is None else [int(i) for i in ids]
         out = dict(out or {})
         for item in record:
             if item not in out:
                 template = (np.zeros(mujoco.mj_stateSize(self.model, int(item))) if not isinstance(item, str)
                             else np.asarray(getattr(self._datas[0], item)))
-                out[item] = np.zeros((self.nsim, nstep, *template.shape), template.dtype)
+                out[item] = np.zeros((len(ids), nstep, *template.shape), template.dtype)
         failed, message = [], ""
-        for i in range(self.nsim):
+        for row, i in enumerate(ids):
             m, d = self._models[i], self._load(i)
             before = copy.copy(d)
             warned = sum(w.number for w in d.warning)
             try:
                 for k in range(nstep):
                     if control is not None:
-                        d.ctrl[:] = control[i, k]
+                        d.ctrl[:] = control[row, k]
                     mujoco.mj_step(m, d)
                     for item, buf in out.items():
                         if isinstance(item, str):
-                            buf[i, k] = getattr(d, item)
+                            buf[row, k] = getattr(d, item)
                         else:
-                            mujoco.mj_getState(m, d, buf[i, k], int(item))
+                            mujoco.mj_getState(m, d, buf[row, k], int(item))
                     if sum(w.number for w in d.warning) > warned:
                         for buf in out.values():
-                            buf[i, k + 1:] = buf[i, k]
+                            buf[row, k + 1:] = buf[row, k]
                         break
             except mujoco.FatalError as e:
                 failed.append(i)

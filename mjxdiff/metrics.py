@@ -53,6 +53,7 @@ __all__ = [
     "energy_drift",
     "energy_drift_from",
     "contact_mismatch",
+    "contact_pair_mismatch",
     "tree_max_abs_diff",
 ]
 
@@ -628,6 +629,30 @@ def contact_mismatch(ncon_a: jax.Array, ncon_b: jax.Array,
     """
     diff = jnp.abs(jnp.asarray(ncon_a) - jnp.asarray(ncon_b))
     return jnp.mean(exceeds(diff, atol))
+
+
+def contact_pair_mismatch(pairs_a: jax.Array, pairs_b: jax.Array) -> jax.Array:
+    """Fraction of steps where some geom pair's count of firm contacts differs.
+
+    ``mean_t( any_k pairs_a[t, k] != pairs_b[t, k] )``, with ``pairs`` the per-step sums of
+    two hashes of each contact's geom pair that every engine records (``Trajectory.pairs``,
+    :mod:`mjxdiff.engine.pairs`): equal sums mean equal counts in every pair, so a contact
+    in the wrong pair counts here though the total :func:`contact_mismatch` sees is the same.
+
+    Args:
+      pairs_a: (T, 2) uint32 pair sums per step.
+      pairs_b: (T, 2) the other engine's.
+
+    Returns:
+      float scalar in [0, 1].
+
+    Example:
+      >>> a = jnp.array([[0, 0], [7, 9], [7, 9]], jnp.uint32)
+      >>> b = jnp.array([[0, 0], [7, 9], [5, 9]], jnp.uint32)
+      >>> round(float(contact_pair_mismatch(a, b)), 4)
+      0.3333
+    """
+    return jnp.mean(_as_float(jnp.any(jnp.asarray(pairs_a) != jnp.asarray(pairs_b), axis=-1)))
 
 
 def tree_max_abs_diff(tree_a: Any, tree_b: Any) -> Any:

@@ -154,7 +154,7 @@ def _global_patch(m, d):  # reads the module-level FACTOR
 def test_every_kind_of_code_change_changes_the_digest(change, monkeypatch):
     before = digest.rollout_digest()
     if change == "mjxdiff's own traced code":
-        monkeypatch.setattr(engines, "_contact_count", lambda dx: 0)  # would count no contacts
+        monkeypatch.setattr(engines, "_contacts", lambda dx: 0)  # would count no contacts
     elif change == "a partial":
         monkeypatch.setattr(mjx_passive, "_spring_damper", functools.partial(mjx_passive._spring_damper))
     elif change == "a closure's value":  # same code, another captured number

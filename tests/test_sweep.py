@@ -75,6 +75,12 @@ TOUCHING_XML = """<mujoco><option timestep="0.002"/><worldbody><geom type="plane
 </worldbody></mujoco>"""
 
 
+DECOY_XML = """<mujoco><option timestep="0.002"/><worldbody><geom name="floor" type="plane" size="1 1 0.1"/>
+<geom name="decoy" type="box" size="0.1 0.1 0.1" pos="3 0 0"/>
+<body pos="0 0 0.099"><freejoint/><geom name="ball" type="sphere" size="0.1"/></body>
+</worldbody></mujoco>"""
+
+
 def _c_batches(monkeypatch) -> list[int]:
     """The batch size of every C stream the sweep opens, in order."""
     sizes, real = [], CEngine.stream
@@ -148,10 +154,11 @@ def test_an_injected_bug_fails_the_same_with_the_rerun_on_demand(monkeypatch, fr
     _same_verdict(runs["on-demand"], runs["always"])
 
 
-def test_contact_count_mismatches_start_the_rerun(tmp_path, monkeypatch):
-    """A sphere resting exactly on a plane: C counts the touching contact at step 0, MJX does not.
-    With no contact mismatch tolerated, that one step starts the rerun, whose own contact changes
-    (4 ulps move the sphere above or into the plane) decide the verdict as they do when it always runs."""
+def test_a_grazing_contact_is_ambiguous_not_a_mismatch_and_starts_no_rerun(tmp_path, monkeypatch):
+    """A sphere resting exactly on a plane: C counts the touching contact at step 0, MJX
+    (``dist < margin``, strictly) does not. It grazes its threshold (MuJoCo's parity method's
+    1e-5 m), so it is left out on both sides: each member's step 0 is counted ambiguous, the
+    contacts do not fail even with no mismatch tolerated, and no rerun starts for it."""
     (tmp_path / "touching.xml").write_text(TOUCHING_XML)
     scenario = Scenario(name="touching", model=str(tmp_path / "touching.xml"), randomize=Randomization(
         qpos_noise=0.0, qvel_noise=0.0, control="zero", scale={"gravity": (0.9, 1.1)}))
@@ -160,11 +167,55 @@ def test_contact_count_mismatches_start_the_rerun(tmp_path, monkeypatch):
     tol = dataclasses.replace(scenario.tolerance, contact_mismatch=1e-9)
     batches = _c_batches(monkeypatch)
     runs = _both_modes(m, inputs, tol, piece_steps=50)
-    assert runs["on-demand"].field("contacts").max_error == pytest.approx(1 / 100)
-    assert batches[0] == 4 and batches[1:] == [8, 8], batches
-    assert runs["on-demand"].info["noise_floor_members"] == 4
-    _same_verdict(runs["on-demand"], runs["always"])
-    assert runs["on-demand"].field("contacts").envelope == runs["always"].field("contacts").envelope
+    lazy = runs["on-demand"]
+    assert lazy.status == "pass" and lazy.field("contacts").max_error == 0, lazy.message
+    assert lazy.info["ambiguous_contact_steps"] == 4, "step 0 of each member: C 1 contact, MJX 0"
+    assert batches[0] == 4 and lazy.info["noise_floor_members"] == 0
+    _same_verdict(lazy, runs["always"])
+
+
+def _contact_labelled_decoy(decoy: int, floor: int):
+    """MJX's collision driver labels a contact with the floor as one with ``decoy``, another geom
+    of the world body: the physics is the same (same bodies, same parameters), the count is the
+    same, only the pair a contact sensor or a reward reading ``contact.geom`` sees is wrong."""
+    import jax.numpy as jnp
+    from mujoco.mjx._src import collision_driver
+
+    orig = collision_driver.collision
+
+    def wrong(m, d):
+        d = orig(m, d)
+        c = d._impl.contact
+        relabel = lambda g: jnp.where(g == floor, decoy, g)  # noqa: E731
+        c = c.replace(geom=relabel(c.geom), geom1=relabel(c.geom1), geom2=relabel(c.geom2))
+        return d.replace(_impl=d._impl.replace(contact=c))
+    return collision_driver, "collision", wrong
+
+
+def test_a_contact_in_the_wrong_pair_with_the_same_count_fails_naming_both_pairs(tmp_path, monkeypatch,
+                                                                                  fresh_mjx):
+    """Contacts are matched by geom pair: a contact labelled with the wrong geom (same count, same
+    physics) fails the rollout, the first divergence naming the pair C has and the pair MJX has;
+    the mismatch starts C's rerun on demand (which finds C's own pairs steady) and the verdict is
+    the one the rerun from the start gives. Unmodified, the same rollout passes."""
+    (tmp_path / "decoy.xml").write_text(DECOY_XML)
+    scenario = Scenario(name="decoy", model=str(tmp_path / "decoy.xml"), randomize=Randomization(
+        qpos_noise=1e-3, qvel_noise=0.0, control="zero"))
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, seed=0, batch=4, steps=100)
+    config = dict(piece_steps=50)
+    clean = run_inputs("x", m, inputs, scenario.tolerance, SweepConfig(diagnose="none", onestep=False, **config))
+    assert clean.status == "pass" and clean.field("contacts").max_error == 0, clean.message
+    monkeypatch.setattr(*_contact_labelled_decoy(decoy=1, floor=0))
+    batches = _c_batches(monkeypatch)
+    runs = _both_modes(m, inputs, scenario.tolerance, **config)
+    lazy = runs["on-demand"]
+    assert lazy.status == "fail" and lazy.first_divergence["field"] == "contacts", lazy.message
+    assert lazy.first_divergence["object"] == "pair 'decoy'/'ball' (1 more in MJX), 'floor'/'ball' (1 more in C)"
+    assert [f.max_error for f in lazy.fields if f.field in ("qpos", "qvel")] == [
+        f.max_error for f in clean.fields if f.field in ("qpos", "qvel")], "the same physics"
+    assert batches[0] == 4 and batches[1] == 8 and lazy.info["noise_floor_members"] == 4, batches
+    _same_verdict(lazy, runs["always"])
 
 
 def test_scenarios_side_by_side_judge_as_one_after_another_each_in_its_own_precision(monkeypatch):

@@ -39,6 +39,7 @@ import numpy as np
 from mjxdiff.input.precision import THRESHOLDS, Precision
 from mjxdiff import metrics
 from mjxdiff.compat import jit_for_few_calls
+from mjxdiff.engine import pairs
 from mjxdiff.engine.trajectory import Trajectory
 from mjxdiff.input.inputs import BatchedInputs, roundoff_moved
 
@@ -112,13 +113,14 @@ class NoiseFloor:
             piece = np.maximum(np.maximum.accumulate(v, axis=1), running[members, None])
             running[members] = piece[:, -1]
             envelope[key] = self.margin * piece
-        self._contact_changes[members] += (perturbed.ncon != reference.ncon).sum(axis=1)
+        self._contact_changes[members] += pairs.mismatch(perturbed.pairs, reference.pairs).sum(axis=1)
         self.fed[members] = True
         return envelope
 
     @property
     def contact_fraction(self) -> np.ndarray:
-        """(B,) fraction of the steps whose contact count changed."""
+        """(B,) fraction of the steps where some geom pair's count of firm contacts changed
+        (:mod:`mjxdiff.engine.pairs`; a grazing contact's change is not counted)."""
         return self._contact_changes / max(self.steps, 1)
 
     @property

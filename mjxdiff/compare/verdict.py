@@ -31,6 +31,7 @@ import numpy as np
 from mjxdiff.input import joints
 from mjxdiff.compat import jit_for_few_calls
 from mjxdiff import metrics
+from mjxdiff.engine import pairs
 from mjxdiff.engine.trajectory import Trajectory, first_diverged
 from mjxdiff.compare.noise import FLOORS, NoiseFloor, fit_growth, noise_floor
 from mjxdiff.input.scenario import Tolerances
@@ -456,6 +457,11 @@ class Judge:
         self.rf_mask = rangefinder_mask(m)
         self.fields = {key: _FieldTrack(batch, steps, getattr(tol, key)) for key in _SERIES}
         self.contacts = _FractionTrack(batch, steps, tol.contact_mismatch)
+        #: (B,) steps whose contact count differs in grazing contacts alone (not judged)
+        self.ambiguous = np.zeros(batch, int)
+        #: per member, MJX's pair sums minus C's at its first pair mismatch (and that step)
+        self.pair_delta = np.zeros((batch, 2), np.uint32)
+        self.pair_delta_step = np.full(batch, -1)
         self.rangefinder = _FractionTrack(batch, steps, tol.rangefinder_mismatch)
         width = _track(m, np.zeros((1, m.nq))).shape[-1]
         self.behaviour = {"c": _BehaviourTrack(batch, steps, width), "mjx": _BehaviourTrack(batch, steps, width)}
@@ -509,8 +515,16 @@ class Judge:
             if key == "sensordata":  # its errors are relative above 1
                 values = np.minimum(np.abs(values), 1.0)
             track.update(series[key], bound, traj_c.time, start, members, healthy, floor, values)
-        # a step whose counts differ at all, as metrics.contact_mismatch(atol=0) counts it
-        self.contacts.update(np.asarray(metrics.exceeds(series["ncon"], 0), float), traj_c.time, start, members)
+        # a step where some geom pair's count of firm contacts differs; a count that differs only
+        # in grazing contacts is ambiguous (mjxdiff.engine.pairs)
+        differ = pairs.mismatch(traj_mjx.pairs, traj_c.pairs)
+        self.contacts.update(differ.astype(float), traj_c.time, start, members)
+        self.ambiguous[members] += ((np.asarray(series["ncon"]) > 0) & ~differ).sum(axis=1)
+        first = differ.argmax(axis=1)
+        for row in np.flatnonzero(differ.any(axis=1) & (self.pair_delta_step[members] < 0)):
+            i, k = int(members[row]), int(first[row])
+            self.pair_delta_step[i] = start + k
+            self.pair_delta[i] = np.asarray(traj_mjx.pairs)[row, k] - np.asarray(traj_c.pairs)[row, k]
         if self.rf_mask.any():
             self.rangefinder.update(series["rangefinder"] / self.rf_mask.sum(), traj_c.time, start, members)
 
@@ -564,7 +578,7 @@ class Judge:
         objects = {f: [describe(e) for e in column] for f, column in elements.items()}
         fields = [track.result(key, judged, objects[key], self.dt) for key, track in self.fields.items()]
         allowed = _contact_allowance(self.batch, self.tol, noise, solver)
-        fields.append(self.contacts.result("contacts", allowed, judged))
+        fields.append(self._contact_result(allowed, judged))
         member_fails = mjx_bad.copy()
         for track in self.fields.values():
             member_fails |= track.first_step >= 0
@@ -575,6 +589,15 @@ class Judge:
             member_fails |= self.rangefinder.fraction > rf_allowed
         member_fails &= judged
         return fields, member_fails
+
+    def _contact_result(self, allowed: np.ndarray, judged: np.ndarray) -> FieldResult:
+        """The ``contacts`` field: each member's fraction of steps with a pair mismatch against its
+        allowance, its object the geom pairs that differ at the reported member's first one."""
+        result = self.contacts.result("contacts", allowed, judged)
+        if result.member < 0 or self.pair_delta_step[result.member] < 0:
+            return result
+        found = pairs.decode(self.m, self.pair_delta[result.member])
+        return dataclasses.replace(result, object=pairs.describe_pairs(self.m, found))
 
     def _first_divergence(self, failed: list[FieldResult],
                           elements: dict[str, list[dict[str, str]]]) -> dict[str, Any]:

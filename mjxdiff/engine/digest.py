@@ -38,7 +38,8 @@ __all__ = ["TRACED_MODULES", "code_digest", "code_read_once", "loaded_modules", 
 #: store's or the dependencies' (:data:`mjxdiff.engine.trace_deps.HARNESS`): their run-time state
 #: is not code, and their files are part of every key.
 TRACED_MODULES = ("mujoco.mjx", "mjxdiff.engine.engines", "mjxdiff.engine.trajectory", "mjxdiff.input.joints",
-                  "mjxdiff.compat", "mjxdiff.engine.stages", "mjxdiff.engine.xla")
+                  "mjxdiff.compat", "mjxdiff.engine.stages", "mjxdiff.engine.xla",
+                  "mjxdiff.engine.pairs")
 #: JAX settings that change what a trace or XLA produces.
 _JAX_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion",
                  "jax_default_prng_impl", "jax_threefry_partitionable", "jax_use_shardy_partitioner")

@@ -47,7 +47,7 @@ from mjxdiff.compat import (BALANCED_COMPILE, FAST_COMPILE, Batch, data_impl, di
                             full_inertia, jit_for_few_calls)
 
 from mjxdiff.input.precision import Precision  # noqa: E402
-from mjxdiff.engine import export_cache, stages, xla  # noqa: E402
+from mjxdiff.engine import export_cache, pairs, stages, xla  # noqa: E402
 from mjxdiff.engine.c import CEngine  # noqa: E402
 from mjxdiff.engine.digest import untraced  # noqa: E402
 from mjxdiff.engine.models import UnsupportedError, _unsupported, put_models  # noqa: E402
@@ -86,20 +86,32 @@ def clear_compiled() -> None:
     forward.clear_cache()  # pyright: ignore[reportAttributeAccessIssue]
 
 
-def _contact_count(mx: mjx.Model, dx: mjx.Data, world: jax.Array | None = None) -> jax.Array:
-    """C's ``d.ncon`` from MJX's contacts: those with ``dist < includemargin + gap``
-    (:func:`mjxdiff.engine.stages.contact_gap`; C keeps a gap's inactive contacts, MJX does not).
-    Under MJX's warp implementation, MuJoCo Warp's active contacts of world ``world`` (the
-    member's index in the batch): its contact buffer holds every world's, each tagged."""
+def _contacts(mx: mjx.Model, dx: mjx.Data, world: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+    """(C's ``d.ncon``, (2,) uint32 pair sums :mod:`mjxdiff.engine.pairs`) from MJX's contacts.
+
+    ``d.ncon`` counts those with ``dist < includemargin + gap`` (:func:`mjxdiff.engine.stages.contact_gap`;
+    C keeps a gap's inactive contacts, MJX does not). Under MJX's warp implementation, MuJoCo
+    Warp's active contacts of world ``world`` (the member's index in the batch): its contact
+    buffer holds every world's, each tagged, with ``includemargin = margin - gap`` as C's."""
     impl = data_impl(dx)  # MJX's contacts
     if world is not None:
-        active = jnp.arange(impl.contact__worldid.shape[0]) < jnp.asarray(impl.nacon).reshape(-1)[0]
-        return jnp.sum(active & (impl.contact__worldid == world)).astype(jnp.int32)
+        dist = impl.contact__dist  # pyright: ignore[reportAttributeAccessIssue] - the warp implementation's Data
+        active = jnp.arange(dist.shape[0]) < jnp.asarray(impl.nacon).reshape(-1)[0]
+        active &= impl.contact__worldid == world  # pyright: ignore[reportAttributeAccessIssue]
+        key = pairs.keys(impl.contact__geom, impl.contact__flex, jnp)  # pyright: ignore[reportAttributeAccessIssue]
+        margin = impl.contact__includemargin  # pyright: ignore[reportAttributeAccessIssue]
+        gap = jnp.where(key.min(axis=1) >= 0, stages.contact_gap(mx, jnp.maximum(key, 0), jnp), 0.0)
+        ok = active & pairs.firm(dist, margin, gap, jnp)
+        sums = jnp.sum(jnp.where(ok[:, None], pairs.hashes(key, jnp), jnp.uint32(0)), axis=0, dtype=jnp.uint32)
+        return jnp.sum(active).astype(jnp.int32), sums
     c = impl.contact  # pyright: ignore[reportAttributeAccessIssue] - the JAX implementation's Data
     if c.dist.shape[0] == 0:
-        return jnp.zeros((), jnp.int32)
-    gap = stages.contact_gap(mx, jnp.stack([c.geom1, c.geom2], -1), jnp)
-    return jnp.sum(c.dist < c.includemargin + gap)
+        return jnp.zeros((), jnp.int32), jnp.zeros(2, jnp.uint32)
+    geom = jnp.stack([c.geom1, c.geom2], -1)
+    gap = stages.contact_gap(mx, geom, jnp)
+    ok = pairs.firm(c.dist, c.includemargin, gap, jnp)
+    sums = jnp.sum(jnp.where(ok[:, None], pairs.hashes(geom, jnp), jnp.uint32(0)), axis=0, dtype=jnp.uint32)
+    return jnp.sum(c.dist < c.includemargin + gap), sums
 
 
 def energy(mx: mjx.Model, dx: mjx.Data, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
@@ -144,8 +156,9 @@ def _scan_steps(mx, dx, ctrl, with_energy, n=None, world=None):
     records are zeros), so one compiled piece of T steps serves every horizon up to T: the
     one-step check runs the sweep's own rollout with ``n = 1``."""
     def record(dx, energy_):
+        ncon, pair_sums = _contacts(mx, dx, world)
         rec = dict(qpos=dx.qpos, qvel=dx.qvel, act=dx.act, sensordata=dx.sensordata,
-                   time=dx.time, ncon=_contact_count(mx, dx, world))
+                   time=dx.time, ncon=ncon, pairs=pair_sums)
         if with_energy:
             rec["energy"] = energy_
         if world is not None:  # MJX's warp implementation: the buffers it overflowed so far, a bitmask
@@ -553,7 +566,7 @@ class MJXWarpEngine(MJXEngine):
     kernels run through FFI handlers registered by this process, which no saved artifact may
     outlive: nothing is saved, and the vendored Warp code is read at run time), the buffers Warp
     keeps for all worlds passed unbatched (:func:`_warp_shared`), contacts counted per world from
-    Warp's buffer (:func:`_contact_count`), and the drill-down's mass matrix and contacts read
+    Warp's buffer (:func:`_contacts`), and the drill-down's mass matrix and contacts read
     from the implementation's buffers rather than ``mjx.get_data`` (see :meth:`forward`).
     Kernels compile on first use into Warp's cache (``~/.cache/warp``; pendulum 17 s cold here)."""
 
@@ -666,6 +679,6 @@ def _trajectory(rec: dict[str, np.ndarray], batch: int, steps: int) -> Trajector
     nonfinite = ~np.isfinite(rec["qpos"]).all(-1) | ~np.isfinite(rec["qvel"]).all(-1)
     return Trajectory(qpos=rec["qpos"], qvel=rec["qvel"], act=rec["act"],
                       sensordata=rec["sensordata"], time=rec["time"], ncon=rec["ncon"].astype(np.int64),
-                      energy=rec.get("energy", np.zeros((batch, steps, 0))),
+                      pairs=rec["pairs"], energy=rec.get("energy", np.zeros((batch, steps, 0))),
                       # numpy's stubs type .all(axis) as maybe a scalar
                       diverged_at=first_true(nonfinite))  # pyright: ignore[reportArgumentType]

@@ -29,7 +29,7 @@ import numpy as np
 from mjxdiff.errors import one_line
 from mjxdiff.engine.engines import overflow_names, warp_capacity
 from mjxdiff.engine.models import _unsupported
-from mjxdiff.engine import stages
+from mjxdiff.engine import pairs, stages
 from mjxdiff.input.precision import Precision
 from mjxdiff.engine.stages import Forward
 from mjxdiff.engine.trajectory import Streaming, Trajectory, first_true, shifted
@@ -43,6 +43,8 @@ INSTALL = "pip install 'mjxdiff[warp]' (mujoco-warp and warp-lang)"
 # Warp's module build and kernel launches are not made for threads racing each other: one
 # scenario at a time steps MJWarp (the sweep's other worker keeps C and MJX busy).
 _LOCK = threading.RLock()
+#: What each step records, as lists of (B, ...) arrays.
+_RECORDS = ("qpos", "qvel", "act", "sensordata", "time", "ncon", "pairs")
 _READY = False
 
 
@@ -221,17 +223,24 @@ class MJWarpEngine(Streaming):
             raise RuntimeError(f"MJWarp ran out of contact or constraint rows at step {t} (naconmax "
                                f"{d.naconmax}, njmax {d.njmax} per world): its results there are not the model's")
         _check_buffers(d, f"at step {t}")
-        rec["ncon"].append(np.bincount(d.contact.worldid.numpy()[:n], minlength=d.nworld)[:d.nworld])
+        world = d.contact.worldid.numpy()[:n]
+        rec["ncon"].append(np.bincount(world, minlength=d.nworld)[:d.nworld])
+        flex = d.contact.flex.numpy()[:n] if hasattr(d.contact, "flex") else None
+        key = pairs.keys(d.contact.geom.numpy()[:n], flex)
+        gap = np.where(key.min(axis=1, initial=0) >= 0, stages.contact_gap(m, np.maximum(key, 0)), 0.0)
+        rec["pairs"].append(pairs.host_signatures(key, d.contact.dist.numpy()[:n], d.contact.includemargin.numpy()[:n],
+                                                  gap, world, d.nworld))
 
     @staticmethod
     def _trajectory(rec: dict[str, list], m: mujoco.MjModel, B: int, start: int) -> Trajectory:
         k = len(rec["qpos"])
-        out = {f: np.stack(v, axis=1).astype(np.float64) for f, v in rec.items() if f != "ncon"}
+        out = {f: np.stack(v, axis=1).astype(np.float64) for f, v in rec.items() if f not in ("ncon", "pairs")}
         out["act"] = out["act"].reshape(B, k, m.na)
         out["sensordata"] = out["sensordata"].reshape(B, k, m.nsensordata)
         nonfinite = ~np.isfinite(out["qpos"]).all(-1) | ~np.isfinite(out["qvel"]).all(-1)
         return Trajectory(qpos=out["qpos"], qvel=out["qvel"], act=out["act"], sensordata=out["sensordata"],
                           time=out["time"], ncon=np.stack(rec["ncon"], axis=1).astype(np.int64),
+                          pairs=np.stack(rec["pairs"], axis=1),
                           # numpy's stubs type .all(axis) as maybe a scalar
                           energy=np.zeros((B, k, 0)), diverged_at=shifted(first_true(nonfinite), start))  # pyright: ignore[reportArgumentType]
 
@@ -248,7 +257,7 @@ class MJWarpEngine(Streaming):
 
         def pieces() -> Iterator[Trajectory]:
             for start in range(0, T, chunk):
-                rec: dict[str, list] = {f: [] for f in ("qpos", "qvel", "act", "sensordata", "time", "ncon")}
+                rec: dict[str, list] = {f: [] for f in _RECORDS}
                 with _LOCK, wp.ScopedDevice("cpu"), _unsupported():
                     for t in range(start, min(start + chunk, T)):
                         self._step(mw, d, m, ctrl[:, t], t, rec)
@@ -265,7 +274,7 @@ class MJWarpEngine(Streaming):
         B, T, m = inputs.batch, inputs.steps, inputs.models[0]
         mw, d = self._setup(inputs)
         ctrl = np.asarray(inputs.ctrl, np.float32)
-        rec: dict[str, list] = {f: [] for f in ("qpos", "qvel", "act", "sensordata", "time", "ncon")}
+        rec: dict[str, list] = {f: [] for f in _RECORDS}
         with _LOCK, wp.ScopedDevice("cpu"), _unsupported():
             for t in range(T):
                 if t % every == 0 and t > 0:

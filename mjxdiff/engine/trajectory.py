@@ -5,7 +5,7 @@ rollouts in one shape whatever the engine, and :class:`Engine`, the interface Mu
 read trajectories without importing any engine.
 
 Recording follows ``mj_step``: after step k, ``qpos``/``qvel``/``act``/``time`` are the new
-state, while ``sensordata`` and ``ncon`` were computed from the state before the step.
+state, while ``sensordata``, ``ncon`` and ``pairs`` were computed from the state before the step.
 """
 
 from __future__ import annotations
@@ -39,6 +39,9 @@ class Trajectory:
       time: (B, T) simulated time after each step, s.
       ncon: (B, T) number of contacts, C's ``d.ncon`` (a gap's inactive ones included), evaluated
         before each step.
+      pairs: (B, T, 2) uint32 sums of two hashes of each firm contact's geom pair, before each
+        step (:mod:`mjxdiff.engine.pairs`): equal where every geom pair has the same number of
+        contacts, grazing ones left out.
       energy: (B, T, 2) potential and kinetic energy (J) before each step, as
         MuJoCo's ``d.energy``; (B, T, 0) unless the inputs ask for energy.
         Exact for Euler and implicitfast. Under RK4 neither record is the
@@ -54,6 +57,7 @@ class Trajectory:
     sensordata: np.ndarray | jax.Array
     time: np.ndarray | jax.Array
     ncon: np.ndarray | jax.Array
+    pairs: np.ndarray | jax.Array
     energy: np.ndarray | jax.Array
     diverged_at: np.ndarray | jax.Array
 

@@ -215,8 +215,9 @@ def verdict(case: Case, seconds: dict[str, Any], solver: bool = False) -> tuple[
     against the larger of both floors (:func:`mjxdiff.compare.noise.combine`).
 
     Returns:
-      The verdict, and the counts of ``groups``, ``pieces`` and ``noise_floor_members``
-      (members whose perturbed rerun ran).
+      The verdict, and the counts of ``groups``, ``pieces``, ``noise_floor_members`` (members
+      whose perturbed rerun ran) and ``ambiguous_contact_steps`` (member-steps whose contact
+      counts differ in grazing contacts alone, not judged: :mod:`mjxdiff.engine.pairs`).
 
     Raises:
       UnsupportedError, EngineFailed: from the engines.
@@ -276,5 +277,6 @@ def verdict(case: Case, seconds: dict[str, Any], solver: bool = False) -> tuple[
         noise = floor if floor is not None and floor.fed.any() else None
         result = judge.result(name, config.threshold, noise, solver_floor if noise is not None else None)
     counts = dict(groups=len(groups), pieces=len(groups) * -(-T // chunk), xla=engines.last_choice(),
-                  noise_floor_members=int(floor.fed.sum()) if floor is not None else 0)
+                  noise_floor_members=int(floor.fed.sum()) if floor is not None else 0,
+                  ambiguous_contact_steps=int(judge.ambiguous.sum()))
     return result, counts
