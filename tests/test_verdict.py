@@ -35,16 +35,17 @@ def lidar():
 
 def _with_bugs(traj: Trajectory) -> Trajectory:
     """``traj`` with a qvel error from step 23 in member 2, a sensor error from step 9 in
-    member 4, a contact-count mismatch at step 31 in member 1 and a NaN blow-up in member 5."""
+    member 4, a contact in another geom pair at step 31 in member 1 (its pair sums changed: the
+    count is the same) and a NaN blow-up in member 5."""
     qvel, sens = traj.qvel.copy(), traj.sensordata.copy()
-    ncon, qpos = traj.ncon.copy(), traj.qpos.copy()
+    pair_sums, qpos = traj.pairs.copy(), traj.qpos.copy()
     qvel[2, 23:, 1] += 1e-3
     sens[4, 9:, 0] += 5e-2
-    ncon[1, 31] += 1
+    pair_sums[1, 31] += np.uint32(12345)
     qpos[5, 17:] = np.nan
     diverged = traj.diverged_at.copy()
     diverged[5] = 17
-    return dataclasses.replace(traj, qvel=qvel, sensordata=sens, ncon=ncon, qpos=qpos, diverged_at=diverged)
+    return dataclasses.replace(traj, qvel=qvel, sensordata=sens, pairs=pair_sums, qpos=qpos, diverged_at=diverged)
 
 
 def _pieces(traj: Trajectory, k: int) -> list[Trajectory]:
@@ -203,7 +204,7 @@ def test_the_reports_numbers_are_what_mjxdiff_metrics_computes(lidar):
         assert got["max_error"] == pytest.approx(worst, rel=1e-12), field
         steps = [int(metrics.first_exceedance(e, getattr(tol, field))) for e in errors]
         assert got["first_step"] == min([s for s in steps if s >= 0], default=-1), field
-    contacts = [float(metrics.contact_mismatch(traj_mjx.ncon[i], traj_c.ncon[i])) for i in range(B)]
+    contacts = [float(metrics.contact_pair_mismatch(traj_mjx.pairs[i], traj_c.pairs[i])) for i in range(B)]
     assert doc["fields"]["contacts"]["max_error"] == pytest.approx(max(contacts), rel=1e-12)
     rays = [float(np.mean(metrics.rangefinder_hit_mismatch(traj_mjx.sensordata[i], traj_c.sensordata[i], mask)))
             / mask.sum() for i in range(B)]

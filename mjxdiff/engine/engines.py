@@ -86,8 +86,11 @@ def clear_compiled() -> None:
     forward.clear_cache()  # pyright: ignore[reportAttributeAccessIssue]
 
 
-def _contacts(mx: mjx.Model, dx: mjx.Data, world: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
-    """(C's ``d.ncon``, (2,) uint32 pair sums :mod:`mjxdiff.engine.pairs`) from MJX's contacts.
+def _contacts(mx: mjx.Model, dx: mjx.Data, world: jax.Array | None = None) -> tuple[jax.Array, jax.Array | None]:
+    """(C's ``d.ncon``, (2,) uint32 pair sums :mod:`mjxdiff.engine.pairs`) from MJX's contacts;
+    no sums (None) where the model has no contact to sum: a constant output left out, so that
+    the compiled step of a model without contacts is what it was without them (XLA fuses a
+    loop with one more output otherwise, and pieces of different lengths then round apart).
 
     ``d.ncon`` counts those with ``dist < includemargin + gap`` (:func:`mjxdiff.engine.stages.contact_gap`;
     C keeps a gap's inactive contacts, MJX does not). Under MJX's warp implementation, MuJoCo
@@ -106,7 +109,7 @@ def _contacts(mx: mjx.Model, dx: mjx.Data, world: jax.Array | None = None) -> tu
         return jnp.sum(active).astype(jnp.int32), sums
     c = impl.contact  # pyright: ignore[reportAttributeAccessIssue] - the JAX implementation's Data
     if c.dist.shape[0] == 0:
-        return jnp.zeros((), jnp.int32), jnp.zeros(2, jnp.uint32)
+        return jnp.zeros((), jnp.int32), None
     geom = jnp.stack([c.geom1, c.geom2], -1)
     gap = stages.contact_gap(mx, geom, jnp)
     ok = pairs.firm(c.dist, c.includemargin, gap, jnp)
@@ -157,8 +160,9 @@ def _scan_steps(mx, dx, ctrl, with_energy, n=None, world=None):
     one-step check runs the sweep's own rollout with ``n = 1``."""
     def record(dx, energy_):
         ncon, pair_sums = _contacts(mx, dx, world)
-        rec = dict(qpos=dx.qpos, qvel=dx.qvel, act=dx.act, sensordata=dx.sensordata,
-                   time=dx.time, ncon=ncon, pairs=pair_sums)
+        rec = dict(qpos=dx.qpos, qvel=dx.qvel, act=dx.act, sensordata=dx.sensordata, time=dx.time, ncon=ncon)
+        if pair_sums is not None:
+            rec["pairs"] = pair_sums
         if with_energy:
             rec["energy"] = energy_
         if world is not None:  # MJX's warp implementation: the buffers it overflowed so far, a bitmask
@@ -679,6 +683,7 @@ def _trajectory(rec: dict[str, np.ndarray], batch: int, steps: int) -> Trajector
     nonfinite = ~np.isfinite(rec["qpos"]).all(-1) | ~np.isfinite(rec["qvel"]).all(-1)
     return Trajectory(qpos=rec["qpos"], qvel=rec["qvel"], act=rec["act"],
                       sensordata=rec["sensordata"], time=rec["time"], ncon=rec["ncon"].astype(np.int64),
-                      pairs=rec["pairs"], energy=rec.get("energy", np.zeros((batch, steps, 0))),
+                      pairs=rec.get("pairs", np.zeros((batch, steps, 2), np.uint32)),
+                      energy=rec.get("energy", np.zeros((batch, steps, 0))),
                       # numpy's stubs type .all(axis) as maybe a scalar
                       diverged_at=first_true(nonfinite))  # pyright: ignore[reportArgumentType]
