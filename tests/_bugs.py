@@ -7,14 +7,17 @@ compiled rollouts cleared around it so the patch is traced and nothing patched o
 :func:`caught` is the whole proof of a catch: the scenario at that config passes unmodified
 (:func:`clean`, once per scenario and config in a test process), and with the bug it fails
 naming the field and the object the bug must produce (:class:`Expect`), at a step inside the
-rollout, beyond its tolerance.
+rollout, beyond its tolerance. :func:`mutant` builds the other kind, a source-mutation audit's
+slip: a function recompiled from its source with one line changed.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import inspect
 import re
+import textwrap
 from collections.abc import Callable, Sequence
 
 import jax
@@ -29,6 +32,26 @@ from mjxdiff.input.scenario import Scenario, load_scenario
 from mjxdiff.runner.sweep import ScenarioResult, SweepConfig, run_scenario
 
 Bug = Callable[[pytest.MonkeyPatch], None]
+
+
+def _undecorated(fn):
+    """The function a decorator wraps (``collision_convex.collider`` and ``named_scope`` keep it
+    in their closure)."""
+    inner = [c.cell_contents for c in fn.__closure__ or () if inspect.isfunction(c.cell_contents)]
+    return inner[0] if inner else fn
+
+
+def mutant(module, fn, old: str, new: str):
+    """``fn`` (of ``module``) compiled from its source with its one line ``old`` (stripped) now
+    ``new``, decorators included: a source-mutation audit's one-line slip, to patch in."""
+    lines = textwrap.dedent(inspect.getsource(_undecorated(fn))).splitlines(keepends=True)
+    hits = [i for i, line in enumerate(lines) if line.strip() == old]
+    assert len(hits) == 1, f"{fn.__name__}: {old!r} found {len(hits)} times (MJX changed?)"
+    i = hits[0]
+    lines[i] = lines[i][:len(lines[i]) - len(lines[i].lstrip())] + new + "\n"
+    namespace = dict(vars(module))
+    exec(compile("".join(lines), inspect.getsourcefile(module), "exec"), namespace)
+    return namespace[_undecorated(fn).__name__]
 
 
 def model_edited(mp: pytest.MonkeyPatch, module, name: str, edit: Callable) -> None:

@@ -17,9 +17,6 @@ model reaches the branch, and each paired with the same scenario passing unmodif
 Each bug is the audit's own mutation: the function's source with one line changed, compiled in
 its module's namespace and patched in for the test."""
 
-import inspect
-import textwrap
-
 import mujoco
 import numpy as np
 import pytest
@@ -29,31 +26,12 @@ from mujoco.mjx._src import collision_primitive as mjx_primitive
 from mujoco.mjx._src import math as mjx_math
 from mujoco.mjx._src.types import GeomType
 
-from _bugs import Expect, caught
+from _bugs import Expect, caught, mutant
 from mjxdiff.input.scenario import load_model, load_scenario
 from mjxdiff.runner.sweep import SweepConfig
 
 #: The rollout's verdict alone, as in test_wider_reach.
 CONFIG = SweepConfig(seed=0, batch=2, steps=150, diagnose="none", onestep=False, transfer=False)
-
-
-def _undecorated(fn):
-    """The function a collider wraps (``collision_convex.collider`` keeps it in its closure)."""
-    inner = [c.cell_contents for c in fn.__closure__ or () if inspect.isfunction(c.cell_contents)]
-    return inner[0] if inner else fn
-
-
-def mutant(module, fn, old: str, new: str):
-    """``fn`` (of ``module``) compiled from its source with its one line ``old`` (stripped) now
-    ``new``, decorators included."""
-    lines = textwrap.dedent(inspect.getsource(_undecorated(fn))).splitlines(keepends=True)
-    hits = [i for i, line in enumerate(lines) if line.strip() == old]
-    assert len(hits) == 1, f"{fn.__name__}: {old!r} found {len(hits)} times (MJX changed?)"
-    i = hits[0]
-    lines[i] = lines[i][:len(lines[i]) - len(lines[i].lstrip())] + new + "\n"
-    namespace = dict(vars(module))
-    exec(compile("".join(lines), inspect.getsourcefile(module), "exec"), namespace)
-    return namespace[_undecorated(fn).__name__]
 
 
 def capsule_clamp_on_other_half_length(monkeypatch):
