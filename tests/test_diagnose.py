@@ -408,18 +408,46 @@ def test_an_integration_ablation_names_the_cause_only_where_every_forward_stage_
     else:
         assert found == cause
     contacts = dict(cause="contact generation", ablation="contacts disabled", tried=[])
-    assert diagnose.reconcile_cause(contacts, drill) == contacts
+    assert (diagnose.reconcile_cause(contacts, drill) == contacts) is (first_stage is None)
     assert diagnose.reconcile_cause(cause, None) == cause
 
 
 def test_contacts_disabled_names_the_cause_only_where_the_difference_can_come_from_contacts():
     """A touch sensor's ray flipped for the contact's second body passed with contacts disabled
-    (both engines then read 0): the first stage to differ, sensors, is not contact generation's."""
+    (both engines then read 0): the first stage to differ, sensors, is not contact generation's.
+    Nor is constraint, now that a contact's parameters (solref, solimp, ...) are compared at
+    collision: a slip in the solver's line search or in the impedance passes with contacts
+    disabled too (no contact, no rows to solve), and showed as "contact generation" before."""
     from mjxdiff.compare import diagnose
 
     contacts = dict(cause="contact generation", ablation="contacts disabled", tried=[])
-    for stage, explained in (("sensors", False), ("passive", False), ("collision", True), ("constraint", True)):
+    for stage, explained in (("sensors", False), ("passive", False), ("collision", True), ("constraint", False)):
         drill = diagnose.DrillDown(member=0, step=3, first_stage=stage, first_field="x", object="y", fields=())
         found = diagnose.reconcile_cause(contacts, drill)
         assert (found == contacts) is explained, stage
         assert explained or (found["cause"] == diagnose.GENUINE and found["steered_clear"] == "contacts disabled")
+
+
+def test_a_contact_s_mixed_parameters_are_named_at_collision(monkeypatch, fresh_mjx):
+    """A contact's solref, solimp and friction parameters are part of what the collision stage
+    compares: two geoms of equal priority mixing their solref with each other's weight (the
+    solmix source mutation) are named at collision, the floor-ball pair, by the parameter
+    that differs, rather than first at constraint (qfrc_constraint). Unmodified, the same state
+    has no differing stage."""
+    import mujoco
+
+    from mjxdiff.compare import diagnose
+    from mjxdiff.input.scenario import load_model
+    from test_parameter_families import solmix_swapped
+
+    m = load_model(load_scenario("contact_parameters"))
+    d = mujoco.MjData(m)
+    for _ in range(60):  # the ball (solmix 2) rests on the floor (solmix 1), both priority 1
+        mujoco.mj_step(m, d)
+    state = (d.qpos, d.qvel, d.act, d.ctrl, d.time)
+    clean = diagnose.drill_down(m, *state, qacc_warmstart=d.qacc_warmstart)
+    assert clean.first_stage is None, diagnose.first_fields(clean)
+    solmix_swapped(monkeypatch)
+    bugged = diagnose.drill_down(m, *state, qacc_warmstart=d.qacc_warmstart)
+    assert bugged.first_stage == "collision" and bugged.contact["geoms"] == ["floor", "ball"], bugged.contact
+    assert bugged.contact["part"] in ("solref", "solimp") and bugged.contact["c"] == bugged.contact["mjx"] == 1

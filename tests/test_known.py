@@ -96,7 +96,8 @@ def test_an_entry_about_mjx_s_code_does_not_label_another_implementation():
     assert known.match(truncated).id in support.ANY_IMPL
     # MuJoCo Warp's own: the model must have what the divergence needs
     solref = dict(name="s", status="fail", message="", info=dict(impl="mjx.warp", features=[]),
-                  diagnosis=dict(drill_down=dict(first_stage="constraint")))
+                  diagnosis=dict(drill_down=dict(first_stage="collision", contact=dict(
+                      pair="plane-sphere", geoms=["floor", "puck"], c=1, mjx=1, part="solref"))))
     assert known.match(solref) is None
     feature = dict(solref["info"], features=["contact:direct-solref-under-priority"])
     assert known.match(dict(solref, info=feature)).id == "warp-solref-priority"

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from mjxdiff.engine.stages import Contacts, contacts_c as _contacts_c, contacts_mjx as _contacts_mjx  # noqa: F401
+from mjxdiff.engine.stages import PARAMETERS, Contacts, contacts_c as _contacts_c, contacts_mjx as _contacts_mjx  # noqa: F401
 from mjxdiff.input.precision import THRESHOLDS, Precision
 from mjxdiff.errors import one_line
 from mjxdiff.compat import full_inertia, sensor_types
@@ -169,7 +169,8 @@ def contact_detail(pair: str, geoms: tuple[str, ...], c: int, mjx: int, part: st
 
 
 #: What each number of a collected contact is (:func:`_contacts_c`).
-_CONTACT_PARTS = ("dist",) + ("position",) * 3 + ("friction",) * 2 + ("normal",) * 3 + ("tangent frame",) * 6
+_CONTACT_PARTS = (("dist",) + ("position",) * 3 + ("friction",) * 2 + ("normal",) * 3 + ("tangent frame",) * 6
+                  + tuple(name for name, n in PARAMETERS for _ in range(n)))
 #: The numbers of a contact's geometry: where they differ, a frame or friction that differs with
 #: them follows from them, and the geometry is what the contact's difference is.
 _GEOMETRY = np.array([i for i, part in enumerate(_CONTACT_PARTS) if part in ("dist", "position", "normal")])
@@ -524,7 +525,9 @@ ABLATIONS: tuple[tuple[str, str, Callable[[mujoco.MjModel], None]], ...] = (
 #: engines compute a touch, a limit or a passive force differently from the same contacts.
 CAUSE_STAGES: dict[str, tuple[str | None, ...]] = {
     "integration": (None, "integration"),
-    "contact generation": (None, "collision", "constraint", "acceleration", "integration"),
+    # a contact's parameters are compared at collision too (stages.PARAMETERS): a difference first
+    # seen later is the solver's or the impedance's, which turning contacts off also removes
+    "contact generation": (None, "collision"),
 }
 
 

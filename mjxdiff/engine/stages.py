@@ -12,7 +12,8 @@ import numpy as np
 
 from mjxdiff.compat import data_impl, full_inertia
 
-__all__ = ["Contacts", "Forward", "contact_gap", "contacts_c", "contacts_mjx", "contacts_mjx_warp", "frame", "read"]
+__all__ = ["PARAMETERS", "Contacts", "Forward", "contact_gap", "contacts_c", "contacts_mjx", "contacts_mjx_warp",
+           "frame", "read"]
 
 
 Contacts = dict[tuple[int, ...], list[tuple[float, ...]]]
@@ -35,16 +36,27 @@ def frame(m: mujoco.MjModel, nine: np.ndarray, friction: np.ndarray, geom: np.nd
     return tuple(map(float, rows.ravel()))
 
 
+#: The contact parameters a contact tuple ends with, after its geometry, friction and frame:
+#: what the constraint is built from (field of C's ``mjContact``, how many numbers).
+PARAMETERS = (("solref", 2), ("solreffriction", 2), ("solimp", 5), ("includemargin", 1), ("dim", 1))
+
+
+def _tuple(m: mujoco.MjModel, dist, pos, friction, frame9, geom, params) -> tuple[float, ...]:
+    """One contact as the drill-down compares it (:func:`contacts_c`)."""
+    return (float(dist), *map(float, pos), float(friction[0]), float(friction[1]), *frame(m, frame9, friction, geom),
+            *(float(x) for p in params for x in np.ravel(p)))
+
+
 def contacts_c(m: mujoco.MjModel, d: mujoco.MjData) -> Contacts:
     """Contacts by geom pair, the ``d.ncon`` of them (a gap's inactive ones too): (dist, pos x, y, z,
-    friction[0], friction[1], frame (9,), :func:`frame`) each. A flex side of a contact (geom -1) is
-    keyed ``-1 - flex id``."""
+    friction[0], friction[1], frame (9,), :func:`frame`, then the :data:`PARAMETERS`) each. A flex
+    side of a contact (geom -1) is keyed ``-1 - flex id``."""
     out: Contacts = {}
     for c in d.contact[:d.ncon]:
         # geom1/geom2 are not filled by mujoco_warp.get_data_into
         key = tuple(sorted(int(g) if g >= 0 else -1 - int(f) for g, f in zip(c.geom, c.flex)))
-        out.setdefault(key, []).append((float(c.dist), *map(float, c.pos), float(c.friction[0]), float(c.friction[1]),
-                                        *frame(m, c.frame, c.friction, c.geom)))
+        out.setdefault(key, []).append(_tuple(m, c.dist, c.pos, c.friction, c.frame, c.geom,
+                                              [getattr(c, name) for name, _ in PARAMETERS]))
     return out
 
 
@@ -75,14 +87,23 @@ def contacts_mjx(m: mujoco.MjModel, dx: Any) -> Contacts:
     """:func:`contacts_c` of MJX's data: its contacts closer than C's margin (``includemargin +``
     :func:`contact_gap`), the ones ``d.contact[:d.ncon]`` holds."""
     c = data_impl(dx).contact  # MJX's contacts
-    dist, margin, geom, pos, friction, frames = map(np.asarray, (c.dist, c.includemargin, c.geom, c.pos, c.friction,
-                                                                 c.frame))
-    margin = margin + contact_gap(m, geom)
+    dist, margin, geom = np.asarray(c.dist), np.asarray(c.includemargin), np.asarray(c.geom)
+    keep = np.flatnonzero(dist < margin + contact_gap(m, geom))
+    return _collect(m, {f: np.asarray(getattr(c, f)) for f in _READ}, keep)
+
+
+#: The contact fields :func:`_collect` reads.
+_READ = ("dist", "geom", "pos", "friction", "frame") + tuple(name for name, _ in PARAMETERS)
+
+
+def _collect(m: mujoco.MjModel, fields: dict[str, np.ndarray], rows: Any) -> Contacts:
+    """:func:`contacts_c`'s form of the contacts ``rows`` of arrays ``fields`` (by ``mjContact`` name)."""
     out: Contacts = {}
-    for i in np.flatnonzero(dist < margin):
-        key = tuple(sorted(int(g) for g in geom[i]))
-        out.setdefault(key, []).append((float(dist[i]), *map(float, pos[i]), float(friction[i, 0]),
-                                        float(friction[i, 1]), *frame(m, frames[i], friction[i], geom[i])))
+    for i in rows:
+        geom = fields["geom"][i]
+        key = tuple(sorted(int(g) for g in geom))
+        out.setdefault(key, []).append(_tuple(m, fields["dist"][i], fields["pos"][i], fields["friction"][i],
+                                              fields["frame"][i], geom, [fields[name][i] for name, _ in PARAMETERS]))
     return out
 
 
@@ -93,14 +114,7 @@ def contacts_mjx_warp(m: mujoco.MjModel, dx: Any) -> Contacts:
     plane came back as geoms (22013, 0), geom1 -2004796448) while the buffers hold C's."""
     impl = data_impl(dx)
     n = int(np.asarray(impl.nacon).ravel()[0])
-    dist, geom, pos, friction, frames = (np.asarray(getattr(impl, f"contact__{f}"))[:n]
-                                         for f in ("dist", "geom", "pos", "friction", "frame"))
-    out: Contacts = {}
-    for i in range(n):
-        key = tuple(sorted(int(g) for g in geom[i]))
-        out.setdefault(key, []).append((float(dist[i]), *map(float, pos[i]), float(friction[i, 0]),
-                                        float(friction[i, 1]), *frame(m, frames[i], friction[i], geom[i])))
-    return out
+    return _collect(m, {f: np.asarray(getattr(impl, f"contact__{f}"))[:n] for f in _READ}, range(n))
 
 
 @dataclasses.dataclass(frozen=True)
