@@ -32,6 +32,7 @@ from mjxdiff.input import joints
 from mjxdiff.compat import jit_for_few_calls
 from mjxdiff import metrics
 from mjxdiff.engine import pairs
+from mjxdiff.compare.ambiguity import CcdAmbiguity
 from mjxdiff.engine.trajectory import Trajectory, first_diverged
 from mjxdiff.compare.noise import FLOORS, NoiseFloor, fit_growth, noise_floor
 from mjxdiff.input.scenario import Tolerances
@@ -459,6 +460,9 @@ class Judge:
         self.contacts = _FractionTrack(batch, steps, tol.contact_mismatch)
         #: (B,) steps whose contact count differs in grazing contacts alone (not judged)
         self.ambiguous = np.zeros(batch, int)
+        #: C's own contacts rechecked at mismatching steps (:mod:`mjxdiff.compare.ambiguity`);
+        #: None: not checked (set by the caller, who has the members' models)
+        self.ccd: CcdAmbiguity | None = None
         #: per member, MJX's pair sums minus C's at its first pair mismatch (and that step)
         self.pair_delta = np.zeros((batch, 2), np.uint32)
         self.pair_delta_step = np.full(batch, -1)
@@ -518,6 +522,10 @@ class Judge:
         # a step where some geom pair's count of firm contacts differs; a count that differs only
         # in grazing contacts is ambiguous (mjxdiff.engine.pairs)
         differ = pairs.mismatch(traj_mjx.pairs, traj_c.pairs)
+        if self.ccd is not None:
+            before = self.ccd.before(traj_c.qpos, members)
+            if differ.any():
+                differ = self.ccd.filter(differ, before, members, start)
         self.contacts.update(differ.astype(float), traj_c.time, start, members)
         self.ambiguous[members] += ((np.asarray(series["ncon"]) > 0) & ~differ).sum(axis=1)
         first = differ.argmax(axis=1)

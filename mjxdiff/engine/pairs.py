@@ -24,7 +24,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-__all__ = ["GRAZING", "decode", "describe_pairs", "firm", "hashes", "host_signatures", "keys", "mismatch"]
+__all__ = ["GRAZING", "decode", "describe_pairs", "firm", "hashes", "host_signatures", "keys", "mismatch", "of_data"]
 
 #: m: a contact whose ``dist`` lies this close to ``includemargin`` (or ``includemargin + gap``)
 #: is grazing: counted by neither engine's pair sums (MuJoCo's parity method's ``dist_tolerance``).
@@ -133,3 +133,17 @@ def describe_pairs(m: mujoco.MjModel, decoded: list[tuple[tuple[int, int], int]]
         more = a if k > 0 else b
         parts.append(f"'{_side_name(m, g1)}'/'{_side_name(m, g2)}' ({abs(k)} more in {more})")
     return "pair " + ", ".join(parts)
+
+
+def of_data(m: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
+    """(2,) uint32 pair sums of the contacts C's ``d`` holds (after a forward pass)."""
+    n = d.ncon
+    key = keys(d.contact.geom[:n], d.contact.flex[:n])
+    gap = np.where(key.min(axis=1, initial=0) >= 0, _gap(m, np.maximum(key, 0)), 0.0)
+    return host_signatures(key, d.contact.dist[:n], d.contact.includemargin[:n], gap, np.zeros(n, int), 1)[0]
+
+
+def _gap(m: mujoco.MjModel, geom: np.ndarray) -> np.ndarray:
+    from mjxdiff.engine.stages import contact_gap
+
+    return contact_gap(m, geom)

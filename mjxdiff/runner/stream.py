@@ -15,6 +15,7 @@ import jax
 import mujoco
 import numpy as np
 
+from mjxdiff.compare.ambiguity import CcdAmbiguity
 from mjxdiff.compare.noise import SOLVER_MARGIN, STEP_JITTER, NoiseFloor, combine, converged, perturb
 from mjxdiff.compare.verdict import Judge, ScenarioResult, rangefinder_mask
 from mjxdiff.compat import enable_x64
@@ -216,8 +217,9 @@ def verdict(case: Case, seconds: dict[str, Any], solver: bool = False) -> tuple[
 
     Returns:
       The verdict, and the counts of ``groups``, ``pieces``, ``noise_floor_members`` (members
-      whose perturbed rerun ran) and ``ambiguous_contact_steps`` (member-steps whose contact
-      counts differ in grazing contacts alone, not judged: :mod:`mjxdiff.engine.pairs`).
+      whose perturbed rerun ran) and ``ambiguous_contact_steps`` (member-steps whose contacts
+      differ in grazing contacts alone, :mod:`mjxdiff.engine.pairs`, or in pairs C itself
+      changes under the parity method's perturbations, :mod:`mjxdiff.compare.ambiguity`: not judged).
 
     Raises:
       UnsupportedError, EngineFailed: from the engines.
@@ -227,6 +229,7 @@ def verdict(case: Case, seconds: dict[str, Any], solver: bool = False) -> tuple[
     B, T = inputs.batch, inputs.steps
     groups, chunk = layout(m, inputs, config, under_test, case.plan_for)
     judge = Judge(m, tol, B, T)
+    judge.ccd = CcdAmbiguity(inputs.models, inputs.qpos, inputs.seed)
     floor = NoiseFloor(m, rangefinder_mask(m), B, T) if config.envelope else None
     solver_floor = NoiseFloor(m, rangefinder_mask(m), B, T, SOLVER_MARGIN) if floor and solver else None
     done: list[np.ndarray] = []
@@ -278,5 +281,5 @@ def verdict(case: Case, seconds: dict[str, Any], solver: bool = False) -> tuple[
         result = judge.result(name, config.threshold, noise, solver_floor if noise is not None else None)
     counts = dict(groups=len(groups), pieces=len(groups) * -(-T // chunk), xla=engines.last_choice(),
                   noise_floor_members=int(floor.fed.sum()) if floor is not None else 0,
-                  ambiguous_contact_steps=int(judge.ambiguous.sum()))
+                  ambiguous_contact_steps=int(judge.ambiguous.sum() + judge.ccd.found.sum()))
     return result, counts
