@@ -46,7 +46,7 @@ def _mix(x: Any, xp: Any) -> Any:
 def keys(geom: Any, flex: Any | None, xp: Any = np) -> Any:
     """(C, 2) int side keys of C contacts: the geom id, or ``-1 - flex id`` on a flex side
     (``geom`` -1), as :func:`mjxdiff.engine.stages.contacts_c` keys them."""
-    if flex is None:
+    if flex is None or flex.shape != geom.shape:  # MuJoCo Warp leaves flex (0, 2) in a model without flexes
         return geom
     return xp.where(geom >= 0, geom, -1 - flex)
 
