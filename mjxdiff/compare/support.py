@@ -591,7 +591,8 @@ _MEASURED_WARP: tuple[Entry, ...] = (
           "higher-priority geom's",
           "tests/test_mjwarp.py: a sphere 9.5 mm into a priority-1 floor, one step's qvel 0.066 apart (0.0028 at "
           "0.5 mm), 2e-8 with positive solrefs; contact_parameters fails at step 0 under --impl warp and --impl "
-          "mjx.warp (MJX's vendored copy shares it), first field qfrc_constraint of joint 'puck'",
+          "mjx.warp (MJX's vendored copy shares it); the drill-down names the contact at collision, floor / puck, "
+          "solref differs by 2e+03 (2026-11-29)",
           stage="collision", part="solref", feature="contact:direct-solref-under-priority", impl=("warp", "mjx.warp"),
           kind="bug", bundle="tests/test_mjwarp.py::test_the_higher_priority_geom_s_solref_wins_over_a_direct_one",
           remedy="give a geom that meets a higher-priority geom a positive solref (timeconst, dampratio), or none: "
