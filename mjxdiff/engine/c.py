@@ -1,7 +1,7 @@
-"""MuJoCo C behind the engine interface: :class:`CEngine` steps every member of a batch on all
-cores with :class:`mujoco.batch.Batch`, one step at a time so that each step's contacts are read
-by geom pair (:mod:`mjxdiff.engine.pairs`), recording as ``mj_step`` does (see
-:mod:`mjxdiff.engine.engines`, which re-exports it beside MJX's engines)."""
+"""MuJoCo C behind the engine interface: :class:`CEngine` steps every member of a batch with
+:class:`mujoco.batch.Batch` (on all cores, or one thread for a small batch), one step at a time
+so that each step's contacts are read by geom pair (:mod:`mjxdiff.engine.pairs`), recording as
+``mj_step`` does (see :mod:`mjxdiff.engine.engines`, which re-exports it beside MJX's engines)."""
 
 from __future__ import annotations
 
@@ -93,7 +93,7 @@ def _step_each(b: Any, models: tuple[mujoco.MjModel, ...], control: np.ndarray, 
     going = np.ones(B, bool)
     warned = b.warning[:, :, 1].sum(axis=1)
     data = mujoco.MjData(models[0])
-    gaps = models if _same_gaps(models) else None
+    shared_gaps = _same_gaps(models)
     raised: list[np.ndarray] = []
     ids, one = np.arange(B), {item: np.zeros_like(buf[:, :1]) for item, buf in out.items()}
     for i in range(k):
@@ -108,7 +108,7 @@ def _step_each(b: Any, models: tuple[mujoco.MjModel, ...], control: np.ndarray, 
         for item, buf in out.items():
             buf[ids, i] = one[item][:, 0]
         ncon = one["ncon"][:, 0]
-        if gaps is not None:
+        if shared_gaps:
             sums[ids, i] = _pair_sums(models, b, ids, ncon, data)
         else:  # each member's own gaps
             for row, j in enumerate(ids):
@@ -126,7 +126,7 @@ def _step_each(b: Any, models: tuple[mujoco.MjModel, ...], control: np.ndarray, 
 
 
 class CEngine(Streaming):
-    """MuJoCo C: :class:`mujoco.batch.Batch` over all cores, one model per member."""
+    """MuJoCo C: :class:`mujoco.batch.Batch`, one model per member."""
 
     name = "c"
     precision: Precision = "float64"
