@@ -345,12 +345,10 @@ class LoopBatch:
 
     def get_data(self, sim: int, data: mujoco.MjData | None = None) -> mujoco.MjData:
         """Simulation ``sim``'s ``MjData`` with its state and the derived fields of its last
-        step: a copy, or copied into ``data``."""
+        step: a copy; or, given ``data`` (as ``Batch`` takes one to fill), the simulation's own
+        ``MjData``, to read only (MuJoCo before 4.0 has no ``mj_copyData`` in Python)."""
         d = self._load(sim)
-        if data is None:
-            return copy.copy(d)
-        mujoco.mj_copyData(data, self._models[sim], d)  # pyright: ignore[reportAttributeAccessIssue]
-        return data
+        return copy.copy(d) if data is None else d
 
     def rollout(self, nstep: int, control=None, record: Sequence[Any] = ("qpos",),
                 out: dict[Any, np.ndarray] | None = None, ids=None) -> dict[Any, np.ndarray]:

@@ -138,3 +138,20 @@ def test_a_later_feature_is_unsupported_in_a_sweep_and_says_so_everywhere(tmp_pa
         load_model(scenario)
     [r] = sweep([scenario], SweepConfig(seed=0, batch=2, steps=10))
     assert r.status == "unsupported" and "a later MuJoCo added" in r.message, r.message
+
+
+def test_c_steps_and_reads_contacts_the_same_through_the_loop(monkeypatch):
+    """CEngine steps one step a call and reads each member's contacts by geom pair: through
+    LoopBatch (MuJoCo before 4.0: its ``ids`` and ``get_data(sim, data)``) every record, the
+    pair sums included, is the Batch's bit for bit."""
+    from mjxdiff.engine import c as c_engine
+
+    scenario = load_scenario("primitives_on_plane")
+    m = load_model(scenario)
+    inputs = make_inputs(scenario, m, seed=0, batch=3, steps=60)
+    batch = c_engine.CEngine().rollout(inputs)
+    monkeypatch.setattr(c_engine, "Batch", compat.LoopBatch)
+    loop = c_engine.CEngine().rollout(inputs)
+    assert batch.pairs.any(), "the scenario makes contacts"
+    for f in ("qpos", "qvel", "sensordata", "ncon", "pairs", "time", "diverged_at"):
+        np.testing.assert_array_equal(getattr(loop, f), getattr(batch, f), err_msg=f)
