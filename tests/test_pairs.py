@@ -51,7 +51,7 @@ def test_mjx_and_c_record_the_same_sums_for_gap_zone_contacts_and_a_wrong_pair_d
     m = mujoco.MjModel.from_xml_string(GAPS)
     b = Batch(m, 1, persistent=True)
     out = b.rollout(1, record=("ncon",))
-    c = _pair_sums((m,), b, np.arange(1), out["ncon"][:, 0], mujoco.MjData(m))[0]
+    c = _pair_sums((m,), True, b, np.arange(1), out["ncon"][:, 0], mujoco.MjData(m))[0]
     d = mujoco.MjData(m)
     mujoco.mj_forward(m, d)
     mx = mjx.put_model(m)
@@ -59,3 +59,20 @@ def test_mjx_and_c_record_the_same_sums_for_gap_zone_contacts_and_a_wrong_pair_d
     assert int(ncon) == out["ncon"][0, 0] == 3
     np.testing.assert_array_equal(np.asarray(sums), c)
     assert c.any(), "the gap-zone contacts are firm: 0.5 mm and 1 mm from their thresholds"
+
+
+def test_members_with_their_own_gaps_are_summed_each_with_its_own():
+    """A randomized gap: C's per-step read sums each member's contacts with its own model's gap
+    (the ball's gap-zone contact is firm at a gap of 1 mm, past the zone's top at 0.2 mm)."""
+    m = mujoco.MjModel.from_xml_string(GAPS)
+    narrow = mujoco.MjModel.from_xml_string(GAPS)
+    narrow.geom_gap[:] = np.minimum(narrow.geom_gap, 0.0002)
+    models = (m, narrow)
+    b = Batch(m, 2, persistent=True)
+    b.set_models(list(models))
+    out = b.rollout(1, record=("ncon",))
+    got = _pair_sums(models, False, b, np.arange(2), out["ncon"][:, 0], mujoco.MjData(m))
+    for i, mi in enumerate(models):
+        d = b.get_data(i, mujoco.MjData(mi))
+        np.testing.assert_array_equal(got[i], pairs.of_data(mi, d), err_msg=str(i))
+    assert not np.array_equal(got[0], got[1]), "the gaps decide which contacts are firm"

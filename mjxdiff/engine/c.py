@@ -57,23 +57,24 @@ class _Shake:
         x[self.rows] = roundoff_moved(x[self.rows], signs, self.size)
 
 
-def _pair_sums(models: tuple[mujoco.MjModel, ...], b: Any, ids: np.ndarray, ncon: np.ndarray,
+def _pair_sums(models: tuple[mujoco.MjModel, ...], shared_gaps: bool, b: Any, ids: np.ndarray, ncon: np.ndarray,
                data: mujoco.MjData) -> np.ndarray:
     """(len(ids), 2) uint32 pair sums (:mod:`mjxdiff.engine.pairs`) of the contacts members ``ids``
-    of the persistent batch ``b`` hold (their ``ncon``), read through ``data``. The gap is
-    ``models[0]``'s (:func:`_same_gaps`)."""
+    of the persistent batch ``b`` hold (their ``ncon``), read through ``data``; every member's
+    gaps ``models[0]``'s where ``shared_gaps`` (:func:`_same_gaps`), else each its own."""
     rows = np.flatnonzero(ncon)
-    if not len(rows):
-        return np.zeros((len(ids), 2), np.uint32)
-    parts = []
+    read = []
     for row in rows:
         d = b.get_data(int(ids[row]), data)
         c, n = d.contact, d.ncon
-        parts.append((c.geom[:n].copy(), c.flex[:n].copy(), c.dist[:n].copy(), c.includemargin[:n].copy()))
-    geom, flex, dist, margin = (np.concatenate(x) for x in zip(*parts))
-    key = pairs.keys(geom, flex)
-    gap = np.where(key.min(axis=1) >= 0, stages.contact_gap(models[0], np.maximum(key, 0)), 0.0)
-    return pairs.host_signatures(key, dist, margin, gap, np.repeat(rows, ncon[rows]), len(ids))
+        read.append((pairs.keys(c.geom[:n], c.flex[:n]), c.dist[:n].copy(), c.includemargin[:n].copy()))
+    if shared_gaps and read:
+        key, dist, margin = (np.concatenate(x) for x in zip(*read))
+        return pairs.host_sums(models[0], key, dist, margin, np.repeat(rows, ncon[rows]), len(ids))
+    out = np.zeros((len(ids), 2), np.uint32)
+    for row, (key, dist, margin) in zip(rows, read):
+        out[row] = pairs.host_sums(models[int(ids[row])], key, dist, margin, np.zeros(len(dist), int), 1)[0]
+    return out
 
 
 def _same_gaps(models: tuple[mujoco.MjModel, ...]) -> bool:
@@ -107,12 +108,7 @@ def _step_each(b: Any, models: tuple[mujoco.MjModel, ...], control: np.ndarray, 
                 raised.append(np.asarray(e.ids))
         for item, buf in out.items():
             buf[ids, i] = one[item][:, 0]
-        ncon = one["ncon"][:, 0]
-        if shared_gaps:
-            sums[ids, i] = _pair_sums(models, b, ids, ncon, data)
-        else:  # each member's own gaps
-            for row, j in enumerate(ids):
-                sums[j, i] = _pair_sums((models[j],), b, ids[row:row + 1], ncon[row:row + 1], data)[0]
+        sums[ids, i] = _pair_sums(models, shared_gaps, b, ids, one["ncon"][:, 0], data)
         if i and len(ids) < B:
             stopped = ~going
             for item, buf in out.items():

@@ -103,17 +103,13 @@ def _contacts(mx: mjx.Model, dx: mjx.Data, world: jax.Array | None = None) -> tu
         active &= impl.contact__worldid == world  # pyright: ignore[reportAttributeAccessIssue]
         key = pairs.keys(impl.contact__geom, impl.contact__flex, jnp)  # pyright: ignore[reportAttributeAccessIssue]
         margin = impl.contact__includemargin  # pyright: ignore[reportAttributeAccessIssue]
-        gap = jnp.where(key.min(axis=1) >= 0, stages.contact_gap(mx, jnp.maximum(key, 0), jnp), 0.0)
-        ok = active & pairs.firm(dist, margin, gap, jnp)
-        sums = jnp.sum(jnp.where(ok[:, None], pairs.hashes(key, jnp), jnp.uint32(0)), axis=0, dtype=jnp.uint32)
-        return jnp.sum(active).astype(jnp.int32), sums
+        return jnp.sum(active).astype(jnp.int32), pairs.sums(mx, key, dist, margin, active, jnp)
     c = impl.contact  # pyright: ignore[reportAttributeAccessIssue] - the JAX implementation's Data
     if c.dist.shape[0] == 0:
         return jnp.zeros((), jnp.int32), None
     geom = jnp.stack([c.geom1, c.geom2], -1)
     gap = stages.contact_gap(mx, geom, jnp)
-    ok = pairs.firm(c.dist, c.includemargin, gap, jnp)
-    sums = jnp.sum(jnp.where(ok[:, None], pairs.hashes(geom, jnp), jnp.uint32(0)), axis=0, dtype=jnp.uint32)
+    sums = pairs.sums(mx, geom, c.dist, c.includemargin, xp=jnp)
     return jnp.sum(c.dist < c.includemargin + gap), sums
 
 

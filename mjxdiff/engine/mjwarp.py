@@ -227,9 +227,8 @@ class MJWarpEngine(Streaming):
         rec["ncon"].append(np.bincount(world, minlength=d.nworld)[:d.nworld])
         flex = d.contact.flex.numpy()[:n] if hasattr(d.contact, "flex") else None
         key = pairs.keys(d.contact.geom.numpy()[:n], flex)
-        gap = np.where(key.min(axis=1, initial=0) >= 0, stages.contact_gap(m, np.maximum(key, 0)), 0.0)
-        rec["pairs"].append(pairs.host_signatures(key, d.contact.dist.numpy()[:n], d.contact.includemargin.numpy()[:n],
-                                                  gap, world, d.nworld))
+        rec["pairs"].append(pairs.host_sums(m, key, d.contact.dist.numpy()[:n], d.contact.includemargin.numpy()[:n],
+                                            world, d.nworld))
 
     @staticmethod
     def _trajectory(rec: dict[str, list], m: mujoco.MjModel, B: int, start: int) -> Trajectory:

@@ -12,8 +12,8 @@ A contact is firm when C counts it (``dist < includemargin + gap``) and its ``di
 difference (and MJX counts ``dist < margin`` strictly where C keeps touching contacts): it is
 left out on both sides, so a difference in it alone is ambiguous, not a mismatch.
 
-The hashes are MurmurHash3's finaliser of the pair's keys, with two seeds; uint32 sums wrap modulo 2**32 in
-NumPy and XLA alike, so an engine inside a trace (``xp = jax.numpy``) and one on the host
+The hashes are MurmurHash3's finaliser of the pair's keys, with two seeds; uint32 sums wrap
+modulo 2**32 in NumPy and XLA alike, so an engine inside a trace (``xp = jax.numpy``) and one on the host
 (``xp = numpy``) agree bit for bit.
 """
 
@@ -24,7 +24,10 @@ from typing import Any
 import mujoco
 import numpy as np
 
-__all__ = ["GRAZING", "decode", "describe_pairs", "firm", "hashes", "host_signatures", "keys", "mismatch", "of_data"]
+from mjxdiff.engine.stages import contact_gap
+
+__all__ = ["GRAZING", "decode", "describe_pairs", "firm", "gaps", "hashes", "host_sums", "keys", "mismatch", "of_data",
+           "sums"]
 
 #: m: a contact whose ``dist`` lies this close to ``includemargin`` (or ``includemargin + gap``)
 #: is grazing: counted by neither engine's pair sums (MuJoCo's parity method's ``dist_tolerance``).
@@ -64,13 +67,26 @@ def firm(dist: Any, includemargin: Any, gap: Any, xp: Any = np) -> Any:
     return (dist < top) & (xp.abs(dist - includemargin) > GRAZING) & (xp.abs(dist - top) > GRAZING)
 
 
-def host_signatures(key: np.ndarray, dist: np.ndarray, includemargin: np.ndarray, gap: np.ndarray,
-                    world: np.ndarray, nworld: int) -> np.ndarray:
-    """(nworld, 2) uint32 pair sums of the contacts of ``nworld`` worlds, the C contacts given as
-    (C, 2) side keys, (C,) ``dist``, ``includemargin``, gap and world index."""
+def gaps(m: Any, key: Any, xp: Any = np) -> Any:
+    """(C,) the gap of each contact by its side keys ``key`` (C, 2): :func:`mjxdiff.engine.stages.contact_gap`'s
+    for two geoms, 0 with a flex side. ``m``: a C ``MjModel`` or an MJX ``Model``."""
+    return xp.where(key.min(axis=1) >= 0, contact_gap(m, xp.maximum(key, 0), xp), 0.0)
+
+
+def sums(m: Any, key: Any, dist: Any, includemargin: Any, valid: Any = True, xp: Any = np) -> Any:
+    """(2,) uint32 pair sums of C contacts (``valid`` ones): (C, 2) side keys, (C,) ``dist`` and
+    ``includemargin``; inside a trace with ``xp = jax.numpy``."""
+    ok = valid & firm(dist, includemargin, gaps(m, key, xp), xp)
+    return xp.sum(xp.where(ok[:, None], hashes(key, xp), xp.uint32(0)), axis=0, dtype=xp.uint32)
+
+
+def host_sums(m: mujoco.MjModel, key: np.ndarray, dist: np.ndarray, includemargin: np.ndarray,
+              world: np.ndarray, nworld: int) -> np.ndarray:
+    """(nworld, 2) uint32 pair sums of the C contacts of ``nworld`` worlds, on the host: (C, 2)
+    side keys, (C,) ``dist``, ``includemargin`` and world index."""
     out = np.zeros((nworld, 2), np.uint32)
     if len(dist):
-        ok = firm(dist, includemargin, gap)
+        ok = firm(dist, includemargin, gaps(m, key))
         np.add.at(out, world[ok], hashes(np.asarray(key)[ok]))
     return out
 
@@ -137,13 +153,5 @@ def describe_pairs(m: mujoco.MjModel, decoded: list[tuple[tuple[int, int], int]]
 
 def of_data(m: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
     """(2,) uint32 pair sums of the contacts C's ``d`` holds (after a forward pass)."""
-    n = d.ncon
-    key = keys(d.contact.geom[:n], d.contact.flex[:n])
-    gap = np.where(key.min(axis=1, initial=0) >= 0, _gap(m, np.maximum(key, 0)), 0.0)
-    return host_signatures(key, d.contact.dist[:n], d.contact.includemargin[:n], gap, np.zeros(n, int), 1)[0]
-
-
-def _gap(m: mujoco.MjModel, geom: np.ndarray) -> np.ndarray:
-    from mjxdiff.engine.stages import contact_gap
-
-    return contact_gap(m, geom)
+    n, c = d.ncon, d.contact
+    return host_sums(m, keys(c.geom[:n], c.flex[:n]), c.dist[:n], c.includemargin[:n], np.zeros(n, int), 1)[0]
