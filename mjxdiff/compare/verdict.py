@@ -227,7 +227,8 @@ class _FractionTrack:
         if not healthy.any():
             return FieldResult(field, 0.0, self.tol, -1, -1, "", 0.0)
         frac = np.where(healthy, self.fraction, 0.0)
-        ratio = frac / allowed
+        # with nothing allowed, any mismatch is out of bound: ratio inf, none 0
+        ratio = np.divide(frac, allowed, out=np.where(frac > 0, np.inf, 0.0), where=allowed > 0)
         member = int(ratio.argmax())
         step = int(self.first_step[member]) if ratio[member] > 1 else -1
         return FieldResult(field, float(frac[member]), self.tol, step, member, "", 0.0,

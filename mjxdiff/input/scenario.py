@@ -77,8 +77,10 @@ class Tolerances:
       qvel: joint velocity error, m/s or rad/s.
       act: actuator activation error, in the actuator's own units.
       sensordata: absolute sensor error, in each sensor's units.
-      contact_mismatch: largest fraction of steps whose contact count differs
-        (MJX drops exactly-touching contacts that C keeps, so 0 is too strict).
+      contact_mismatch: largest fraction of steps whose firm contacts differ pair by pair
+        (:mod:`mjxdiff.engine.pairs`; grazing and ccd-ambiguous contacts are set aside, not
+        judged). 0 by default, as in MuJoCo's parity method: any unambiguous mismatch fails
+        unless C's own perturbed rerun shows as many (twice C's own fraction is allowed).
       rangefinder_mismatch: largest fraction of (step, ray) pairs where one
         engine hits and the other does not.
     """
@@ -87,7 +89,7 @@ class Tolerances:
     qvel: float = 1e-5
     act: float = 1e-6
     sensordata: float = 1e-4
-    contact_mismatch: float = 0.05
+    contact_mismatch: float = 0.0
     rangefinder_mismatch: float = 0.02
 
     def for_precision(self, precision: Precision) -> "Tolerances":
