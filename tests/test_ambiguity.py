@@ -6,6 +6,7 @@ import numpy as np
 
 from mjxdiff.compare import ambiguity
 from mjxdiff.compare.ambiguity import CcdAmbiguity
+from mjxdiff.engine import pairs
 
 #: Two boxes stacked face to face, exactly aligned, on a floor: each box pair touches at corners a
 #: turn of 1e-6 rad (a ccd_tolerance) picks; both penetrate (no contact grazes its threshold).
@@ -50,3 +51,36 @@ def test_the_positions_before_each_step_carry_over_pieces():
     np.testing.assert_array_equal(got[:, 0], 0.0)
     np.testing.assert_array_equal(got[:, 1:], piece[:, :2])
     np.testing.assert_array_equal(check.before(piece[1:], np.array([1]))[0, 0], piece[1, -1])
+
+
+def test_a_mismatch_is_explained_by_the_state_only_where_c_there_makes_the_tested_engine_s_pairs():
+    """Once the states part by rounding, a box lands a step earlier in one engine: C's collision at
+    the tested engine's own state makes the tested engine's pairs, so the mismatch is the state's
+    (the state fields judge it). A contact C would not make at that state is not explained."""
+    m = mujoco.MjModel.from_xml_string(STACK)
+    d = mujoco.MjData(m)
+    landed, lifted = m.qpos0.copy(), m.qpos0.copy()
+    landed[9] = 0.5  # box a alone on the floor (not ambiguous: the test above), b in the air
+    lifted[2] = lifted[9] = 0.5  # both boxes up in the air: no contact at all
+    sums = {}
+    for name, qpos in (("landed", landed), ("lifted", lifted)):
+        d.qpos[:] = qpos
+        mujoco.mj_fwdPosition(m, d)
+        sums[name] = pairs.of_data(m, d)
+    assert not np.array_equal(sums["landed"], sums["lifted"])
+    check = CcdAmbiguity((m,), m.qpos0[None])
+    assert check.state_explains(0, lifted, sums["lifted"])
+    assert not check.state_explains(0, lifted, sums["landed"]), "contacts C would not make there"
+    assert not check.state_explains(0, np.full(m.nq, np.nan), sums["lifted"]), "a blown-up state explains nothing"
+    assert check.explained.tolist() == [1]
+    # in a piece: C's states stay landed, the tested engine's lift off at step 1 (its sums say so)
+    # and at step 2 claim no contact while landed; only step 1 is cleared, and without a perturbation
+    before_c = np.tile(landed, (1, 3, 1))
+    before_mjx = before_c.copy()
+    before_mjx[0, 1] = lifted
+    tested_sums = np.tile(sums["landed"], (1, 3, 1))
+    tested_sums[0, 1:] = sums["lifted"]
+    differ = np.array([[False, True, True]])
+    kept = check.filter(differ, before_c, np.arange(1), tested=(before_mjx, tested_sums))
+    assert kept.tolist() == [[False, False, True]] and check.explained.tolist() == [2]
+    assert check.checked.tolist() == [1], "only the unexplained step was perturbed"

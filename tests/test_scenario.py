@@ -69,3 +69,5 @@ def test_float32_tolerances_are_looser_but_never_tighter():
     assert t32.qpos == 1e-2  # already above the float32 floor: kept
     assert t32.qvel > t64.qvel
     assert t64.for_precision("float64") is t64
+    # no contact allowance in float64; float32 collision arithmetic gets one (mjxdiff.input.precision)
+    assert (t64.contact_mismatch, t32.contact_mismatch) == (0.0, 0.05)

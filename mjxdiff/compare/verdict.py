@@ -523,12 +523,13 @@ class Judge:
         # a step where some geom pair's count of firm contacts differs; a count that differs only
         # in grazing contacts is ambiguous (mjxdiff.engine.pairs)
         differ = pairs.mismatch(traj_mjx.pairs, traj_c.pairs)
+        self.ambiguous[members] += ((np.asarray(series["ncon"]) > 0) & ~differ).sum(axis=1)
         if self.ccd is not None:
             before = self.ccd.before(traj_c.qpos, members)
+            tested = self.ccd.before(traj_mjx.qpos, members, "mjx")
             if differ.any():
-                differ = self.ccd.filter(differ, before, members, start)
+                differ = self.ccd.filter(differ, before, members, start, (tested, np.asarray(traj_mjx.pairs)))
         self.contacts.update(differ.astype(float), traj_c.time, start, members)
-        self.ambiguous[members] += ((np.asarray(series["ncon"]) > 0) & ~differ).sum(axis=1)
         first = differ.argmax(axis=1)
         for row in np.flatnonzero(differ.any(axis=1) & (self.pair_delta_step[members] < 0)):
             i, k = int(members[row]), int(first[row])

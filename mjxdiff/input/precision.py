@@ -29,7 +29,10 @@ class Thresholds:
       transfer_rtol: relative threshold of the host-interface check (:mod:`mjxdiff.compare.transfer`).
       tolerance_floor: least rollout tolerance per field (:meth:`mjxdiff.input.scenario.Tolerances.for_precision`);
         float32 rounding (eps ~1.2e-7) accumulates over hundreds of steps, and these floors
-        were measured on the bundled calm scenarios (see README).
+        were measured on the bundled calm scenarios (see README). ``contact_mismatch``: float32
+        collision arithmetic is not C's float64 on a float32 state (the shadow): MJX's
+        plane-cylinder distance in float32 was 2.1e-5 m from C's at the same rounded state, past
+        the grazing band, so a contact may start a step apart (primitives_on_plane, seed 2).
     """
 
     eps: float
@@ -65,6 +68,9 @@ THRESHOLDS: dict[Precision, Thresholds] = {
     "float64": Thresholds(eps=float(np.finfo(np.float64).eps), stage_rtol=1e-9, transfer_rtol=1e-12,
                           tolerance_floor={}),
     "float32": Thresholds(eps=float(np.finfo(np.float32).eps), stage_rtol=1e-4, transfer_rtol=1e-6,
-                          tolerance_floor={"qpos": 1e-3, "qvel": 1e-2, "act": 1e-3, "sensordata": 5e-2},
+                          tolerance_floor={"qpos": 1e-3, "qvel": 1e-2, "act": 1e-3, "sensordata": 5e-2,
+                                           # float32 collision arithmetic misplaces a contact by more than the
+                                           # 1e-5 m grazing band (MJX's plane-cylinder: 2.1e-5 m, measured)
+                                           "contact_mismatch": 0.05},
                           stage_tolerance=STAGE_TOLERANCE_FLOAT32),
 }

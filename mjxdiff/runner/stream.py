@@ -219,7 +219,9 @@ def verdict(case: Case, seconds: dict[str, Any], solver: bool = False) -> tuple[
       The verdict, and the counts of ``groups``, ``pieces``, ``noise_floor_members`` (members
       whose perturbed rerun ran) and ``ambiguous_contact_steps`` (member-steps whose contacts
       differ in grazing contacts alone, :mod:`mjxdiff.engine.pairs`, or in pairs C itself
-      changes under the parity method's perturbations, :mod:`mjxdiff.compare.ambiguity`: not judged).
+      changes under the parity method's perturbations, :mod:`mjxdiff.compare.ambiguity`: not judged)
+      and ``contact_steps_explained_by_state`` (member-steps whose pairs differ where C, at the
+      tested engine's own state, makes the tested engine's pairs: not judged).
 
     Raises:
       UnsupportedError, EngineFailed: from the engines.
@@ -281,5 +283,6 @@ def verdict(case: Case, seconds: dict[str, Any], solver: bool = False) -> tuple[
         result = judge.result(name, config.threshold, noise, solver_floor if noise is not None else None)
     counts = dict(groups=len(groups), pieces=len(groups) * -(-T // chunk), xla=engines.last_choice(),
                   noise_floor_members=int(floor.fed.sum()) if floor is not None else 0,
-                  ambiguous_contact_steps=int(judge.ambiguous.sum() + judge.ccd.found.sum()))
+                  ambiguous_contact_steps=int(judge.ambiguous.sum() + judge.ccd.found.sum()),
+                  contact_steps_explained_by_state=int(judge.ccd.explained.sum()))
     return result, counts
