@@ -281,8 +281,13 @@ def verdict(case: Case, seconds: dict[str, Any], solver: bool = False) -> tuple[
     with clocked(seconds, "verdict"):
         noise = floor if floor is not None and floor.fed.any() else None
         result = judge.result(name, config.threshold, noise, solver_floor if noise is not None else None)
-    counts = dict(groups=len(groups), pieces=len(groups) * -(-T // chunk), xla=engines.last_choice(),
-                  noise_floor_members=int(floor.fed.sum()) if floor is not None else 0,
-                  ambiguous_contact_steps=int(judge.ambiguous.sum() + judge.ccd.found.sum()),
-                  contact_steps_explained_by_state=int(judge.ccd.explained.sum()))
-    return result, counts
+    return result, _counts(judge, floor, len(groups) * -(-T // chunk), len(groups))
+
+
+def _counts(judge: Judge, floor: NoiseFloor | None, pieces: int, groups: int) -> dict[str, Any]:
+    """What :func:`verdict` returns beside the verdict, from its judge and noise floor."""
+    assert judge.ccd is not None  # set by verdict
+    return dict(groups=groups, pieces=pieces, xla=engines.last_choice(),
+                noise_floor_members=int(floor.fed.sum()) if floor is not None else 0,
+                ambiguous_contact_steps=int(judge.ambiguous.sum() + judge.ccd.found.sum()),
+                contact_steps_explained_by_state=int(judge.ccd.explained.sum()))
