@@ -106,6 +106,25 @@ def test_the_higher_priority_geom_s_solref_wins_over_a_direct_one():
     np.testing.assert_allclose(qvel, d.qvel, atol=1e-5)
 
 
+def test_the_drill_down_names_mujoco_warp_beside_c_in_a_contact_s_description():
+    """The catalogued solref slip (above) seen by the drill-down from one state: the contact's
+    description names the engine under test as MuJoCo Warp, not MJX; the data keeps its keys."""
+    import mujoco
+
+    from mjxdiff.compare.diagnose import drill_down
+
+    xml = """<mujoco><option timestep="0.002" cone="elliptic"/><worldbody>
+      <geom name="floor" type="plane" size="3 3 .1" solref="0.015 0.9" priority="1"/>
+      <body pos="0 0 0.0405"><freejoint/><geom name="ball" type="sphere" size="0.05" solref="-2000 -40"/></body>
+      </worldbody></mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    drill = drill_down(m, m.qpos0, np.zeros(m.nv), np.zeros(0), np.zeros(0), 0.0, "float32",
+                       engine=mjwarp.MJWarpEngine())
+    assert drill.first_stage == "collision", drill
+    assert drill.object == "geoms floor / ball (plane-sphere: C 1, MuJoCo Warp 1 contacts; solref differs by 2e+03)"
+    assert (drill.contact["c"], drill.contact["mjx"], drill.contact["part"]) == (1, 1, "solref")
+
+
 def test_an_overflowed_buffer_is_named_and_sized_buffers_do_not_overflow():
     """MJWarp's overflow bitmask is read after every step: data sized as the engine sizes it
     (2x C's peak contacts) stays clear; the same model with room for one contact overflows, and

@@ -25,6 +25,7 @@ import mujoco
 import numpy as np
 
 from mjxdiff.engine.stages import PARAMETERS, Contacts, contacts_c as _contacts_c, contacts_mjx as _contacts_mjx  # noqa: F401
+from mjxdiff.input.options import ENGINES
 from mjxdiff.input.precision import THRESHOLDS, Precision
 from mjxdiff.errors import one_line
 from mjxdiff.compat import full_inertia, sensor_types
@@ -211,12 +212,13 @@ def _regularisation_explains(m: mujoco.MjModel, d: mujoco.MjData | None, pair: t
 
 
 def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts, floor: float = 0.0,
-                  d: mujoco.MjData | None = None) -> tuple[float, str, dict[str, Any] | None]:
+                  d: mujoco.MjData | None = None, label: str = "MJX") -> tuple[float, str, dict[str, Any] | None]:
     """Worst contact disagreement: inf for a geom pair whose contact count differs, else the
     largest |dist|, |pos|, |friction| or frame difference, each engine's contacts matched by
     position. What differs (:func:`_part`) is the geometry where it differs by more than
     ``floor``; a normal's difference is said as an angle. ``d``: C's data after ``mj_forward``,
-    to tell MJX's capsule regularisation (:func:`_regularisation_explains`).
+    to tell MJX's capsule regularisation (:func:`_regularisation_explains`); ``label`` names the
+    engine under test in the description.
     Returns (error, the pair's description, its :func:`contact_detail`; None if no pair)."""
     worst, obj, detail = 0.0, "", None
     for pair in sorted(set(cc) | set(cx)):
@@ -238,7 +240,7 @@ def _contact_diff(m: mujoco.MjModel, cc: Contacts, cx: Contacts, floor: float = 
             said = (f"; normal differs by {_normal_angle(a, b):.2g} degrees" if which == "normal"
                     else f"; {which} differs by {amount:.2g}" if which else "")
             explained = "segment regularisation" if diff.size and _regularisation_explains(m, d, pair, b) else None
-            worst, obj = err, f"geoms {names} ({kinds}: C {len(a)}, MJX {len(b)} contacts{said})"
+            worst, obj = err, f"geoms {names} ({kinds}: C {len(a)}, {label} {len(b)} contacts{said})"
             detail = contact_detail(kinds, named, len(a), len(b), which, explained)
     return worst, obj, detail
 
@@ -278,7 +280,8 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
             if f == "contact":
                 dc = copy.copy(d)
                 mujoco.mj_forward(m, dc)  # C's poses, for the capsule formulas
-                err, obj, detail = _contact_diff(m, reference.contacts, contacts_x, 1e3 * rtol, dc)
+                label = ENGINES[engine.name].label if engine is not None and engine.name in ENGINES else "MJX"
+                err, obj, detail = _contact_diff(m, reference.contacts, contacts_x, 1e3 * rtol, dc, label)
                 diffs.append(StageDiff(stage, f, err, obj, err > 1e3 * rtol, detail))
                 continue
             c, x = values_c[f], values_x[f]

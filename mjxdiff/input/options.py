@@ -34,12 +34,14 @@ __all__ = ["COMPILE_MODES", "ENGINES", "IMPLS", "NOISE_FLOOR_MODES", "PAIRS", "W
 @dataclasses.dataclass(frozen=True)
 class EngineEntry:
     """An implementation judged against MuJoCo C: its :class:`~mjxdiff.engine.trajectory.Engine`
-    class (``module``, ``name``; imported on first use) and whether it computes in float32 only
-    (then a sweep judges, perturbs and tolerances it as float32, and keeps its reproducers apart)."""
+    class (``module``, ``name``; imported on first use), whether it computes in float32 only
+    (then a sweep judges, perturbs and tolerances it as float32, and keeps its reproducers apart)
+    and how messages name it beside C (``C 1, MJX 2 contacts``)."""
 
     module: str
     name: str
     float32: bool = False
+    label: str = "MJX"
 
 
 #: The implementations a sweep can judge, by ``SweepConfig.impl`` and ``--impl``. An engine's whole
@@ -47,8 +49,8 @@ class EngineEntry:
 #: :func:`mjxdiff.runner.sweep.engine_class` are read from here.
 ENGINES: dict[str, EngineEntry] = {
     "mjx": EngineEntry("mjxdiff.engine.engines", "MJXEngine"),
-    "warp": EngineEntry("mjxdiff.engine.mjwarp", "MJWarpEngine", float32=True),
-    "mjx.warp": EngineEntry("mjxdiff.engine.engines", "MJXWarpEngine", float32=True),
+    "warp": EngineEntry("mjxdiff.engine.mjwarp", "MJWarpEngine", float32=True, label="MuJoCo Warp"),
+    "mjx.warp": EngineEntry("mjxdiff.engine.engines", "MJXWarpEngine", float32=True, label="MJX (warp)"),
 }
 #: Implementations a sweep can judge against MuJoCo C.
 IMPLS = tuple(ENGINES)
