@@ -280,7 +280,7 @@ def drill_down(m: mujoco.MjModel, qpos: np.ndarray | jax.Array, qvel: np.ndarray
             if f == "contact":
                 dc = copy.copy(d)
                 mujoco.mj_forward(m, dc)  # C's poses, for the capsule formulas
-                label = ENGINES[engine.name].label if engine is not None and engine.name in ENGINES else "MJX"
+                label = ENGINES.get(getattr(engine, "name", "mjx"), ENGINES["mjx"]).label
                 err, obj, detail = _contact_diff(m, reference.contacts, contacts_x, 1e3 * rtol, dc, label)
                 diffs.append(StageDiff(stage, f, err, obj, err > 1e3 * rtol, detail))
                 continue

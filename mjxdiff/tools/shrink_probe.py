@@ -139,6 +139,8 @@ class _Forward:
     """The engine :func:`probe`'s drill-down runs: MJX's forward as
     :meth:`mjxdiff.engine.engines.MJXEngine.forward`, compiled by :func:`_jitted`."""
 
+    name = "mjx"
+
     def forward(self, m: mujoco.MjModel, d: mujoco.MjData, fields: tuple[str, ...]):
         from mujoco import mjx
 
