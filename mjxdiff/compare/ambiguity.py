@@ -73,6 +73,12 @@ class CcdAmbiguity:
         last[members] = qpos[:, -1]
         return out
 
+    def _data_of(self, member: int) -> mujoco.MjData:
+        """``member``'s scratch MjData, made on first use."""
+        if member not in self._data:
+            self._data[member] = mujoco.MjData(self.models[member])
+        return self._data[member]
+
     def _sums(self, m: mujoco.MjModel, d: mujoco.MjData, qpos: np.ndarray) -> np.ndarray:
         d.qpos[:] = qpos
         mujoco.mj_fwdPosition(m, d)  # pyright: ignore[reportAttributeAccessIssue]
@@ -82,7 +88,7 @@ class CcdAmbiguity:
         """Whether C's firm contact pairs at ``qpos``, the state before ``step``, change under a
         perturbation (counted); the ``qpos`` move is drawn from (seed, member, step)."""
         m = self.models[member]
-        d = self._data.setdefault(member, mujoco.MjData(m))
+        d = self._data_of(member)
         base = self._sums(m, d, qpos)
         tol = float(m.opt.ccd_tolerance)
         if member not in self._scaled:
@@ -104,8 +110,7 @@ class CcdAmbiguity:
         if not np.isfinite(qpos).all():
             return False
         m = self.models[member]
-        same = bool(np.array_equal(self._sums(m, self._data.setdefault(member, mujoco.MjData(m)), qpos),
-                                   np.asarray(sums, np.uint32)))
+        same = bool(np.array_equal(self._sums(m, self._data_of(member), qpos), np.asarray(sums, np.uint32)))
         self.explained[member] += same
         return same
 
